@@ -1,0 +1,1 @@
+"""The ``cadalign`` command line: one thin file per command."""

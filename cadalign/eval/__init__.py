@@ -1,0 +1,1 @@
+"""Metrics, the accuracy-versus-time benchmark and the HTML report."""

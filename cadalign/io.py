@@ -1,0 +1,136 @@
+"""Atomic file writes and the stage manifest (resolved config + version beside outputs).
+
+Every long stage writes through these helpers so that an interrupted run never
+leaves a half-written file under its final name: data goes to a temporary file
+in the same directory and is moved into place with ``os.replace``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cadalign._version import __version__
+from cadalign.errors import ConfigError, InputError
+
+MANIFEST_NAME = "cadalign_stage.json"
+
+
+@contextlib.contextmanager
+def atomic_path(path: Path) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; move it into place on success."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+
+
+def write_bytes(path: Path, data: bytes) -> Path:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
+
+
+def write_text(path: Path, text: str) -> Path:
+    return write_bytes(path, text.encode("utf-8"))
+
+
+def write_json(path: Path, obj: Any, *, indent: int | None = 2) -> Path:
+    return write_text(path, json.dumps(obj, indent=indent, default=_json_default) + "\n")
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (np.floating, np.integer, np.bool_)):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def read_json(path: Path) -> Any:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"missing file: {path}")
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path} is not valid JSON ({exc}); delete it and re-run the stage") from exc
+
+
+def write_image(path: Path, image: np.ndarray) -> Path:
+    """Write an image (uint8/uint16; RGB order for 3 channels) atomically; format from the suffix."""
+    import cv2
+
+    img = image
+    if img.ndim == 3 and img.shape[2] == 3:
+        img = img[..., ::-1]
+    ok, buf = cv2.imencode(Path(path).suffix, np.ascontiguousarray(img))
+    if not ok:
+        raise InputError(f"could not encode image for {path}")
+    return write_bytes(path, buf.tobytes())
+
+
+def read_image(path: Path, *, unchanged: bool = False) -> np.ndarray:
+    """Read an image as RGB uint8 (or unchanged depth, e.g. uint16), naming the file on failure."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"image not found: {path}")
+    flag = cv2.IMREAD_UNCHANGED if unchanged else cv2.IMREAD_COLOR
+    img = cv2.imread(str(path), flag)
+    if img is None:
+        raise InputError(f"could not decode image {path}: the file is corrupt or not an image; replace or remove it")
+    if img.ndim == 3 and img.shape[2] >= 3:
+        img = img[..., 2::-1] if img.shape[2] == 3 else img[..., [2, 1, 0, 3]]
+    return np.ascontiguousarray(img)
+
+
+def fingerprint(obj: Any) -> str:
+    """A stable short hash of a JSON-serialisable object (configs, input lists)."""
+    blob = json.dumps(obj, sort_keys=True, default=_json_default).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def prepare_stage_dir(out_dir: Path, stage: str, config: dict[str, Any], *, overwrite: bool = False) -> bool:
+    """Claim ``out_dir`` for a stage run with ``config``.
+
+    Returns True when outputs of an identical config already exist there (the
+    caller may reuse finished work). A directory made with a *different*
+    config is refused unless ``overwrite`` is set, so results never silently
+    mix two configurations.
+
+    Raises:
+        ConfigError: the directory holds results of another config or stage.
+    """
+    out_dir = Path(out_dir)
+    manifest_path = out_dir / MANIFEST_NAME
+    record = {"stage": stage, "config": config, "version": __version__, "fingerprint": fingerprint(config)}
+    if manifest_path.exists() and not overwrite:
+        old = read_json(manifest_path)
+        if old.get("stage") != stage or old.get("fingerprint") != record["fingerprint"]:
+            raise ConfigError(
+                f"{out_dir} holds '{old.get('stage')}' results made with another config "
+                f"(fingerprint {old.get('fingerprint')} vs {record['fingerprint']}); "
+                "choose another output directory or pass --overwrite"
+            )
+        return True
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_json(manifest_path, record)
+    return False

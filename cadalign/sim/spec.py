@@ -1,0 +1,191 @@
+"""Scene spec: the validated content of a scene TOML file.
+
+World frame: metres, z up, the seabed at z = 0. Object poses are given as a
+position and roll/pitch/yaw in degrees (extrinsic x-y-z, ``R = Rz(yaw) Ry(pitch) Rx(roll)``);
+Euler angles appear only here, at I/O.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from cadalign.config import bounded, from_dict, read_mapping
+from cadalign.errors import InputError
+
+TrajectoryKind = Literal["orbit", "lawnmower", "approach", "hover"]
+TextureName = Literal["painted_steel", "yellow_paint", "rust", "marine_growth", "sediment", "galvanised"]
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    width: int = bounded(640, ge=8)
+    """Image width in pixels."""
+    height: int = bounded(480, ge=8)
+    """Image height in pixels."""
+    hfov_deg: float = bounded(70.0, gt=1.0, lt=179.0)
+    """Horizontal field of view in degrees (square pixels, principal point at the centre)."""
+
+
+@dataclass(frozen=True)
+class TrajectorySpec:
+    kind: TrajectoryKind = "orbit"
+    """orbit: circle around `center`; lawnmower: back-and-forth lines over an area;
+    approach: straight line towards `center` from `radius_m` to `standoff_m`; hover: station keeping with jitter."""
+    center: tuple[float, float, float] = (0.0, 0.0, 2.0)
+    """The point the camera looks at (orbit/approach/hover) or the area centre (lawnmower), metres."""
+    radius_m: float = bounded(9.0, gt=0.0)
+    """Orbit radius / approach start distance / hover distance, metres."""
+    height_m: float = 3.0
+    """Camera height above the seabed, metres."""
+    standoff_m: float = bounded(3.0, gt=0.0)
+    """Approach: final distance to `center`, metres."""
+    start_deg: float = 0.0
+    """Orbit/approach/hover: azimuth of the start position, degrees."""
+    area_m: tuple[float, float] = (12.0, 12.0)
+    """Lawnmower: size of the surveyed rectangle, metres."""
+    line_spacing_m: float = bounded(3.0, gt=0.0)
+    """Lawnmower: distance between survey lines, metres."""
+    pitch_down_deg: float = bounded(35.0, ge=0.0, le=90.0)
+    """Lawnmower: camera pitch below the horizon, degrees."""
+    speed_mps: float = bounded(0.5, gt=0.0)
+    """ROV speed along the path, metres per second (sets frame spacing and motion blur).
+    Orbits wrap around; lawnmower and approach paths hold at their end."""
+    fps: float = bounded(0.5, gt=0.0)
+    """Frames per second of the rendered clip (frame k is at time k / fps)."""
+    frames: int = bounded(60, ge=1)
+    """Number of frames (overridable with --frames)."""
+    jitter_m: float = bounded(0.02, ge=0.0)
+    """Smooth positional jitter amplitude (ROV station keeping), metres."""
+    shutter_s: float = bounded(0.02, ge=0.0)
+    """Exposure time, seconds (motion blur integrates the motion over it)."""
+
+
+@dataclass(frozen=True)
+class WaterSpec:
+    jerlov: str = "II"
+    """Jerlov water type (I, IA, IB, II, III, 1C, 3C, 5C, 7C, 9C); ignored when beta_D is given."""
+    beta_D: tuple[float, float, float] | None = None
+    """Explicit direct-signal attenuation per R,G,B channel, 1/m."""
+    beta_B: tuple[float, float, float] | None = None
+    """Explicit backscatter coefficient per R,G,B channel, 1/m."""
+    B_inf: tuple[float, float, float] | None = None
+    """Explicit veiling light per R,G,B channel, linear [0, 1]."""
+
+
+@dataclass(frozen=True)
+class LightSpec:
+    offset_m: tuple[float, float, float] = (0.0, -0.3, 0.0)
+    """Lamp position in the camera frame (x right, y down, z forward), metres."""
+    direction: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    """Lamp axis in the camera frame."""
+    intensity: float = bounded(40.0, ge=0.0)
+    """Radiant intensity on the axis (irradiance at 1 m, before attenuation)."""
+    cone_deg: float = bounded(60.0, gt=0.0, le=90.0)
+    """Half-angle of the lamp cone, degrees."""
+
+
+@dataclass(frozen=True)
+class SeabedSpec:
+    size_m: float = bounded(40.0, gt=0.0)
+    """Side of the square seabed patch, metres."""
+    relief_m: float = bounded(0.15, ge=0.0)
+    """Amplitude of the seabed's height noise, metres."""
+    texture: TextureName = "sediment"
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    name: str
+    """Instance name (unique in the scene)."""
+    source: str
+    """'procedural:KIND' (frame, valve_a..valve_d, hot_stab, box, cylinder), 'data:REL/PATH' (under
+    the shared data folder, $CADALIGN_DATA_DIR), or a mesh path relative to the scene file."""
+    class_name: str = "structure"
+    """One of the scene's `classes`."""
+    position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Object origin in the world, metres."""
+    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Roll, pitch, yaw in degrees (extrinsic xyz)."""
+    unit: Literal["m", "cm", "mm", "in"] | None = None
+    """Unit of the source mesh file; None = detect from its extents (with a warning)."""
+    scale: float = bounded(1.0, gt=0.0)
+    """Extra uniform scale applied after unit conversion (for procedural size variants)."""
+    texture: TextureName = "painted_steel"
+    size_m: tuple[float, float, float] | None = None
+    """Procedural parts: bounding size (x, y, z) in metres; None = the part's default."""
+    symmetry: Literal["none", "continuous_z", "continuous_x", "continuous_y", "discrete_z2", "discrete_z4"] = "none"
+    """Symmetry of the part in its own frame (BOP symmetries are derived from it)."""
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    name: str
+    objects: tuple[ObjectSpec, ...]
+    classes: tuple[str, ...] = ("background", "structure", "valve", "hot_stab")
+    """Class names; index 0 must be 'background' (seabed and open water)."""
+    seed: int = 0
+    effects: tuple[str, ...] = ()
+    """The water effects to simulate, by name; any effect not listed is never run."""
+    camera: CameraSpec = CameraSpec()
+    trajectory: TrajectorySpec = TrajectorySpec()
+    water: WaterSpec = WaterSpec()
+    lights: tuple[LightSpec, ...] = (LightSpec(offset_m=(-0.4, -0.2, 0.0)), LightSpec(offset_m=(0.4, -0.2, 0.0)))
+    seabed: SeabedSpec | None = SeabedSpec()
+    ambient: float = bounded(0.35, gt=0.0, le=2.0)
+    """Ambient (down-welling) light level of the clean render: its colours are albedo × ambient."""
+    effect_params: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """Per-effect parameter tables, e.g. ``[effect_params.marine_snow] density_per_m3 = 20``.
+    Water and lamps come from [water] and [[lights]]."""
+
+    def __post_init__(self) -> None:
+        if not self.classes or self.classes[0] != "background":
+            raise ValueError(f"classes must start with 'background', got {list(self.classes)}")
+        names = [o.name for o in self.objects]
+        if len(set(names)) != len(names):
+            raise ValueError(f"object names must be unique, got duplicates in {names}")
+        for o in self.objects:
+            if o.class_name not in self.classes[1:]:
+                raise ValueError(f"object '{o.name}' has class '{o.class_name}'; allowed: {list(self.classes[1:])}")
+        if not self.objects:
+            raise ValueError("a scene needs at least one object")
+
+
+def load_scene(path: Path) -> SceneSpec:
+    """Read and strictly validate a scene TOML/YAML file."""
+    path = Path(path)
+    data = read_mapping(path)
+    spec = from_dict(SceneSpec, data, source=str(path))
+    from cadalign.sim.effects_chain import build_chain
+
+    build_chain(spec, source=str(path))  # validates effect names and parameter tables now, not mid-render
+    return spec
+
+
+def data_dir() -> Path:
+    """The shared data folder: $CADALIGN_DATA_DIR, else ``../shared/data`` beside the repository."""
+    env = os.environ.get("CADALIGN_DATA_DIR")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[3] / "shared" / "data"
+
+
+def resolve_source(source: str, scene_path: Path | None) -> Path:
+    """Resolve an object's mesh `source` to a file path (procedural sources are not files)."""
+    if source.startswith("data:"):
+        p = data_dir() / source[len("data:") :]
+        hint = "set CADALIGN_DATA_DIR to the folder holding uuv_subsea_cad/"
+    else:
+        base = scene_path.parent if scene_path is not None else Path.cwd()
+        p = (base / source).resolve()
+        hint = "paths are relative to the scene file"
+    if not p.is_file():
+        raise InputError(f"mesh not found for source '{source}': {p} ({hint})")
+    return p
+
+
+def default_scene_path() -> Path:
+    """The embedded default scene shipped with the repository."""
+    return Path(__file__).resolve().parents[2] / "datasets" / "scenes" / "default.toml"

@@ -1,0 +1,166 @@
+"""Frozen dataclasses shared by the stages.
+
+Transform naming: ``T_a_from_b`` maps coordinates expressed in frame ``b`` to
+frame ``a``: ``x_a = T_a_from_b.apply(x_b)``. Units are metres and radians.
+
+Pixel convention (used everywhere in cadalign): pixel ``(u, v)`` with integer
+``u`` covers ``[u, u+1)``; its centre is at ``u + 0.5``. So with intrinsics
+``K``, the ray through the centre of pixel column ``i`` and row ``j`` is
+``K^-1 @ (i + 0.5, j + 0.5, 1)``. This is COLMAP's convention and OpenGL's
+window convention (so pyrender renders and cadalign ray casts agree); OpenCV
+puts pixel centres at integers, so subtract 0.5 when handing points to cv2.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+def _as_f64(a: object, shape: tuple[int, ...], name: str) -> np.ndarray:
+    arr = np.array(a, dtype=np.float64)
+    if arr.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True)
+class Rigid3:
+    """A rigid transform ``x_a = R @ x_b + t`` (``a_from_b``).
+
+    Attributes:
+        R: (3, 3) rotation matrix.
+        t: (3,) translation in metres.
+    """
+
+    R: np.ndarray = field(default_factory=lambda: np.eye(3))
+    t: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "R", _as_f64(self.R, (3, 3), "R"))
+        object.__setattr__(self, "t", _as_f64(self.t, (3,), "t"))
+
+    @staticmethod
+    def identity() -> Rigid3:
+        return Rigid3()
+
+    @staticmethod
+    def from_matrix(M: np.ndarray) -> Rigid3:
+        """Build from a (4, 4) homogeneous matrix."""
+        M = np.asarray(M, dtype=np.float64)
+        if M.shape != (4, 4):
+            raise ValueError(f"expected a (4, 4) matrix, got {M.shape}")
+        return Rigid3(M[:3, :3], M[:3, 3])
+
+    def matrix(self) -> np.ndarray:
+        """The (4, 4) homogeneous matrix."""
+        M = np.eye(4)
+        M[:3, :3] = self.R
+        M[:3, 3] = self.t
+        return M
+
+    def inverse(self) -> Rigid3:
+        return Rigid3(self.R.T, -self.R.T @ self.t)
+
+    def __matmul__(self, other: Rigid3) -> Rigid3:
+        """Compose: ``(T_a_from_b @ T_b_from_c) -> T_a_from_c``."""
+        return Rigid3(self.R @ other.R, self.R @ other.t + self.t)
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """Transform points ``(..., 3)``."""
+        x = np.asarray(x, dtype=np.float64)
+        return x @ self.R.T + self.t
+
+
+@dataclass(frozen=True)
+class Sim3:
+    """A similarity ``x_a = s * R @ x_b + t`` (``a_from_b``); ``s > 0``."""
+
+    s: float = 1.0
+    R: np.ndarray = field(default_factory=lambda: np.eye(3))
+    t: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self) -> None:
+        s = float(self.s)
+        if not np.isfinite(s) or s <= 0:
+            raise ValueError(f"Sim3 scale must be finite and > 0, got {s}")
+        object.__setattr__(self, "s", s)
+        object.__setattr__(self, "R", _as_f64(self.R, (3, 3), "R"))
+        object.__setattr__(self, "t", _as_f64(self.t, (3,), "t"))
+
+    @staticmethod
+    def identity() -> Sim3:
+        return Sim3()
+
+    @staticmethod
+    def from_rigid(T: Rigid3, s: float = 1.0) -> Sim3:
+        return Sim3(s, T.R, T.t)
+
+    def matrix(self) -> np.ndarray:
+        M = np.eye(4)
+        M[:3, :3] = self.s * self.R
+        M[:3, 3] = self.t
+        return M
+
+    def inverse(self) -> Sim3:
+        inv_s = 1.0 / self.s
+        return Sim3(inv_s, self.R.T, -inv_s * (self.R.T @ self.t))
+
+    def __matmul__(self, other: Sim3) -> Sim3:
+        return Sim3(self.s * other.s, self.R @ other.R, self.s * (self.R @ other.t) + self.t)
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64)
+        return self.s * (x @ self.R.T) + self.t
+
+    def rigid(self) -> Rigid3:
+        """The rotation and translation, dropping the scale."""
+        return Rigid3(self.R, self.t)
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera: intrinsics and image size (pixels).
+
+    Attributes:
+        K: (3, 3) intrinsic matrix, pixel-centre convention of this module.
+        width: image width in pixels.
+        height: image height in pixels.
+    """
+
+    K: np.ndarray
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "K", _as_f64(self.K, (3, 3), "K"))
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+    def scaled(self, width: int, height: int) -> Camera:
+        """The same camera resampled to another resolution."""
+        sx, sy = width / self.width, height / self.height
+        K = self.K.copy()
+        K[0] *= sx
+        K[1] *= sy
+        return Camera(K, width, height)

@@ -1,0 +1,60 @@
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+from typer.testing import CliRunner
+
+from cadalign import __version__
+from cadalign.cli.main import app
+
+SUBCOMMANDS = ["sim", "sfm", "align", "build-dataset", "train", "infer", "fuse", "emulate", "bench", "demo"]
+runner = CliRunner()
+
+
+def test_help_lists_every_subcommand():
+    res = runner.invoke(app, ["--help"])
+    assert res.exit_code == 0
+    for cmd in SUBCOMMANDS:
+        assert cmd in res.output
+
+
+@pytest.mark.parametrize("cmd", SUBCOMMANDS)
+def test_each_subcommand_has_help(cmd):
+    res = runner.invoke(app, [cmd, "--help"])
+    assert res.exit_code == 0, res.output
+    assert "Usage" in res.output
+
+
+def test_version():
+    res = runner.invoke(app, ["--version"])
+    assert res.exit_code == 0 and __version__ in res.output
+
+
+def test_bad_log_level_is_rejected():
+    res = runner.invoke(app, ["--log-level", "loud", "sim", "--help"])
+    assert res.exit_code != 0
+
+
+def test_pending_command_says_which_issue():
+    res = runner.invoke(app, ["fuse"])
+    assert res.exit_code == 2 and "issue 8" in res.output
+
+
+def test_sim_with_misspelled_scene_key_fails_readably(tmp_path):
+    scene = tmp_path / "s.toml"
+    scene.write_text('name = "x"\neffekts = []\n[[objects]]\nname = "a"\nsource = "procedural:box"\n')
+    res = runner.invoke(app, ["sim", str(scene), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 1
+    assert "effekts" in res.output and "did you mean 'effects'" in res.output
+
+
+def test_import_geometry_is_light():
+    code = (
+        "import sys, cadalign.geometry; "
+        "bad=[m for m in ('torch','open3d','pyrender','pycolmap') if m in sys.modules]; "
+        "print(bad); sys.exit(1 if bad else 0)"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 0, res.stdout + res.stderr
