@@ -1,0 +1,21 @@
+"""Tiny simulated scenes shared by the simulator tests (seeded, 160x120, a handful of frames)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from sim_testdata import ALL_EFFECTS, write_tiny_scene
+
+
+@pytest.fixture(scope="session")
+def tiny_scene_file(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> Path:
+    return write_tiny_scene(tmp_path_factory.mktemp("scene") / "tiny.toml", effects=ALL_EFFECTS)
+
+
+@pytest.fixture(scope="session")
+def tiny_sim(tmp_path_factory: pytest.TempPathFactory, tiny_scene_file: Path) -> Path:
+    """A finished simulation of the tiny scene with every effect on."""
+    from cadalign.sim.run import simulate
+
+    return simulate(tiny_scene_file, tmp_path_factory.mktemp("sim") / "out")
