@@ -5,7 +5,7 @@ from __future__ import annotations
 import typer
 
 from cadalign import __version__
-from cadalign.cli import common, demo, pending, sim
+from cadalign.cli import bench, common, demo, pending, sim
 
 app = typer.Typer(
     name="cadalign",
@@ -34,7 +34,8 @@ def _root(
 
 app.command("sim")(sim.command)
 app.command("demo")(demo.command)
-pending.register(app, skip={"sim", "demo"})
+app.add_typer(bench.app, name="bench")
+pending.register(app, skip={"sim", "demo", "bench"})
 
 
 def main() -> None:

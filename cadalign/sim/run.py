@@ -101,6 +101,27 @@ def simulate(
     return out_dir
 
 
+def render_frame(
+    scene: SimScene, chain: list, k: int, renderer: RGBRenderer, caster: GroundTruthCaster
+) -> tuple[Rigid3, np.ndarray, FrameGT, dict[str, float]]:
+    """Frame ``k``: its camera pose, the image with the declared effects, exact ground truth and timings.
+
+    This is the whole per-frame simulation path (what ``cadalign bench sim`` measures); with an empty
+    ``chain`` the image is the clean render itself.
+    """
+    spec = scene.spec
+    T = pose_at(spec.trajectory, k / spec.trajectory.fps, spec.seed)
+    t0 = time.perf_counter()
+    clean = renderer.render(T)
+    t1 = time.perf_counter()
+    gt = caster.cast(T)
+    t2 = time.perf_counter()
+    rgb, eff_t = run_chain(chain, clean, gt, spec, k, T, scene.camera)
+    timings = {"render_rgb": t1 - t0, "ground_truth": t2 - t1}
+    timings.update({f"effect:{name}": sec for name, sec in eff_t.items()})
+    return T, rgb, gt, timings
+
+
 def _render_frames(scene: SimScene, out_dir: Path, progress: Progress | None) -> dict[str, list[float]]:
     spec = scene.spec
     n = spec.trajectory.frames
@@ -113,20 +134,12 @@ def _render_frames(scene: SimScene, out_dir: Path, progress: Progress | None) ->
         for k in progress(ids, "simulate", n) if progress else ids:
             if _frame_done(out_dir, k):
                 continue
-            T = pose_at(spec.trajectory, k / spec.trajectory.fps, spec.seed)
-            t0 = time.perf_counter()
-            clean = rgb_renderer.render(T)
-            t1 = time.perf_counter()
-            gt = caster.cast(T)
-            t2 = time.perf_counter()
-            rgb, eff_t = run_chain(chain, clean, gt, spec, k, T, scene.camera)
+            T, rgb, gt, frame_t = render_frame(scene, chain, k, rgb_renderer, caster)
             t3 = time.perf_counter()
             _write_frame(out_dir, scene, k, T, rgb, gt)
-            timings["render_rgb"].append(t1 - t0)
-            timings["ground_truth"].append(t2 - t1)
-            timings["write"].append(time.perf_counter() - t3)
-            for name, sec in eff_t.items():
-                timings.setdefault(f"effect:{name}", []).append(sec)
+            frame_t["write"] = time.perf_counter() - t3
+            for name, sec in frame_t.items():
+                timings.setdefault(name, []).append(sec)
     finally:
         rgb_renderer.close()
     return timings

@@ -112,15 +112,19 @@ def buffers_from_range(rgb: np.ndarray, range_m: np.ndarray, camera: Camera,
 def clean_range(range_m: np.ndarray) -> np.ndarray:
     """Ranges safe for ``exp(-beta * z)``: NaN and inf become :data:`OPEN_WATER_M`, negatives 0.
 
+    Finite ranges beyond :data:`OPEN_WATER_M` (float64 input too large for float32) are capped at it,
+    so ``beta * z`` cannot overflow for any plausible beta (< 3e8 per metre).
+
     Args:
         range_m: (H, W) ranges in metres.
 
     Returns:
-        (H, W) float32 finite, non-negative ranges.
+        (H, W) float32 finite ranges in ``[0, OPEN_WATER_M]``.
     """
-    z = np.asarray(range_m, dtype=np.float32)
+    with np.errstate(over="ignore"):  # a float64 range beyond float32's reach casts to inf, handled below
+        z = np.asarray(range_m, dtype=np.float32)
     z = np.where(np.isfinite(z), z, OPEN_WATER_M)
-    return np.maximum(z, np.float32(0.0))
+    return np.clip(z, np.float32(0.0), OPEN_WATER_M)
 
 
 def open_water_mask(range_m: np.ndarray) -> np.ndarray:

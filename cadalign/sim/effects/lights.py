@@ -22,10 +22,12 @@ import numpy as np
 
 from cadalign.errors import ConfigError
 from cadalign.sim.effects.attenuation import transmission
-from cadalign.sim.effects.buffers import FrameBuffers, broadcast_channels
+from cadalign.sim.effects.buffers import FrameBuffers, broadcast_channels, clean_range
 from cadalign.sim.effects.water import WaterParams, water_from_jerlov
 
 _MIN_LAMP_DIST_M = 1e-3
+_MAX_LAMP_RANGE_M = np.float32(1e6)
+"""Surfaces farther than this get the lamp light of this range (< 1e-12 of it at 1 m): keeps ``r^2`` finite."""
 
 
 @dataclass(frozen=True)
@@ -41,7 +43,8 @@ class Lamp:
     cone_deg: float = 60.0
     """Half-angle of the cone, degrees; nothing is lit outside it."""
     edge_deg: float = 10.0
-    """Width of the soft edge inside the cone, degrees (0: hard edge)."""
+    """Width of the soft edge inside the cone, degrees (0: hard edge), capped at ``cone_deg``: scene-file lights
+    have no edge field, so a cone narrower than the default edge is soft all through rather than refused."""
 
     def __post_init__(self) -> None:
         if np.linalg.norm(self.direction) == 0:
@@ -50,8 +53,8 @@ class Lamp:
             raise ConfigError(f"Lamp.intensity must be >= 0, got {self.intensity}")
         if not 0 < self.cone_deg <= 90:
             raise ConfigError(f"Lamp.cone_deg must be in (0, 90], got {self.cone_deg}")
-        if not 0 <= self.edge_deg <= self.cone_deg:
-            raise ConfigError(f"Lamp.edge_deg must be in [0, cone_deg], got {self.edge_deg}")
+        if not self.edge_deg >= 0:
+            raise ConfigError(f"Lamp.edge_deg must be >= 0, got {self.edge_deg}")
 
 
 @dataclass(frozen=True)
@@ -81,7 +84,7 @@ def lamp_profile(cos_axis: np.ndarray, lamp: Lamp) -> np.ndarray:
         (...) float32 in [0, 1].
     """
     cos_out = np.float32(np.cos(np.radians(lamp.cone_deg)))
-    cos_in = np.float32(np.cos(np.radians(lamp.cone_deg - lamp.edge_deg)))
+    cos_in = np.float32(np.cos(np.radians(lamp.cone_deg - min(lamp.edge_deg, lamp.cone_deg))))
     if cos_in <= cos_out:
         return (cos_axis >= cos_out).astype(np.float32)
     t = np.clip((cos_axis - cos_out) / (cos_in - cos_out), 0.0, 1.0)
@@ -147,7 +150,7 @@ def artificial_light(buffers: FrameBuffers, params: ArtificialLightParams) -> np
     hit = np.isfinite(buffers.range_m)
     if not params.lamps or not hit.any():
         return buffers.rgb.copy()
-    r = np.where(hit, np.maximum(buffers.range_m, np.float32(0.0)), np.float32(0.0)).astype(np.float32)
+    r = np.where(hit, np.minimum(clean_range(buffers.range_m), _MAX_LAMP_RANGE_M), np.float32(0.0))
     E = lamp_irradiance(buffers.rays_cam, r, params.lamps, params.water.beta_D, buffers.normals_cam)
     # rho / pi * E with the albedo rho = min(rgb / ambient, 1); no lamp light where there is no surface.
     E *= broadcast_channels(hit.astype(np.float32) * np.float32(1.0 / (np.pi * params.ambient)))

@@ -7,6 +7,10 @@ the ambient level plus the lamps' irradiance (so particles near the lamps
 glare), attenuated by ``exp(-beta_D * range)`` on the way to the camera. A disc
 pixel is drawn only where the particle is closer than the surface seen there.
 Particles are sampled per frame (no temporal coherence between frames).
+
+Marine snow aggregates are porous and translucent, mostly water, so the light
+from behind a particle passes it nearly undimmed: the disc *adds* its scattered
+radiance (weighted by its coverage of the pixel) and never darkens the scene.
 """
 
 from __future__ import annotations
@@ -41,7 +45,7 @@ class MarineSnowParams:
     edge_px: float = 1.5
     """Width of the soft disc edge, pixels."""
     opacity: float = 0.85
-    """Peak opacity of a particle covering whole pixels."""
+    """Peak coverage weight of a particle covering whole pixels: the fraction of its radiance added there."""
     albedo: float = 0.8
     """Particle reflectance."""
     ambient: float = 0.35
@@ -55,7 +59,8 @@ class MarineSnowParams:
         checks = {"density_per_m3": self.density_per_m3 >= 0, "min_range_m": self.min_range_m > 0,
                   "max_range_m": self.max_range_m >= self.min_range_m, "diameter_mm": self.diameter_mm > 0,
                   "diameter_log_sigma": self.diameter_log_sigma >= 0,
-                  "max_radius_px": 0 < self.max_radius_px <= _STAMP_HALF_SIZES[-1] - self.edge_px,
+                  # A disc reaches radius + edge / 2 + 1 px from its pixel: it must fit the largest stamp.
+                  "max_radius_px": 0 < self.max_radius_px <= _STAMP_HALF_SIZES[-1] - 1.0 - self.edge_px / 2,
                   "edge_px": self.edge_px > 0, "opacity": 0 <= self.opacity <= 1, "albedo": self.albedo >= 0,
                   "ambient": self.ambient >= 0}
         bad = [name for name, ok in checks.items() if not ok]
@@ -149,7 +154,8 @@ def marine_snow(buffers: FrameBuffers, params: MarineSnowParams, rng: np.random.
         rng: the random generator; the same seed gives the same particles.
 
     Returns:
-        (H, W, 3) float32 new image; pixels without a visible particle are unchanged.
+        (H, W, 3) float32 new image ``rgb + coverage * radiance`` (never darker than ``rgb``); pixels without a
+        visible particle are unchanged.
     """
     particles = sample_particles(buffers, params, rng)
     if particles.range_m.size == 0:
@@ -158,6 +164,5 @@ def marine_snow(buffers: FrameBuffers, params: MarineSnowParams, rng: np.random.
     alpha, color = _splat(particles, clean_range(buffers.range_m), params)
     # Overlapping discs: total coverage capped at 1, their colours averaged by coverage.
     norm = np.where(alpha > 1.0, 1.0 / np.maximum(alpha, 1.0), 1.0)
-    cover = (alpha * norm).astype(np.float32).reshape(H, W, 1)
     added = (color * norm[:, None]).astype(np.float32).reshape(H, W, 3)
-    return buffers.rgb * (np.float32(1.0) - cover) + added
+    return buffers.rgb + added

@@ -67,6 +67,10 @@ def shutter_poses(buffers: FrameBuffers, shutter_s: float) -> tuple[Rigid3, Rigi
     return T_open, T_close
 
 
+def _same_pose(T_a: Rigid3, T_b: Rigid3) -> bool:
+    return bool(np.array_equal(T_a.R, T_b.R) and np.array_equal(T_a.t, T_b.t))
+
+
 def depth_flow(buffers: FrameBuffers, T_other_from_cam: Rigid3) -> tuple[np.ndarray, np.ndarray]:
     """Image motion of each pixel's surface point when the camera moves to another pose.
 
@@ -87,10 +91,12 @@ def depth_flow(buffers: FrameBuffers, T_other_from_cam: Rigid3) -> tuple[np.ndar
     t = T_other_from_cam.t.astype(np.float32)
     ax, ay, az = (a[..., i] + t[i] * inv_r for i in range(3))
     inv_z = np.float32(1.0) / np.maximum(az, np.float32(1e-6))
-    u0 = np.arange(W, dtype=np.float32) + np.float32(0.5 - cam.cx)
-    v0 = np.arange(H, dtype=np.float32) + np.float32(0.5 - cam.cy)
-    du = np.float32(cam.fx) * ax * inv_z - u0[None, :]
-    dv = np.float32(cam.fy) * ay * inv_z - v0[:, None]
+    # Flow relative to the reprojection of the unmoved ray (not the pixel grid): float32 rounding of the
+    # unit rays then cancels, so an identity motion gives exactly zero flow at any image size.
+    d = buffers.rays_cam
+    inv_dz = np.float32(1.0) / np.maximum(d[..., 2], np.float32(1e-6))
+    du = np.float32(cam.fx) * (ax * inv_z - d[..., 0] * inv_dz)
+    dv = np.float32(cam.fy) * (ay * inv_z - d[..., 1] * inv_dz)
     return du.astype(np.float32), dv.astype(np.float32)
 
 
@@ -105,6 +111,8 @@ def motion_blur(buffers: FrameBuffers, params: MotionBlurParams) -> np.ndarray:
         (H, W, 3) float32 new image; an exact copy when the camera does not move.
     """
     T_open, T_close = shutter_poses(buffers, params.shutter_s)
+    if _same_pose(T_open, buffers.T_world_from_cam) and _same_pose(T_close, buffers.T_world_from_cam):
+        return buffers.rgb.copy()
     flows = [depth_flow(buffers, T.inverse() @ buffers.T_world_from_cam) for T in (T_open, T_close)]
     if max(float(np.abs(f).max()) for pair in flows for f in pair) < _STILL_PX:
         return buffers.rgb.copy()
