@@ -90,6 +90,10 @@ class GroundTruthCaster:
             self._lut_instance[gid] = inst
         self._lut_class = np.array([0] + [o.class_id for o in scene.objects], dtype=np.uint8)
         self._dirs_cam = pixel_rays_cam(self.camera)
+        self._ray_len = np.linalg.norm(self._dirs_cam, axis=-1).astype(np.float32)
+        self._rays_unit = (self._dirs_cam / self._ray_len[..., None]).astype(np.float32)
+        self._dirs_cam32 = self._dirs_cam.astype(np.float32)
+        self._rays_unit.flags.writeable = False  # shared by every frame's FrameGT
 
     def _rays(self, T_world_from_cam: Rigid3, rows: slice, cols: slice) -> np.ndarray:
         d = self._dirs_cam[rows, cols] @ T_world_from_cam.R.T
@@ -105,23 +109,21 @@ class GroundTruthCaster:
         t = ans["t_hit"].numpy()
         hit = np.isfinite(t)
         depth = np.where(hit, t, 0.0).astype(np.float32)
-        ray_len = np.linalg.norm(self._dirs_cam, axis=-1)
-        range_m = np.where(hit, t * ray_len, np.inf).astype(np.float32)
+        range_m = np.where(hit, t * self._ray_len, np.float32(np.inf))
         gid = ans["geometry_ids"].numpy().astype(np.int64)
         gid = np.where(hit, gid, len(self._lut_instance) - 1)  # the last LUT slot maps to background
         instance = self._lut_instance[gid]
-        n_world = ans["primitive_normals"].numpy().astype(np.float64)
-        n_cam = n_world @ T_world_from_cam.R
-        facing = np.sum(n_cam * self._dirs_cam, axis=-1, keepdims=True) > 0
-        n_cam = np.where(facing, -n_cam, n_cam)
-        n_cam = np.where(hit[..., None], n_cam, 0.0).astype(np.float32)
+        n_cam = ans["primitive_normals"].numpy() @ T_world_from_cam.R.astype(np.float32)
+        # face the camera; zero where nothing was hit (Open3D returns zero normals there already)
+        flip = np.where(np.einsum("hwk,hwk->hw", n_cam, self._dirs_cam32) > 0, np.float32(-1), np.float32(1))
+        n_cam *= flip[..., None]
+        n_cam[~hit] = 0.0
         full = self._full_masks(T_world_from_cam) if with_full_masks else {}
-        rays_unit = (self._dirs_cam / ray_len[..., None]).astype(np.float32)
         return FrameGT(
             depth,
             range_m,
             n_cam,
-            rays_unit,
+            self._rays_unit,
             instance.reshape(H, W),
             self._lut_class[instance].reshape(H, W),
             full,

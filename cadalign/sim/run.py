@@ -123,23 +123,36 @@ def render_frame(
 
 
 def _render_frames(scene: SimScene, out_dir: Path, progress: Progress | None) -> dict[str, list[float]]:
+    """Render every unfinished frame; file writing overlaps the next frame's rendering (one writer thread)."""
+    from concurrent.futures import Future, ThreadPoolExecutor
+
     spec = scene.spec
     n = spec.trajectory.frames
     chain = build_chain(spec)
     timings: dict[str, list[float]] = {"render_rgb": [], "ground_truth": [], "write": []}
     rgb_renderer = RGBRenderer(scene)
     caster = GroundTruthCaster(scene)
+    pending: list[Future] = []
+
+    def write(k: int, T: Rigid3, rgb: np.ndarray, gt: FrameGT) -> float:
+        t0 = time.perf_counter()
+        _write_frame(out_dir, scene, k, T, rgb, gt)
+        return time.perf_counter() - t0
+
     try:
-        ids = range(n)
-        for k in progress(ids, "simulate", n) if progress else ids:
-            if _frame_done(out_dir, k):
-                continue
-            T, rgb, gt, frame_t = render_frame(scene, chain, k, rgb_renderer, caster)
-            t3 = time.perf_counter()
-            _write_frame(out_dir, scene, k, T, rgb, gt)
-            frame_t["write"] = time.perf_counter() - t3
-            for name, sec in frame_t.items():
-                timings.setdefault(name, []).append(sec)
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="sim-write") as pool:
+            ids = range(n)
+            for k in progress(ids, "simulate", n) if progress else ids:
+                if _frame_done(out_dir, k):
+                    continue
+                T, rgb, gt, frame_t = render_frame(scene, chain, k, rgb_renderer, caster)
+                for name, sec in frame_t.items():
+                    timings.setdefault(name, []).append(sec)
+                while len(pending) >= 2:  # bound memory: at most two frames waiting to be written
+                    timings["write"].append(pending.pop(0).result())
+                pending.append(pool.submit(write, k, T, rgb, gt))
+            for fut in pending:
+                timings["write"].append(fut.result())
     finally:
         rgb_renderer.close()
     return timings
