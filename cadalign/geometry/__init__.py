@@ -11,6 +11,7 @@ versions live in :mod:`cadalign.geometry.torch_rotations`, imported explicitly.
 
 from cadalign.geometry.camera import (
     backproject,
+    decompose_intrinsics,
     depth_to_points,
     focal_to_fov,
     fov_to_focal,
@@ -48,6 +49,7 @@ __all__ = [
     "backproject",
     "compose",
     "convex_hull_2d",
+    "decompose_intrinsics",
     "depth_to_points",
     "euler_to_matrix",
     "fan_triangulate",

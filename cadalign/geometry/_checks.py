@@ -2,9 +2,59 @@
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+from typing import ParamSpec, TypeVar
+
 import numpy as np
 
 from cadalign.errors import DegenerateGeometryError, InputError
+
+_P = ParamSpec("_P")
+_T = TypeVar("_T")
+
+
+def quiet_nonfinite(fn: Callable[_P, _T]) -> Callable[_P, _T]:
+    """Run ``fn`` with numpy's invalid/overflow/divide warnings off.
+
+    For converters that propagate NaN/inf rows into NaN output rows by design:
+    a bad row must not emit a RuntimeWarning (which ``-W error`` turns into a
+    crash) nor disturb the other rows of the batch. A fresh ``np.errstate`` per
+    call keeps nested decorated calls safe.
+    """
+
+    @functools.wraps(fn)
+    def wrapper(*args: _P.args, **kwargs: _P.kwargs) -> _T:
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+            return fn(*args, **kwargs)
+
+    return wrapper
+
+
+def nan_rows_where_nonfinite(out: np.ndarray, *inputs: tuple[np.ndarray, int]) -> np.ndarray:
+    """Set whole output rows to NaN where an input row holds NaN/inf.
+
+    Without this a bad row can come out partly finite (e.g. a NaN Euler angle
+    still leaves ``R[0, 0] = 1``), which looks like data.
+
+    Args:
+        out: (..., *out_tail) result (an array, or a numpy scalar when
+            ``...`` is empty); arrays are modified in place.
+        inputs: ``(array (..., *in_tail), len(in_tail))`` pairs whose leading
+            dimensions broadcast to those of ``out``.
+
+    Returns:
+        ``out`` with the bad rows set to NaN.
+    """
+    bad = np.zeros((), dtype=bool)
+    for arr, n_tail in inputs:
+        bad = bad | ~np.all(np.isfinite(arr), axis=tuple(range(-n_tail, 0)))
+    if not np.any(bad):
+        return out
+    if np.ndim(out) == 0:
+        return np.float64(np.nan)
+    out[bad] = np.nan
+    return out
 
 
 def as_batched(x: object, tail: tuple[int, ...], name: str) -> np.ndarray:

@@ -18,6 +18,15 @@ from scipy.optimize import least_squares
 from cadalign.errors import DegenerateGeometryError, InputError
 from cadalign.geometry._checks import as_points
 
+FOCAL_SHIFT_COND_TOL = 1e-6
+"""Focal/shift fits whose column-normalised Jacobian has ``sigma_min / sigma_max`` below this are rejected.
+
+The ratio is about the relative depth variation ``std(Z) / (Z + dz)``; below
+1e-6 the point map is numerically a fronto-parallel plane."""
+
+_MIN_SHIFTED_DEPTH = 1e-9
+"""Lower bound on ``Z + dz`` in the unit-RMS frame of the focal/shift solve."""
+
 
 def intrinsics(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     """The (3, 3) intrinsic matrix ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` (pixels).
@@ -29,6 +38,20 @@ def intrinsics(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     if not np.all(np.isfinite(vals)) or fx <= 0 or fy <= 0:
         raise InputError(f"intrinsics must be finite with fx, fy > 0, got fx={fx}, fy={fy}, cx={cx}, cy={cy}")
     return np.array([[vals[0], 0.0, vals[2]], [0.0, vals[1], vals[3]], [0.0, 0.0, 1.0]])
+
+
+def decompose_intrinsics(K: np.ndarray) -> tuple[float, float, float, float]:
+    """The inverse of :func:`intrinsics`: ``(fx, fy, cx, cy)`` in pixels from a (3, 3) ``K``.
+
+    Raises:
+        InputError: if ``K`` is not a finite upper-triangular intrinsic matrix
+            with positive focal lengths, or has a non-zero skew ``K[0, 1]``
+            (not representable by four numbers).
+    """
+    K = _check_K(K)
+    if K[0, 1] != 0 or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise InputError(f"K must have zero skew and positive focal lengths to decompose, got\n{K}")
+    return float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
 
 
 def fov_to_focal(fov_rad: float, size_px: float) -> float:
@@ -186,15 +209,39 @@ def _focal_shift_inputs(points: np.ndarray, uv: np.ndarray | None) -> tuple[np.n
     return P[ok], uv_a[ok]
 
 
-def recover_focal_shift(
-    points: np.ndarray, uv: np.ndarray | None = None, min_points: int = 8
-) -> tuple[float, float]:
+def _solve_focal_shift(xy: np.ndarray, z: np.ndarray, uv: np.ndarray) -> tuple[float, float, np.ndarray, bool]:
+    """Bounded least squares for ``(f, dz)`` on unit-RMS data.
+
+    Returns:
+        ``(f, dz, J, on_bound)``: the solution, the (2N, 2) Jacobian there and
+        whether it stopped on the ``Z + dz > 0`` bound.
+    """
+    lb = _MIN_SHIFTED_DEPTH - float(np.min(z))  # Z + dz > 0
+    dz0 = 0.0 if lb < 0 else lb + float(np.std(z))  # dz = 0 whenever it is feasible
+    p0 = xy / (z + dz0)[:, None]
+    x0 = [float(np.sum(p0 * uv) / np.sum(p0 * p0)), dz0]
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        return (x[0] * xy / (z + x[1])[:, None] - uv).ravel()
+
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        p = xy / (z + x[1])[:, None]
+        return np.stack([p.ravel(), (-x[0] * p / (z + x[1])[:, None]).ravel()], axis=1)
+
+    bounds = ([-np.inf, lb], [np.inf, np.inf])
+    tols = {"ftol": 1e-15, "xtol": 1e-15, "gtol": 1e-15}
+    sol = least_squares(residual, x0, jac=jacobian, bounds=bounds, x_scale="jac", max_nfev=200, **tols)
+    return float(sol.x[0]), float(sol.x[1]), jacobian(sol.x), bool(sol.active_mask[1] != 0)
+
+
+def recover_focal_shift(points: np.ndarray, uv: np.ndarray | None = None, min_points: int = 8) -> tuple[float, float]:
     """Recover the focal length and z-shift of a point map known up to both (GenLaM eq. 1).
 
     Solves ``min_{f, dz} sum_i |(x_i, y_i) - f (X_i, Y_i) / (Z_i + dz)|^2`` with
     ``scipy.optimize.least_squares`` (analytic Jacobian, ``Z + dz > 0`` enforced
     by a bound), started from the closed-form ``f`` at ``dz = 0``. Points and
     pixels are rescaled to unit RMS first so the problem is well conditioned.
+    Non-finite points (masked pixels) are dropped.
 
     Args:
         points: (H, W, 3) point map or (N, 3) points, in any consistent unit.
@@ -210,9 +257,11 @@ def recover_focal_shift(
     Raises:
         InputError: for inconsistent shapes.
         DegenerateGeometryError: for fewer than ``min_points`` finite points,
-            all points on the optical axis, all points at one depth (``f`` and
-            ``dz`` are then inseparable), or a solution with ``Z + dz <= 0`` or
-            ``f <= 0``.
+            all points on the optical axis, all points at (nearly) one depth
+            such as a fronto-parallel plane (``f`` and ``dz`` are then
+            inseparable: the Jacobian's column-normalised condition is below
+            :data:`FOCAL_SHIFT_COND_TOL`), or a solution with ``f <= 0`` or on
+            the ``Z + dz > 0`` bound.
     """
     P, uv_a = _focal_shift_inputs(points, uv)
     if P.shape[0] < min_points:
@@ -224,23 +273,16 @@ def recover_focal_shift(
     P, uv_a = P / s_p, uv_a / s_uv
     if np.std(P[:, 2]) <= 1e-9:
         raise DegenerateGeometryError("all points have the same depth; focal length and shift are inseparable")
-    xy, z = P[:, :2], P[:, 2]
-    lb = 1e-9 - float(np.min(z))  # Z + dz > 0
-    dz0 = 0.0 if lb < 0 else lb + float(np.std(z))  # dz = 0 whenever it is feasible
-    p0 = xy / (z + dz0)[:, None]
-    x0 = [float(np.sum(p0 * uv_a) / np.sum(p0 * p0)), dz0]
-
-    def residual(x: np.ndarray) -> np.ndarray:
-        return (x[0] * xy / (z + x[1])[:, None] - uv_a).ravel()
-
-    def jacobian(x: np.ndarray) -> np.ndarray:
-        p = xy / (z + x[1])[:, None]
-        return np.stack([p.ravel(), (-x[0] * p / (z + x[1])[:, None]).ravel()], axis=1)
-
-    bounds = ([-np.inf, lb], [np.inf, np.inf])
-    tols = {"ftol": 1e-15, "xtol": 1e-15, "gtol": 1e-15}
-    sol = least_squares(residual, x0, jac=jacobian, bounds=bounds, x_scale="jac", max_nfev=200, **tols)
-    f, dz = float(sol.x[0]), float(sol.x[1])
-    if not (f > 0 and np.all(z + dz > 0)):
-        raise DegenerateGeometryError(f"focal/shift solve gave f={f * s_uv:.4g}, dz={dz * s_p:.4g} with Z + dz <= 0")
+    f, dz, J, on_bound = _solve_focal_shift(P[:, :2], P[:, 2], uv_a)
+    if not f > 0 or on_bound:
+        raise DegenerateGeometryError(
+            f"focal/shift solve gave f={f * s_uv:.4g}, dz={dz * s_p:.4g} (f <= 0 or Z + dz at its lower bound); "
+            "the point map does not fit a pinhole camera"
+        )
+    sv = np.linalg.svd(J / np.linalg.norm(J, axis=0), compute_uv=False)
+    if not sv[1] > FOCAL_SHIFT_COND_TOL * sv[0]:
+        raise DegenerateGeometryError(
+            f"depth varies too little across the point map (condition {sv[1] / sv[0]:.3g}): f and dz are "
+            "inseparable, as for a fronto-parallel plane; use a view with depth variation or a known focal"
+        )
     return f * s_uv, dz * s_p

@@ -12,8 +12,11 @@ axes: ``"XYZ"`` gives ``R = Rx(a) @ Ry(b) @ Rz(c)``). Tait-Bryan sequences
 At gimbal lock (``|cos b| < GIMBAL_TOL`` for Tait-Bryan, ``|sin b| <
 GIMBAL_TOL`` for proper Euler) only a sum or difference of ``a`` and ``c`` is
 determined; like scipy we then set the third angle ``c`` to exactly 0 (without
-a warning). Euler angles belong at I/O boundaries only; use matrices,
-quaternions or 6D internally.
+a warning). Setting ``c = 0`` while ``b`` is off the lock by ``delta`` costs a
+rotation error of at most ``2 delta``, so the matrix round trip is within
+``2 * GIMBAL_TOL`` (2e-12 rad) at and near the lock and ~1e-15 rad elsewhere.
+Euler angles belong at I/O boundaries only; use matrices, quaternions or 6D
+internally.
 """
 
 from __future__ import annotations
@@ -21,10 +24,15 @@ from __future__ import annotations
 import numpy as np
 
 from cadalign.errors import InputError
-from cadalign.geometry._checks import as_batched
+from cadalign.geometry._checks import as_batched, nan_rows_where_nonfinite, quiet_nonfinite
 
-GIMBAL_TOL = 1e-10
-"""Below this ``|cos b|`` (Tait-Bryan) or ``|sin b|`` (proper) the third angle is set to 0."""
+GIMBAL_TOL = 1e-12
+"""Below this ``|cos b|`` (Tait-Bryan) or ``|sin b|`` (proper) the third angle is set to 0.
+
+Small, because the general branch stays exact arbitrarily close to the lock
+(the residual absorbs the error of ``a``) while the lock branch is off by up
+to ``2 * GIMBAL_TOL`` rad; large enough to catch an exact lock blurred by
+rounding (~1e-16 per entry)."""
 
 _AXIS = {"x": 0, "y": 1, "z": 2}
 
@@ -96,6 +104,7 @@ def _intrinsic_angles(R: np.ndarray, axes: tuple[int, int, int], zero_first: boo
     return a, b, c
 
 
+@quiet_nonfinite
 def euler_to_matrix(angles: np.ndarray, seq: str) -> np.ndarray:
     """Rotation matrices from Euler angles.
 
@@ -113,9 +122,10 @@ def euler_to_matrix(angles: np.ndarray, seq: str) -> np.ndarray:
     (i, j, k), intrinsic = _parse_seq(seq)
     angles = as_batched(angles, (3,), "angles")
     Ra, Rb, Rc = (_axis_rotation(ax, angles[..., n]) for n, ax in enumerate((i, j, k)))
-    return Ra @ Rb @ Rc if intrinsic else Rc @ Rb @ Ra
+    return nan_rows_where_nonfinite(Ra @ Rb @ Rc if intrinsic else Rc @ Rb @ Ra, (angles, 1))
 
 
+@quiet_nonfinite
 def matrix_to_euler(R: np.ndarray, seq: str) -> np.ndarray:
     """Euler angles from rotation matrices, exact at and near gimbal lock.
 
@@ -126,7 +136,8 @@ def matrix_to_euler(R: np.ndarray, seq: str) -> np.ndarray:
     Returns:
         (..., 3) angles in radians, in the order of ``seq``. At gimbal lock the
         third angle is 0 and the first carries the whole free rotation; the
-        returned angles reproduce ``R`` to ~1e-15 rad (< 1e-9 rad guaranteed).
+        returned angles reproduce ``R`` to ~1e-15 rad, and to within
+        ``2 * GIMBAL_TOL`` (2e-12 rad) at and near gimbal lock.
 
     Raises:
         InputError: for an invalid sequence or shape.
@@ -138,4 +149,4 @@ def matrix_to_euler(R: np.ndarray, seq: str) -> np.ndarray:
     else:
         # extrinsic (i, j, k) with (a, b, c) is intrinsic (k, j, i) with (c, b, a)
         c, b, a = _intrinsic_angles(R, axes[::-1], zero_first=True)
-    return np.stack([a, b, c], axis=-1)
+    return nan_rows_where_nonfinite(np.stack([a, b, c], axis=-1), (R, 2))

@@ -14,9 +14,11 @@ Conventions (all functions broadcast over leading dimensions ``...``):
 - Euler angles follow :mod:`scipy.spatial.transform`; they are implemented in
   :mod:`cadalign.geometry.euler` and re-exported here.
 
-Converters propagate NaN rows instead of raising; functions whose result is
-undefined for an input (a zero quaternion, parallel 6D columns) raise
-:class:`~cadalign.errors.DegenerateGeometryError`.
+Converters propagate NaN rows instead of raising: a row with NaN or inf gives
+an all-NaN row, without a RuntimeWarning and without touching the other rows
+(a finite row that overflows, ~1e300, is garbage or NaN, also quietly).
+Functions whose result is undefined for an input (a zero quaternion, parallel
+6D columns) raise :class:`~cadalign.errors.DegenerateGeometryError`.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from cadalign.errors import DegenerateGeometryError, InputError
-from cadalign.geometry._checks import as_batched
+from cadalign.geometry._checks import as_batched, nan_rows_where_nonfinite, quiet_nonfinite
 from cadalign.geometry.euler import euler_to_matrix, matrix_to_euler
 
 __all__ = [
@@ -72,6 +74,7 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.stack([np.stack([o, -z, y], -1), np.stack([z, o, -x], -1), np.stack([-y, x, o], -1)], -2)
 
 
+@quiet_nonfinite
 def quaternion_normalize(q: np.ndarray) -> np.ndarray:
     """Scale quaternions ``(..., 4)`` to unit norm.
 
@@ -86,7 +89,7 @@ def quaternion_normalize(q: np.ndarray) -> np.ndarray:
         raise DegenerateGeometryError(
             f"{bad} quaternion(s) have norm < {QUATERNION_NORM_TOL:g}; a zero quaternion is not a rotation"
         )
-    return q / n
+    return nan_rows_where_nonfinite(q / n, (q, 1))
 
 
 def quaternion_canonicalize(q: np.ndarray) -> np.ndarray:
@@ -120,6 +123,7 @@ def quaternion_multiply(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
     )
 
 
+@quiet_nonfinite
 def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrices ``(..., 3, 3)`` from wxyz quaternions ``(..., 4)`` (normalised first).
 
@@ -135,6 +139,7 @@ def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
     return np.stack([np.stack(r, -1) for r in rows], -2)
 
 
+@quiet_nonfinite
 def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
     """Canonical unit wxyz quaternions ``(..., 4)`` from rotation matrices ``(..., 3, 3)``.
 
@@ -158,9 +163,11 @@ def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
     )
     k = np.argmax(np.diagonal(qq, axis1=-2, axis2=-1), axis=-1)
     q = np.take_along_axis(qq, k[..., None, None], axis=-2)[..., 0, :]
-    return quaternion_canonicalize(q / np.linalg.norm(q, axis=-1, keepdims=True))
+    q = quaternion_canonicalize(q / np.linalg.norm(q, axis=-1, keepdims=True))
+    return nan_rows_where_nonfinite(q, (R, 2))
 
 
+@quiet_nonfinite
 def axis_angle_to_matrix(rotvec: np.ndarray) -> np.ndarray:
     """Rotation matrices ``(..., 3, 3)`` from rotation vectors ``(..., 3)`` (radians).
 
@@ -176,13 +183,15 @@ def axis_angle_to_matrix(rotvec: np.ndarray) -> np.ndarray:
     a = np.where(small, 1 - t2 / 6 + t2 * t2 / 120, np.sin(ts) / ts)
     b = np.where(small, 0.5 - t2 / 24 + t2 * t2 / 720, 2 * (np.sin(ts / 2) / ts) ** 2)
     eye = np.broadcast_to(np.eye(3), w.shape[:-1] + (3, 3))
-    return (
+    R = (
         np.cos(t)[..., None, None] * eye
         + a[..., None, None] * skew(w)
         + b[..., None, None] * (w[..., :, None] * w[..., None, :])
     )
+    return nan_rows_where_nonfinite(R, (w, 1))
 
 
+@quiet_nonfinite
 def matrix_to_axis_angle(R: np.ndarray) -> np.ndarray:
     """Rotation vectors ``(..., 3)`` (radians, angle in ``[0, pi]``) from matrices ``(..., 3, 3)``.
 
@@ -202,11 +211,14 @@ def matrix_to_axis_angle(R: np.ndarray) -> np.ndarray:
     return ratio[..., None] * v
 
 
+@quiet_nonfinite
 def rotation_6d_to_matrix(d6: np.ndarray) -> np.ndarray:
     """Rotation matrices ``(..., 3, 3)`` from 6D vectors ``(..., 6)`` by Gram-Schmidt.
 
-    Column 0 is ``a1 / |a1|``; column 1 is the part of ``a2`` orthogonal to it,
-    normalised; column 2 is their cross product. Each half may have any scale.
+    Column 0 is ``a1 / |a1|``; column 1 is the part of ``a2`` orthogonal to it
+    (projected out twice, so it is orthogonal to ~1e-16 even for nearly
+    parallel halves), normalised; column 2 is their cross product. Each half
+    may have any scale.
 
     Raises:
         InputError: if ``d6`` contains NaN or inf.
@@ -229,6 +241,8 @@ def rotation_6d_to_matrix(d6: np.ndarray) -> np.ndarray:
             f"(sin of their angle < {PARALLEL_SIN_TOL:g}); Gram-Schmidt is undefined"
         )
     b2 = u2 - np.sum(b1 * u2, axis=-1, keepdims=True) * b1
+    # one pass leaves b1.b2 ~ 1e-16 / sin (5e-11 at sin = 1e-5); a second pass makes it ~1e-16 ("twice is enough")
+    b2 = b2 - np.sum(b1 * b2, axis=-1, keepdims=True) * b1
     b2 = b2 / np.linalg.norm(b2, axis=-1, keepdims=True)
     return np.stack([b1, b2, np.cross(b1, b2)], axis=-1)
 
@@ -239,6 +253,7 @@ def matrix_to_rotation_6d(R: np.ndarray) -> np.ndarray:
     return np.concatenate([R[..., :, 0], R[..., :, 1]], axis=-1)
 
 
+@quiet_nonfinite
 def geodesic_angle(R1: np.ndarray, R2: np.ndarray) -> np.ndarray:
     """Angle (radians, in ``[0, pi]``) of the relative rotation ``R1^T R2``.
 
@@ -258,9 +273,10 @@ def geodesic_angle(R1: np.ndarray, R2: np.ndarray) -> np.ndarray:
     M = np.swapaxes(R1, -1, -2) @ R2
     v = np.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1)
     cos = 0.5 * (M[..., 0, 0] + M[..., 1, 1] + M[..., 2, 2] - 1.0)
-    return np.arctan2(0.5 * np.linalg.norm(v, axis=-1), cos)
+    return nan_rows_where_nonfinite(np.arctan2(0.5 * np.linalg.norm(v, axis=-1), cos), (R1, 2), (R2, 2))
 
 
+@quiet_nonfinite
 def quaternion_angle(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
     """Angle (radians, in ``[0, pi]``) between the rotations of quaternions ``(..., 4)``.
 
@@ -292,6 +308,7 @@ def orthonormalize(M: np.ndarray) -> np.ndarray:
     return U @ Vt
 
 
+@quiet_nonfinite
 def is_rotation(R: np.ndarray, tol: float = 1e-6) -> np.ndarray:
     """Whether each ``(..., 3, 3)`` matrix is finite, orthonormal and has ``det = +1`` within ``tol``.
 

@@ -31,7 +31,8 @@ def rotation_6d_to_matrix(d6: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
     """
     a1, a2 = d6[..., :3], d6[..., 3:]
     b1 = _normalize(a1, eps)
-    b2 = _normalize(a2 - (b1 * a2).sum(-1, keepdim=True) * b1, eps)
+    b2 = a2 - (b1 * a2).sum(-1, keepdim=True) * b1
+    b2 = _normalize(b2 - (b1 * b2).sum(-1, keepdim=True) * b1, eps)  # second pass, as in numpy
     return torch.stack([b1, b2, torch.linalg.cross(b1, b2, dim=-1)], dim=-1)
 
 
@@ -75,7 +76,8 @@ def matrix_to_quaternion(R: torch.Tensor) -> torch.Tensor:
     q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
     first = (q != 0).to(torch.int8).argmax(-1, keepdim=True)
     lead = torch.gather(q, -1, first)
-    return q * torch.where(lead < 0, -1.0, 1.0).to(q.dtype)
+    # + 0.0 turns -0.0 into +0.0, as in the numpy version, so both agree bitwise on signs of zeros
+    return q * torch.where(lead < 0, -1.0, 1.0).to(q.dtype) + 0.0
 
 
 def axis_angle_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:

@@ -14,6 +14,16 @@ from cadalign.errors import DegenerateGeometryError, InputError
 from cadalign.geometry._checks import as_points, centre, require_finite
 from cadalign.types import Rigid3, Sim3
 
+
+class CorrespondenceError(InputError, DegenerateGeometryError):
+    """``src`` and ``dst`` hold different numbers of points, so they cannot correspond one to one.
+
+    Both an :class:`~cadalign.errors.InputError` (the arrays are wrong) and a
+    :class:`~cadalign.errors.DegenerateGeometryError` (no alignment is defined
+    for them), so callers catching either see it.
+    """
+
+
 COINCIDENT_REL_TOL = 1e-10
 """Points whose RMS spread is below this times their largest coordinate are coincident."""
 
@@ -26,7 +36,10 @@ def _check_inputs(src: object, dst: object, weights: object | None) -> tuple[np.
     src_a = as_points(src, 3, "src")
     dst_a = as_points(dst, 3, "dst")
     if src_a.shape != dst_a.shape:
-        raise InputError(f"src and dst must correspond one to one, got shapes {src_a.shape} and {dst_a.shape}")
+        raise CorrespondenceError(
+            f"src and dst must correspond one to one, got shapes {src_a.shape} and {dst_a.shape}; "
+            "pass the same number of matched points in both"
+        )
     n = src_a.shape[0]
     if n < 3:
         raise DegenerateGeometryError(f"alignment needs at least 3 point pairs, got {n}")
@@ -90,7 +103,9 @@ def umeyama(
         The :class:`Sim3` mapping ``src`` to ``dst``.
 
     Raises:
-        InputError: for shapes other than matching (N, 3) or invalid weights.
+        InputError: for arrays not shaped (N, 3) or invalid weights.
+        CorrespondenceError: (an InputError and a DegenerateGeometryError) for
+            ``src`` and ``dst`` with different numbers of points.
         DegenerateGeometryError: for fewer than 3 pairs, NaN/inf, coincident
             points (RMS spread below :data:`COINCIDENT_REL_TOL` times the
             largest coordinate), collinear points (second singular value below
