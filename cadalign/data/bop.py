@@ -57,10 +57,10 @@ def gt_entry(inst: BopInstance) -> dict:
 
 def _bbox(mask: np.ndarray) -> list[int]:
     """[x, y, w, h] of a boolean mask; [-1, -1, 0, 0] when empty (BOP's convention)."""
-    ys, xs = np.nonzero(mask)
-    if len(xs) == 0:
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(cols) == 0:
         return [-1, -1, 0, 0]
-    return [int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)]
+    return [int(cols[0]), int(rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)]
 
 
 def gt_info_entry(full: np.ndarray, visib: np.ndarray, depth_valid: np.ndarray) -> dict:
@@ -105,12 +105,14 @@ def write_frame_gt(
     depth_scale: float,
     masks_full: list[np.ndarray],
     masks_visib: list[np.ndarray],
+    *,
+    atomic: bool = True,
 ) -> None:
-    """Write one frame's depth PNG and per-instance masks (atomically, file by file)."""
-    write_image(scene_dir / "depth" / frame_name(im_id), encode_depth(depth_m, depth_scale))
+    """Write one frame's depth PNG and per-instance masks (file by file; see ``write_image`` on ``atomic``)."""
+    write_image(scene_dir / "depth" / frame_name(im_id), encode_depth(depth_m, depth_scale), atomic=atomic)
     for g, (full, vis) in enumerate(zip(masks_full, masks_visib, strict=True)):
-        write_image(scene_dir / "mask" / mask_name(im_id, g), full.astype(np.uint8) * 255)
-        write_image(scene_dir / "mask_visib" / mask_name(im_id, g), vis.astype(np.uint8) * 255)
+        write_image(scene_dir / "mask" / mask_name(im_id, g), full.astype(np.uint8) * 255, atomic=atomic)
+        write_image(scene_dir / "mask_visib" / mask_name(im_id, g), vis.astype(np.uint8) * 255, atomic=atomic)
 
 
 @dataclass(frozen=True)

@@ -166,19 +166,21 @@ def _frame_done(out_dir: Path, k: int) -> bool:
 def _write_frame(
     out_dir: Path, scene: SimScene, k: int, T_world_from_cam: Rigid3, rgb: np.ndarray, gt: FrameGT
 ) -> None:
+    # Per-frame files are written in place (no temp + rename each): the frame counts as done only once
+    # its record in frames_json/ is written, atomically and last, so a torn file is rewritten on resume.
     sdir = out_dir / SCENE_SUBDIR
     img8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
-    write_image(out_dir / "frames" / bop.frame_name(k), img8)
+    write_image(out_dir / "frames" / bop.frame_name(k), img8, atomic=False)
     _link_or_copy(out_dir / "frames" / bop.frame_name(k), sdir / "rgb" / bop.frame_name(k))
     visible = [i for i in sorted(gt.full_masks)]
     fulls = [gt.full_masks[i] for i in visible]
     visibs = [gt.instance == i + 1 for i in visible]
-    bop.write_frame_gt(sdir, k, gt.depth_m, DEPTH_SCALE, fulls, visibs)
-    write_image(sdir / "class" / bop.frame_name(k), gt.class_id.astype(np.uint8))
+    bop.write_frame_gt(sdir, k, gt.depth_m, DEPTH_SCALE, fulls, visibs, atomic=False)
+    write_image(sdir / "class" / bop.frame_name(k), gt.class_id.astype(np.uint8), atomic=False)
     inst = np.zeros_like(gt.instance, dtype=np.uint16)
     for g, i in enumerate(visible):
         inst[gt.instance == i + 1] = g + 1
-    write_image(sdir / "instance" / bop.frame_name(k), inst)
+    write_image(sdir / "instance" / bop.frame_name(k), inst, atomic=False)
     _save_npz(sdir / "normals" / f"{k:06d}.npz", normals=gt.normals_cam.astype(np.float16))
     T_cam_from_world = T_world_from_cam.inverse()
     record = {
