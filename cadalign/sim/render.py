@@ -176,7 +176,9 @@ class RGBRenderer:
 
     The clean render holds only the scene's ambient (down-welling) light, so
     its colours are exactly albedo × ambient; the ROV lamps (shading) and all
-    water effects are applied afterwards by the declared effect stages.
+    water effects are applied afterwards by the declared effect stages. The
+    albedo is rasterised unlit (pyrender's FLAT mode, 4x MSAA, ~4x cheaper than
+    its PBR shader on the CPU rasteriser) and scaled by the ambient level here.
     """
 
     def __init__(self, scene: SimScene) -> None:
@@ -185,6 +187,7 @@ class RGBRenderer:
 
         self._pr = pyrender
         cam = scene.camera
+        self._ambient = float(scene.spec.ambient)
         self.scene = pyrender.Scene(ambient_light=np.full(3, scene.spec.ambient), bg_color=np.zeros(4))
         textures: dict[str, object] = {}
         for obj in scene.objects:
@@ -213,8 +216,9 @@ class RGBRenderer:
     def render(self, T_world_from_cam: Rigid3) -> np.ndarray:
         """(H, W, 3) float32 linear RGB in [0, 1]."""
         self.scene.set_pose(self._cam_node, T_world_from_cam.matrix() @ GL_FROM_CV)
-        color, _ = self.renderer.render(self.scene, flags=self._pr.RenderFlags.SKIP_CULL_FACES)
-        return color.astype(np.float32) / 255.0
+        flags = self._pr.RenderFlags.FLAT | self._pr.RenderFlags.SKIP_CULL_FACES
+        color, _ = self.renderer.render(self.scene, flags=flags)
+        return color.astype(np.float32) * np.float32(self._ambient / 255.0)
 
     def close(self) -> None:
         self.renderer.delete()
