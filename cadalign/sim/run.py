@@ -172,14 +172,14 @@ def _write_frame(
     img8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
     write_image(out_dir / "frames" / bop.frame_name(k), img8, atomic=False)
     _link_or_copy(out_dir / "frames" / bop.frame_name(k), sdir / "rgb" / bop.frame_name(k))
-    visible = [i for i in sorted(gt.full_masks)]
+    visible = sorted(gt.full_masks)  # instance ids: scene object i is instance i + 1
     fulls = [gt.full_masks[i] for i in visible]
-    visibs = [gt.instance == i + 1 for i in visible]
+    visibs = [gt.instance == i for i in visible]
     bop.write_frame_gt(sdir, k, gt.depth_m, DEPTH_SCALE, fulls, visibs, atomic=False)
     write_image(sdir / "class" / bop.frame_name(k), gt.class_id.astype(np.uint8), atomic=False)
     inst = np.zeros_like(gt.instance, dtype=np.uint16)
     for g, i in enumerate(visible):
-        inst[gt.instance == i + 1] = g + 1
+        inst[gt.instance == i] = g + 1
     write_image(sdir / "instance" / bop.frame_name(k), inst, atomic=False)
     _save_npz(sdir / "normals" / f"{k:06d}.npz", normals=gt.normals_cam.astype(np.float16))
     T_cam_from_world = T_world_from_cam.inverse()
@@ -187,12 +187,12 @@ def _write_frame(
         "camera": bop.camera_entry(scene.camera, T_cam_from_world, DEPTH_SCALE),
         "gt": [
             bop.gt_entry(
-                bop.BopInstance(scene.objects[i].obj_id, T_cam_from_world @ scene.objects[i].T_world_from_obj)
+                bop.BopInstance(scene.objects[i - 1].obj_id, T_cam_from_world @ scene.objects[i - 1].T_world_from_obj)
             )
             for i in visible
         ],
         "gt_info": [bop.gt_info_entry(f, v, gt.depth_m > 0) for f, v in zip(fulls, visibs, strict=True)],
-        "object_index": visible,
+        "object_index": [i - 1 for i in visible],
     }
     write_json(sdir / "frames_json" / f"{k:06d}.json", record, indent=None)
 
