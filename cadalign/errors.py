@@ -28,6 +28,14 @@ class DegenerateGeometryError(CadalignError, ValueError):
     """
 
 
+class CorrespondenceError(InputError, DegenerateGeometryError):
+    """Two point sets meant to correspond one to one hold different numbers of points.
+
+    Both an :class:`InputError` (the arrays are wrong) and a :class:`DegenerateGeometryError`
+    (no alignment is defined for them), so callers catching either see it.
+    """
+
+
 class UnitError(InputError):
     """A CAD model's unit is wrong or ambiguous (the classic mm/m mix-up)."""
 

@@ -10,19 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from cadalign.errors import DegenerateGeometryError, InputError
+from cadalign.errors import CorrespondenceError, DegenerateGeometryError, InputError
 from cadalign.geometry._checks import as_points, centre, require_finite
 from cadalign.types import Rigid3, Sim3
-
-
-class CorrespondenceError(InputError, DegenerateGeometryError):
-    """``src`` and ``dst`` hold different numbers of points, so they cannot correspond one to one.
-
-    Both an :class:`~cadalign.errors.InputError` (the arrays are wrong) and a
-    :class:`~cadalign.errors.DegenerateGeometryError` (no alignment is defined
-    for them), so callers catching either see it.
-    """
-
 
 COINCIDENT_REL_TOL = 1e-10
 """Points whose RMS spread is below this times their largest coordinate are coincident."""
