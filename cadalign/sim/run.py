@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import os
 import shutil
 import time
 from collections.abc import Callable, Iterable
@@ -32,8 +31,9 @@ import numpy as np
 from cadalign.config import to_dict
 from cadalign.data import bop
 from cadalign.io import prepare_stage_dir, read_json, write_image, write_json
+from cadalign.render.bop_writer import frame_done, write_bop_frame
 from cadalign.sim.effects_chain import build_chain, run_chain
-from cadalign.sim.gt_files import write_models, write_scene_files
+from cadalign.sim.gt_files import posed_objects, write_models, write_scene_files
 from cadalign.sim.render import FrameGT, GroundTruthCaster, RGBRenderer
 from cadalign.sim.scene import SimScene, build_scene
 from cadalign.sim.spec import SceneSpec, load_scene
@@ -159,60 +159,17 @@ def _render_frames(scene: SimScene, out_dir: Path, progress: Progress | None) ->
 
 
 def _frame_done(out_dir: Path, k: int) -> bool:
-    # the per-frame record is written last, so its presence means the frame is complete
-    return (out_dir / SCENE_SUBDIR / "frames_json" / f"{k:06d}.json").is_file()
+    return frame_done(out_dir / SCENE_SUBDIR, k)
 
 
 def _write_frame(
     out_dir: Path, scene: SimScene, k: int, T_world_from_cam: Rigid3, rgb: np.ndarray, gt: FrameGT
 ) -> None:
-    # Per-frame files are written in place (no temp + rename each): the frame counts as done only once
-    # its record in frames_json/ is written, atomically and last, so a torn file is rewritten on resume.
-    sdir = out_dir / SCENE_SUBDIR
     img8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
-    write_image(out_dir / "frames" / bop.frame_name(k), img8, atomic=False)
-    _link_or_copy(out_dir / "frames" / bop.frame_name(k), sdir / "rgb" / bop.frame_name(k))
-    visible = sorted(gt.full_masks)  # instance ids: scene object i is instance i + 1
-    fulls = [gt.full_masks[i] for i in visible]
-    visibs = [gt.instance == i for i in visible]
-    bop.write_frame_gt(sdir, k, gt.depth_m, DEPTH_SCALE, fulls, visibs, atomic=False)
-    write_image(sdir / "class" / bop.frame_name(k), gt.class_id.astype(np.uint8), atomic=False)
-    inst = np.zeros_like(gt.instance, dtype=np.uint16)
-    for g, i in enumerate(visible):
-        inst[gt.instance == i] = g + 1
-    write_image(sdir / "instance" / bop.frame_name(k), inst, atomic=False)
-    _save_npz(sdir / "normals" / f"{k:06d}.npz", normals=gt.normals_cam.astype(np.float16))
-    T_cam_from_world = T_world_from_cam.inverse()
-    record = {
-        "camera": bop.camera_entry(scene.camera, T_cam_from_world, DEPTH_SCALE),
-        "gt": [
-            bop.gt_entry(
-                bop.BopInstance(scene.objects[i - 1].obj_id, T_cam_from_world @ scene.objects[i - 1].T_world_from_obj)
-            )
-            for i in visible
-        ],
-        "gt_info": [bop.gt_info_entry(f, v, gt.depth_m > 0) for f, v in zip(fulls, visibs, strict=True)],
-        "object_index": [i - 1 for i in visible],
-    }
-    write_json(sdir / "frames_json" / f"{k:06d}.json", record, indent=None)
-
-
-def _save_npz(path: Path, **arrays: np.ndarray) -> None:
-    from cadalign.io import atomic_path
-
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-
-
-def _link_or_copy(src: Path, dst: Path) -> None:
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    if dst.exists():
-        dst.unlink()
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copyfile(src, dst)
+    frame_png = out_dir / "frames" / bop.frame_name(k)
+    write_image(frame_png, img8, atomic=False)  # the frame record written last marks completion
+    write_bop_frame(out_dir / SCENE_SUBDIR, k, scene.camera, T_world_from_cam.inverse(), gt,
+                    posed_objects(scene), DEPTH_SCALE, rgb_source=frame_png)
 
 
 def write_video(frames: list[Path], path: Path, fps: float) -> Path:
