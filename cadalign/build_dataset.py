@@ -1,0 +1,190 @@
+"""``build_dataset``: ROV video (or frames) + CAD -> a metric, dense, per-frame BOP dataset.
+
+Steps, each in its own folder of ``OUT`` and each reused when finished (an interrupted build resumes
+at the frame it was rendering, without redoing SfM or the alignment)::
+
+    OUT/sfm/        cadalign.sfm: frames, COLMAP model, cameras.json, SfM depth (SfM units), report
+    OUT/align/      cadalign.align: align.json (cad_from_sfm, a Sim3 to metres) + align.png
+    OUT/dataset/    the BOP dataset
+        models/                 obj_XXXXXX.ply (mm) + models_info.json (diameters, symmetries)
+        all/000000/             one BOP scene, every registered frame (rgb, depth, mask, mask_visib,
+                                scene_camera/scene_gt/scene_gt_info.json, class/, instance/, normals/,
+                                cameras.json, objects.json) plus depth_sfm/ (the SfM depth in BOP
+                                encoding, metres after the alignment) and frame_names.json
+        splits.json             train/val/test image ids by time blocks (no near-duplicate leakage)
+        coco_{split}.json       COCO instance annotations per split
+    OUT/build_report.json, OUT/build_report.html   alignment quality, timings; with ``gt`` the errors
+                                against the simulator's truth and the CAD-depth vs SfM-depth table
+
+The CAD is either a scene spec (TOML/YAML: the structure's parts with their world poses and classes, e.g.
+``datasets/scenes/default.toml``) or one mesh file (one part, class ``structure``).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cadalign.cad.model import CadModel
+from cadalign.data import bop
+from cadalign.io import fingerprint, prepare_stage_dir, read_json, write_json
+from cadalign.render.bop_writer import PosedObject, frame_done, merge_scene_files, write_bop_frame
+from cadalign.render.raycast import RaycastRenderer, RenderMesh
+from cadalign.types import Camera, Rigid3, Sim3
+
+log = logging.getLogger(__name__)
+Progress = Callable[[Iterable, str, int], Iterable]
+SCENE = Path("all") / "000000"
+DEPTH_SCALE = 1.0
+SPEC_SUFFIXES = (".toml", ".yaml", ".yml")
+
+
+@dataclass(frozen=True)
+class Structure:
+    """The CAD structure: posed instances, their models (model frame, metres) and the class names."""
+
+    objects: tuple[PosedObject, ...]
+    models: dict[int, CadModel]
+    class_names: tuple[str, ...]
+
+    def render_meshes(self) -> list[RenderMesh]:
+        return [RenderMesh(o.T_world_from_obj.apply(self.models[o.obj_id].vertices_m), self.models[o.obj_id].faces,
+                           i + 1, o.class_id) for i, o in enumerate(self.objects)]
+
+
+def load_structure(cad: Path, unit: str | None = None) -> Structure:
+    """The structure from a scene spec (parts, poses, classes) or from one CAD mesh file."""
+    cad = Path(cad)
+    if cad.suffix.lower() in SPEC_SUFFIXES:
+        from cadalign.sim.gt_files import cad_models, posed_objects
+        from cadalign.sim.scene import build_scene
+        from cadalign.sim.spec import load_scene
+
+        spec = load_scene(cad)
+        scene = build_scene(spec, cad, width=8, height=8)
+        return Structure(tuple(posed_objects(scene)), cad_models(scene), tuple(spec.classes))
+    from cadalign.cad import load_cad
+
+    model = load_cad(cad, unit, class_name="structure")
+    return Structure((PosedObject(model.name, 1, 1, Rigid3.identity()),), {1: model}, ("background", "structure"))
+
+
+def metric_pose(entry: dict, cad_from_sfm: Sim3) -> tuple[Camera, Rigid3]:
+    """A cameras.json entry (SfM units) -> (camera, metric ``T_world_from_cam`` in the CAD frame)."""
+    R_cw = np.reshape(entry["R_cam_from_world"], (3, 3))
+    c_sfm = -R_cw.T @ np.asarray(entry["t_cam_from_world_m"], dtype=np.float64)
+    T = Rigid3(cad_from_sfm.R @ R_cw.T, cad_from_sfm.apply(c_sfm[None])[0])
+    return Camera(np.reshape(entry["K"], (3, 3)), int(entry["width"]), int(entry["height"])), T
+
+
+def render_frames(structure: Structure, cameras: dict[str, dict], cad_from_sfm: Sim3, sfm_dir: Path,
+                  scene_dir: Path, progress: Progress | None = None) -> dict[int, str]:
+    """Ray-cast and write every registered frame (resumably); returns im_id -> source frame name."""
+    names = sorted(cameras)
+    meshes = structure.render_meshes()
+    renderers: dict[bytes, RaycastRenderer] = {}
+    ids = list(range(len(names)))
+    for k in progress(ids, "render", len(ids)) if progress else ids:
+        if frame_done(scene_dir, k):
+            continue
+        camera, T_world_from_cam = metric_pose(cameras[names[k]], cad_from_sfm)
+        key = camera.K.tobytes() + bytes([camera.width % 256, camera.height % 256])
+        if key not in renderers:
+            renderers[key] = RaycastRenderer(meshes, camera)
+        gt = renderers[key].render(T_world_from_cam)
+        sfm_depth = sfm_dir / "depth" / f"{Path(names[k]).stem}.npy"
+        if sfm_depth.is_file():  # semi-dense SfM depth, now in metres
+            d = np.load(sfm_depth).astype(np.float64) * cad_from_sfm.s
+            from cadalign.io import write_image
+
+            write_image(scene_dir / "depth_sfm" / bop.frame_name(k), bop.encode_depth(d, DEPTH_SCALE), atomic=False)
+        write_bop_frame(scene_dir, k, camera, T_world_from_cam.inverse(), gt, structure.objects, DEPTH_SCALE,
+                        rgb_source=sfm_dir / "images" / names[k])
+    merge_scene_files(scene_dir, structure.objects, structure.class_names)
+    frame_names = {k: n for k, n in zip(ids, names, strict=True)}
+    write_json(scene_dir / "frame_names.json", {str(k): n for k, n in frame_names.items()})
+    return frame_names
+
+
+def write_dataset_extras(ds: Path, structure: Structure, block: int = 10, gap: int = 1) -> dict[str, list[int]]:
+    """models/ + models_info.json, splits.json and per-split COCO annotations."""
+    from cadalign.cad.models_info import write_model_ply_mm, write_models_info
+    from cadalign.data.bop import BopScene
+    from cadalign.data.coco import coco_annotations, write_coco
+    from cadalign.data.splits import time_block_splits
+
+    for oid, model in structure.models.items():
+        write_model_ply_mm(model, ds / "models" / f"obj_{oid:06d}.ply")
+    write_models_info(structure.models, ds / "models" / "models_info.json")
+    scene = BopScene(ds / SCENE)
+    splits = time_block_splits(scene.ids, block=block, gap=gap)
+    write_json(ds / "splits.json", {"scene": str(SCENE), "block": block, "gap": gap, **splits})
+    class_of_obj = {o.obj_id: o.class_id for o in structure.objects}
+    for name, ids in splits.items():
+        write_coco(ds / f"coco_{name}.json", coco_annotations(scene, ids, class_of_obj, structure.class_names))
+    return splits
+
+
+def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced", picks: Path | None = None,
+                  gt: Path | None = None, cad_unit: str | None = None, overwrite: bool = False,
+                  progress: Progress | None = None) -> Path:
+    """Run frames -> SfM -> align -> render -> write; returns ``out``. See the module doc for the layout.
+
+    Raises:
+        AlignmentError: the alignment failed its quality gate (no dataset is written).
+        InputError, ConfigError: unusable inputs, or ``out`` holds results of another config.
+    """
+    from cadalign.align import PRESETS as ALIGN_PRESETS
+    from cadalign.align import read_sim3
+    from cadalign.align import run as align_run
+    from cadalign.errors import ConfigError
+    from cadalign.sfm import PRESETS as SFM_PRESETS
+    from cadalign.sfm import run as sfm_run
+
+    if preset not in SFM_PRESETS or preset not in ALIGN_PRESETS:
+        raise ConfigError(f"unknown preset {preset!r}; allowed values: {', '.join(SFM_PRESETS)}")
+    out = Path(out)
+    structure = load_structure(cad, cad_unit)
+    seconds: dict[str, float] = {}
+    t0 = time.perf_counter()
+    sfm_dir = sfm_run(SFM_PRESETS[preset], Path(source), out / "sfm", overwrite=overwrite, progress=progress)
+    seconds["sfm"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    parts = [(structure.models[o.obj_id], o.T_world_from_obj) for o in structure.objects]
+    align_json = align_run(ALIGN_PRESETS[preset], sfm_dir / "sparse" / "0", parts, out / "align", picks=picks,
+                           overwrite=overwrite)
+    seconds["align"] = time.perf_counter() - t0
+    cad_from_sfm = read_sim3(align_json)
+    ds = out / "dataset"
+    if overwrite and ds.exists():
+        import shutil
+
+        shutil.rmtree(ds)
+    config = {"align": fingerprint(read_json(align_json)["cad_from_sfm"]), "cad": str(Path(cad).resolve()),
+              "depth_scale": DEPTH_SCALE}
+    prepare_stage_dir(ds, "build-dataset", config, overwrite=overwrite)
+    t0 = time.perf_counter()
+    cameras = read_json(sfm_dir / "cameras.json")["frames"]
+    frame_names = render_frames(structure, cameras, cad_from_sfm, sfm_dir, ds / SCENE, progress)
+    splits = write_dataset_extras(ds, structure)
+    seconds["render_and_write"] = time.perf_counter() - t0
+    report = {
+        "frames": len(frame_names), "splits": {k: len(v) for k, v in splits.items()},
+        "alignment": {k: v for k, v in read_json(align_json).items() if k in ("cad_from_sfm", "metrics", "gates")},
+        "seconds": seconds, "sfm_report": read_json(sfm_dir / "sfm_report.json"),
+    }
+    if gt is not None:
+        from cadalign.eval.dataset_eval import evaluate_against_sim
+
+        report["vs_truth"] = evaluate_against_sim(ds / SCENE, Path(gt), frame_names, cad_from_sfm, cameras,
+                                                  structure, sfm_dir)
+    write_json(out / "build_report.json", report)
+    from cadalign.eval.dataset_eval import write_build_html
+
+    write_build_html(out, report)
+    return out

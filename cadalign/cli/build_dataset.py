@@ -1,0 +1,28 @@
+"""``cadalign build-dataset SOURCE --cad CAD --out DIR``: video + CAD -> metric dense BOP dataset."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from cadalign.cli.common import console, track, user_errors
+
+
+def command(
+    source: Path = typer.Argument(..., help="ROV video file or a folder of frames."),
+    cad: Path = typer.Option(..., "--cad", help="Scene spec (TOML/YAML: parts, poses, classes) or one CAD mesh."),
+    out: Path = typer.Option(..., "--out", help="Output folder (sfm/, align/, dataset/, build_report.*)."),
+    preset: str = typer.Option("balanced", "--preset", help="fast | balanced | accurate (SfM and alignment)."),
+    init: Path | None = typer.Option(None, "--init", help="Picked point pairs (JSON) for the coarse alignment."),
+    gt: Path | None = typer.Option(None, "--gt", help="Simulator output folder: report errors against truth."),
+    cad_unit: str | None = typer.Option(None, "--cad-unit", help="Unit of a CAD mesh file: m, cm, mm or in."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
+) -> None:
+    """Frames -> SfM -> CAD alignment (Sim3) -> per-frame CAD depth, normals, masks, poses -> BOP dataset."""
+    from cadalign.build_dataset import build_dataset
+
+    with user_errors():
+        out_dir = build_dataset(source, cad, out, preset=preset, picks=init, gt=gt, cad_unit=cad_unit,
+                                overwrite=overwrite, progress=track)
+    console.print(f"[green]dataset written to {out_dir / 'dataset'}; report {out_dir / 'build_report.html'}[/]")
