@@ -1,0 +1,107 @@
+"""``cadalign sfm (VIDEO|FRAMES_DIR) --out DIR``: camera poses, sparse model and SfM depth with pycolmap."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from cadalign.cli.common import console, track, user_errors
+
+
+def parse_overrides(items: list[str]) -> dict[str, Any]:
+    """``["matching.overlap=15", "frames.enhance='none'"]`` -> nested dict; values are TOML (bare words: strings)."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep or not key.strip():
+            raise typer.BadParameter(f"{item!r}; expected KEY=VALUE, e.g. matching.overlap=15", param_hint="--set")
+        try:
+            value = tomllib.loads(f"v = {raw.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = raw.strip()
+        node = out
+        parts = key.strip().split(".")
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = value
+    return out
+
+
+def _calibration(path: Path) -> dict[str, Any]:
+    """``camera.intrinsics`` from a cameras.json (e.g. a simulation's gt/sim/000000/cameras.json)."""
+    from cadalign.errors import InputError
+    from cadalign.io import read_json
+
+    frames = read_json(path).get("frames") or {}
+    if not frames:
+        raise InputError(f"{path} has no 'frames'; pass a cameras.json like the one 'cadalign sim' writes")
+    K = next(iter(frames.values()))["K"]
+    return {"camera": {"intrinsics": [K[0], K[4], K[2], K[5]]}}
+
+
+def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    out = dict(a)
+    for k, v in b.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def command(
+    source: Path = typer.Argument(..., help="A video file or a folder of frames (sorted by name = capture order)."),
+    out: Path = typer.Option(..., "--out", help="Output folder (model, cameras.json, depth/, report)."),
+    preset: str = typer.Option("balanced", "--preset", help="fast, balanced or accurate."),
+    gt: Path | None = typer.Option(None, "--gt", help="A 'cadalign sim' output folder to evaluate against."),
+    config: Path | None = typer.Option(None, "--config", help="TOML/YAML/JSON file with SfMConfig keys."),
+    overrides: list[str] = typer.Option([], "--set", help="Override a key, e.g. --set matching.overlap=15."),
+    calib: Path | None = typer.Option(None, "--calib", help="Known intrinsics from a cameras.json (fixed in BA)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Delete SfM results of another config in --out."),
+) -> None:
+    """Structure from motion: frames -> SIFT -> matching -> mapping -> cameras.json, SfM depth, report."""
+    from cadalign.config import resolve
+    from cadalign.sfm import PRESETS, SfMConfig, run
+
+    _colmap_log_level()
+    with user_errors():
+        extra = _merge(_calibration(calib), parse_overrides(overrides)) if calib else parse_overrides(overrides)
+        cfg = resolve(SfMConfig, PRESETS, preset, config, extra)
+        out_dir = run(cfg, source, out, overwrite=overwrite, progress=track)
+        report = out_dir / "sfm_report.json"
+        if gt is not None:
+            from cadalign.eval.sfm_metrics import run as evaluate
+
+            evaluate(out_dir, gt)
+    _summary(report)
+    console.print(f"[green]SfM written to {out_dir}[/]")
+
+
+def _colmap_log_level() -> None:
+    """COLMAP's own (glog) messages only with --log-level debug; warnings and errors always."""
+    import logging
+
+    import pycolmap
+
+    pycolmap.logging.minloglevel = 0 if logging.getLogger().getEffectiveLevel() <= logging.DEBUG else 1
+
+
+def _summary(report_path: Path) -> None:
+    from cadalign.io import read_json
+
+    r = read_json(report_path)
+    console.print(
+        f"registered {r['registered']}/{r['frames_in']} frames, {r['points']} points, "
+        f"reprojection {r['mean_reprojection_error_px'] or 0:.2f} px, track length {r['mean_track_length'] or 0:.2f}, "
+        f"{r['seconds_total']:.0f} s"
+    )
+    if r["unregistered"]:
+        console.print(f"[yellow]{len(r['unregistered'])} frames not registered (see unregistered in the report)[/]")
+    if "gt" in r:
+        g = r["gt"]
+        console.print(
+            f"vs GT: {g['registered_with_gt']}/{g['frames_gt']} registered, rotation {g['rot_err_deg_mean']:.3f} deg "
+            f"mean / {g['rot_err_deg_max']:.3f} max, centre RMSE {100 * g['centre_rmse_rel']:.2f}% of "
+            f"{g['median_scene_distance_m']:.2f} m, SfM depth coverage {g['sfm_depth']['coverage_mean']:.4f} "
+            f"AbsRel {g['sfm_depth']['abs_rel']:.4f}"
+        )

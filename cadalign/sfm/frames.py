@@ -1,0 +1,279 @@
+"""Frames for SfM from a video or an image folder: sampling, blur / duplicate rejection, enhancement, masks.
+
+The core is :func:`select_frames`, a pure generator over ``(name, image)``
+candidates that keeps or rejects each one with a reason. Checks run on a grey
+copy resized to ``analysis_width``:
+
+- *blurred*: the variance of the Laplacian (a standard focus measure) is below
+  ``blur_ratio`` times the median of the recent candidates (relative, so it
+  adapts to murky water where every frame is soft), or below ``min_sharpness``;
+- *near-duplicate*: the median motion of tracked corners (pyramidal Lucas-Kanade)
+  since the last kept frame is below ``min_motion`` of the image diagonal; when
+  too few corners can be tracked, the mean absolute grey difference is used.
+
+:func:`extract_frames` (disk) writes the kept frames, optionally enhanced for
+murky water (CLAHE, grey-world white balance), and COLMAP masks.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from cadalign.errors import InputError
+from cadalign.io import read_image, write_image
+from cadalign.sfm.config import FrameConfig
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm")
+_MIN_TRACKED = 12
+_DIFF_DUPLICATE = 0.01  # mean |grey difference| / 255 below which a frame without corners is a duplicate
+
+Progress = Callable[[Iterable, str, int], Iterable]
+
+
+@dataclass(frozen=True)
+class FrameDecision:
+    """What happened to one candidate frame.
+
+    Attributes:
+        name: output file name (``000123.png`` for video frame 123, the file name for images).
+        source: the video frame index or the source image path.
+        kept: whether the frame goes to SfM.
+        reason: why a frame was rejected ('blurred', 'near-duplicate', 'max_frames'); '' when kept.
+        sharpness: variance of the Laplacian at analysis size.
+        motion: median corner motion since the last kept frame (fraction of the diagonal); -1 for the first.
+    """
+
+    name: str
+    source: str
+    kept: bool
+    reason: str
+    sharpness: float
+    motion: float
+
+
+def sharpness(gray: np.ndarray) -> float:
+    """Variance of the Laplacian of an (H, W) uint8 grey image (higher is sharper)."""
+    return float(cv2.Laplacian(gray, cv2.CV_64F).var())
+
+
+def motion_between(prev: np.ndarray, cur: np.ndarray) -> float:
+    """Median image motion from ``prev`` to ``cur`` as a fraction of the image diagonal.
+
+    Tracks Shi-Tomasi corners with pyramidal Lucas-Kanade; falls back to the mean
+    absolute difference (scaled so that ``_DIFF_DUPLICATE`` maps to a tiny motion)
+    when fewer than ``_MIN_TRACKED`` corners survive (textureless water).
+
+    Args:
+        prev: (H, W) uint8 grey image.
+        cur: (H, W) uint8 grey image of the same size.
+    """
+    h, w = prev.shape
+    diag = float(np.hypot(h, w))
+    pts = cv2.goodFeaturesToTrack(prev, maxCorners=300, qualityLevel=0.01, minDistance=max(3, w // 64))
+    if pts is not None and len(pts) >= _MIN_TRACKED:
+        nxt, status, _ = cv2.calcOpticalFlowPyrLK(prev, cur, pts, None, winSize=(21, 21), maxLevel=3)
+        ok = status.ravel() == 1
+        if ok.sum() >= _MIN_TRACKED:
+            return float(np.median(np.linalg.norm((nxt - pts)[ok].reshape(-1, 2), axis=1)) / diag)
+    diff = float(np.mean(np.abs(prev.astype(np.float32) - cur.astype(np.float32))) / 255.0)
+    return 0.0 if diff < _DIFF_DUPLICATE else 1.0
+
+
+def _analysis_gray(image: np.ndarray, width: int) -> np.ndarray:
+    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+    if gray.dtype != np.uint8:
+        raise InputError(f"frames must be 8-bit, got {gray.dtype}; convert the video or images to 8-bit")
+    if gray.shape[1] > width:
+        h = max(1, round(gray.shape[0] * width / gray.shape[1]))
+        gray = cv2.resize(gray, (width, h), interpolation=cv2.INTER_AREA)
+    return gray
+
+
+def select_frames(
+    candidates: Iterable[tuple[str, str, np.ndarray]], cfg: FrameConfig
+) -> Iterator[tuple[FrameDecision, np.ndarray]]:
+    """Decide for each candidate ``(name, source, rgb)`` whether it goes to SfM; yields (decision, rgb).
+
+    Pure apart from reading the iterator: the same candidates and config always give the same
+    decisions. Blur is judged against the median sharpness of the last ``blur_window`` candidates
+    (causal), duplicates against the last kept frame; in 'motion' sampling a frame is kept only once
+    the motion reaches ``keyframe_motion``.
+    """
+    recent: deque[float] = deque(maxlen=cfg.blur_window)
+    last_kept: np.ndarray | None = None
+    n_kept = 0
+    min_motion = cfg.keyframe_motion if cfg.sampling == "motion" else cfg.min_motion
+    for name, source, rgb in candidates:
+        gray = _analysis_gray(rgb, cfg.analysis_width)
+        sharp = sharpness(gray)
+        reference = float(np.median(recent)) if recent else sharp
+        recent.append(sharp)
+        motion = -1.0 if last_kept is None or last_kept.shape != gray.shape else motion_between(last_kept, gray)
+        if cfg.max_frames and n_kept >= cfg.max_frames:
+            reason = "max_frames"
+        elif sharp < cfg.min_sharpness or (cfg.blur_ratio > 0 and sharp < cfg.blur_ratio * reference):
+            reason = "blurred"
+        elif motion >= 0 and min_motion > 0 and motion < min_motion:
+            reason = "near-duplicate"
+        else:
+            reason = ""
+        if not reason:
+            last_kept = gray
+            n_kept += 1
+        yield FrameDecision(name, source, not reason, reason, sharp, motion), rgb
+
+
+def enhance(rgb: np.ndarray, cfg: FrameConfig) -> np.ndarray:
+    """Pre-process an (H, W, 3) uint8 RGB frame for murky water (see ``FrameConfig.enhance``)."""
+    if cfg.enhance == "none":
+        return rgb
+    out = rgb
+    if cfg.enhance == "clahe_wb":
+        means = out.reshape(-1, 3).astype(np.float64).mean(0)
+        gains = means.mean() / np.maximum(means, 1.0)
+        out = np.clip(out.astype(np.float32) * gains.astype(np.float32), 0, 255).astype(np.uint8)
+    lab = cv2.cvtColor(out, cv2.COLOR_RGB2LAB)
+    clahe = cv2.createCLAHE(clipLimit=cfg.clahe_clip, tileGridSize=(cfg.clahe_tiles, cfg.clahe_tiles))
+    lab[..., 0] = clahe.apply(np.ascontiguousarray(lab[..., 0]))
+    return cv2.cvtColor(lab, cv2.COLOR_LAB2RGB)
+
+
+def is_video(path: Path) -> bool:
+    return Path(path).is_file() and Path(path).suffix.lower() in VIDEO_SUFFIXES
+
+
+def list_images(folder: Path) -> list[Path]:
+    """The images of a folder, sorted by name (the capture order of a frame dump)."""
+    files = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    if not files:
+        raise InputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}; pass a video or a frames folder")
+    return files
+
+
+def video_candidates(path: Path, cfg: FrameConfig) -> tuple[Iterator[tuple[str, str, np.ndarray]], int]:
+    """Candidate frames of a video (OpenCV) and their expected count."""
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise InputError(f"could not open video {path}; check the file or extract frames to a folder first")
+    fps = cap.get(cv2.CAP_PROP_FPS) or 0.0
+    total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+    step = max(1, round(fps / cfg.fps)) if cfg.sampling == "fps" and fps > 0 else 1
+
+    def gen() -> Iterator[tuple[str, str, np.ndarray]]:
+        index = 0
+        try:
+            while True:
+                if index % step:
+                    if not cap.grab():
+                        break
+                else:
+                    ok, bgr = cap.read()
+                    if not ok:
+                        break
+                    yield f"{index:06d}.png", str(index), np.ascontiguousarray(bgr[..., ::-1])
+                index += 1
+        finally:
+            cap.release()
+
+    return gen(), (total + step - 1) // step if total > 0 else 0
+
+
+def folder_candidates(folder: Path) -> tuple[Iterator[tuple[str, str, np.ndarray]], int]:
+    files = list_images(folder)
+    return ((p.name, str(p), read_image(p)) for p in files), len(files)
+
+
+def _load_mask(cfg: FrameConfig, name: str, shape: tuple[int, int]) -> np.ndarray | None:
+    """The (H, W) bool mask of frame ``name`` (True = use), or None when no mask is configured."""
+    if cfg.mask is None and not cfg.mask_rects:
+        return None
+    mask = np.ones(shape, bool)
+    if cfg.mask is not None:
+        path = Path(cfg.mask)
+        if path.is_dir():
+            stem = Path(name).stem
+            hits = [p for p in (path / name, path / f"{name}.png", path / f"{stem}.png") if p.is_file()]
+            path = hits[0] if hits else None
+        if path is not None:
+            img = read_image(path, unchanged=True)
+            img = img if img.ndim == 2 else img[..., 0]
+            if img.shape != shape:
+                raise InputError(f"mask {path} is {img.shape[1]}x{img.shape[0]} but frame {name} is "
+                                 f"{shape[1]}x{shape[0]}; resize the mask to the frame size")
+            mask &= img > 0
+    for x, y, w, h in cfg.mask_rects:
+        mask[max(0, y) : max(0, y + h), max(0, x) : max(0, x + w)] = False
+    return mask
+
+
+def extract_frames(
+    source: Path, cfg: FrameConfig, images_dir: Path, masks_dir: Path, progress: Progress | None = None
+) -> list[FrameDecision]:
+    """Select frames of ``source`` (video or image folder) and write them to ``images_dir``.
+
+    Kept frames are written as PNG (enhanced per ``cfg.enhance``) under their decision name; masks,
+    when configured, go to ``masks_dir/<name>.png`` (COLMAP's layout: 255 = use, 0 = ignore).
+
+    Raises:
+        InputError: the source is missing, not a video or folder of images, or yields no usable frame.
+    """
+    source = Path(source)
+    if is_video(source):
+        candidates, total = video_candidates(source, cfg)
+    elif source.is_dir():
+        candidates, total = folder_candidates(source)
+    elif source.exists():
+        raise InputError(f"{source} is neither a video ({', '.join(VIDEO_SUFFIXES)}) nor a folder of images")
+    else:
+        raise InputError(f"input not found: {source}")
+    decisions: list[FrameDecision] = []
+    stream = select_frames(candidates, cfg)
+    for decision, rgb in progress(stream, "frames", total) if progress else stream:
+        decisions.append(decision)
+        if not decision.kept:
+            continue
+        if cfg.enhance == "none" and not is_video(source):
+            _link_or_copy(Path(decision.source), images_dir / decision.name)  # lossless, keeps EXIF
+        else:
+            write_image(images_dir / decision.name, enhance(rgb, cfg))
+        mask = _load_mask(cfg, decision.name, rgb.shape[:2])
+        if mask is not None:
+            write_image(masks_dir / f"{decision.name}.png", mask.astype(np.uint8) * 255)
+    kept = [d for d in decisions if d.kept]
+    if len(kept) < 2:
+        raise InputError(
+            f"{source}: only {len(kept)} of {len(decisions)} frames are usable "
+            f"({_count_reasons(decisions)}); lower frames.blur_ratio / frames.min_motion or check the input"
+        )
+    log.info("frames: kept %d of %d (%s)", len(kept), len(decisions), _count_reasons(decisions) or "none rejected")
+    return decisions
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if dst.exists():
+        dst.unlink()
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
+
+
+def _count_reasons(decisions: list[FrameDecision]) -> str:
+    counts: dict[str, int] = {}
+    for d in decisions:
+        if not d.kept:
+            counts[d.reason] = counts.get(d.reason, 0) + 1
+    return ", ".join(f"{n} {r}" for r, n in sorted(counts.items()))
