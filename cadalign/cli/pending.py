@@ -10,7 +10,6 @@ import typer
 from cadalign.cli.common import console
 
 PENDING: dict[str, tuple[str, int]] = {
-    "sfm": ("Video or frames to camera poses with pycolmap (presets, report, SfM depth).", 4),
     "align": ("Align a CAD model to an SfM point cloud with scale (global + Sim(3) ICP).", 5),
     "build-dataset": ("Video + CAD to a metric, dense, BOP-format dataset.", 5),
     "train": ("Train the segmentation, depth or detection+pose networks.", 6),

@@ -1,0 +1,124 @@
+"""``cadalign build-dataset`` end to end on a tiny simulated capture, checked against the simulator's truth.
+
+The coarse alignment uses picks (the thesis aligned by hand): four CAD points and where they are in the
+SfM frame, perturbed by 2 cm, so this test checks the builder (SfM cameras -> metric poses -> ray-cast
+depth, masks, poses -> BOP) independently of the global registration, which tests/align covers.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from sim_testdata import write_tiny_scene
+
+from cadalign.data.bop import BopScene
+from cadalign.errors import AlignmentError
+from cadalign.io import read_image, read_json, write_json
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> tuple[Path, Path]:
+    """(scene spec, simulator output) of a 12-frame 320x240 orbit with light water effects."""
+    from cadalign.sim.run import simulate
+
+    root = tmp_path_factory.mktemp("capture")
+    spec = write_tiny_scene(root / "tiny.toml", effects=["attenuation", "backscatter"], frames=12)
+    # a closer orbit round a bigger block, so the structure (not the seabed) holds most SfM points
+    text = spec.read_text().replace("width = 160", "width = 320").replace("height = 120", "height = 240")
+    for a, b in (("speed_mps = 0.5", "speed_mps = 0.3"), ("radius_m = 3.2", "radius_m = 3.0"),
+                 ("size_m = [1.2, 0.8, 0.6]", "size_m = [2.0, 1.4, 1.2]"), ("position = [0.0, 0.0, 0.3]",
+                 "position = [0.0, 0.0, 0.0]"), ("center = [0.0, 0.0, 0.5]", "center = [0.0, 0.0, 0.8]"),
+                 ("position = [-1.0, 0.9, 0.0]", "position = [-0.6, 0.0, 1.2]"),
+                 ("position = [0.9, -0.8, 0.1]", "position = [0.6, -0.3, 1.2]")):
+        text = text.replace(a, b)
+    spec.write_text(text)
+    return spec, simulate(spec, root / "sim", video=False, contact_sheet=False)
+
+
+@pytest.fixture(scope="module")
+def built(capture: tuple[Path, Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from cadalign.build_dataset import build_dataset
+    from cadalign.eval.dataset_eval import true_cad_from_sfm
+    from cadalign.sfm import PRESETS, run
+
+    spec, sim = capture
+    out = tmp_path_factory.mktemp("build")
+    sfm_dir = run(PRESETS["fast"], sim / "frames", out / "sfm")  # build_dataset reuses this
+    true = true_cad_from_sfm(read_json(sfm_dir / "cameras.json")["frames"],
+                             read_json(sim / "gt" / "sim" / "000000" / "cameras.json")["frames"])
+    cad_pts = np.array([[1.0, 0.7, 1.2], [-1.0, -0.7, 1.2], [1.0, -0.7, 0.0], [-1.0, 0.7, 0.0]])
+    noisy = cad_pts + np.random.default_rng(0).normal(0, 0.02, cad_pts.shape)
+    sfm_pts = true.inverse().apply(noisy)
+    write_json(out / "picks.json", {"pairs": [{"sfm": s.tolist(), "cad_m": c.tolist()}
+                                              for s, c in zip(sfm_pts, cad_pts, strict=True)]})
+    return build_dataset(sim / "frames", spec, out, preset="fast", picks=out / "picks.json", gt=sim)
+
+
+def test_dataset_matches_the_truth(built: Path) -> None:
+    """Bounds for this tiny capture (12 frames, 320x240, ~1000 SfM points, a 2 m block): the SfM alone
+    limits them to about 1 % in scale. They are looser than the issue's numbers for the 640x480 default
+    scene (0.3 deg, 2 cm, 0.5 %), which the build benchmark measures, but catch any convention error
+    (a flipped pose, a mm/m slip, a half-pixel shift shows up as metres, degrees or IoU far below these)."""
+    vt = read_json(built / "build_report.json")["vs_truth"]
+    a = vt["alignment"]
+    assert a["rotation_deg"] <= 0.6 and a["translation_m"] <= 0.03 and a["scale_rel"] <= 0.015, a
+    assert vt["depth"]["cad_depth"]["abs_rel"] <= 0.015, vt["depth"]
+    assert vt["mask_visib_iou"]["all"]["median"] >= 0.9, vt["mask_visib_iou"]
+    assert vt["pose_in_camera"]["rotation_deg"]["median"] <= 0.5
+    assert vt["pose_in_camera"]["translation_m"]["median"] <= 0.03
+    # the thesis's comparison: CAD depth is dense, SfM depth is sparse
+    assert vt["depth"]["cad_depth"]["coverage"] > 0.9 > 0.2 > vt["depth"]["sfm_depth"]["coverage"]
+    html = (built / "build_report.html").read_text()
+    assert "CAD depth vs SfM depth" in html
+
+
+def test_dataset_layout_splits_and_coco(built: Path) -> None:
+    ds = built / "dataset"
+    scene = BopScene(ds / "all" / "000000")
+    assert len(scene.ids) >= 10
+    info = read_json(ds / "models" / "models_info.json")
+    assert len(info) == 3
+    splits = read_json(ds / "splits.json")
+    ids = splits["train"] + splits["val"] + splits["test"]
+    assert len(ids) == len(set(ids)) and set(ids) <= set(scene.ids) and splits["train"]
+    coco = read_json(ds / "coco_train.json")
+    assert {im["id"] for im in coco["images"]} == set(splits["train"]) and coco["annotations"]
+    depth_sfm = read_image(ds / "all" / "000000" / "depth_sfm" / "000000.png", unchanged=True)
+    assert depth_sfm.dtype == np.uint16 and 0 < (depth_sfm > 0).mean() < 0.2
+
+
+def test_interrupted_render_resumes_to_the_same_result(built: Path, capture: tuple[Path, Path]) -> None:
+    """Deleting the last frames' records (as a kill mid-render leaves it) and re-running redoes only those
+    frames, reuses SfM and the alignment, and gives identical files."""
+    from cadalign.build_dataset import build_dataset
+
+    spec, sim = capture
+    scene_dir = built / "dataset" / "all" / "000000"
+    before = {p.name: p.read_bytes() for p in sorted((scene_dir / "depth").glob("*.png"))}
+    gt_before = read_json(scene_dir / "scene_gt.json")
+    for p in sorted((scene_dir / "frames_json").glob("*.json"))[-3:]:
+        p.unlink()
+    (scene_dir / "depth" / sorted(before)[-1]).write_bytes(b"torn")
+    sfm_mtime = (built / "sfm" / "sparse" / "0" / "points3D.bin").stat().st_mtime_ns
+    build_dataset(sim / "frames", spec, built, preset="fast", picks=built / "picks.json", gt=sim)
+    assert (built / "sfm" / "sparse" / "0" / "points3D.bin").stat().st_mtime_ns == sfm_mtime
+    after = {p.name: p.read_bytes() for p in sorted((scene_dir / "depth").glob("*.png"))}
+    assert after == before
+    assert read_json(scene_dir / "scene_gt.json") == gt_before
+
+
+def test_cad_in_the_wrong_unit_fails_the_gate(capture: tuple[Path, Path], built: Path, tmp_path: Path,
+                                              shared_data: Path) -> None:
+    """The hot stab read as millimetres (it is in metres) gives an alignment error naming the unit, no dataset."""
+    from cadalign.build_dataset import build_dataset
+
+    _, sim = capture
+    out = tmp_path / "bad"
+    shutil.copytree(built / "sfm", out / "sfm")
+    hot_stab = shared_data / "uuv_subsea_cad" / "hot_stab" / "meshes" / "HotStab.dae"
+    with pytest.raises(AlignmentError, match="(?i)unit"):
+        build_dataset(sim / "frames", hot_stab, out, preset="fast", cad_unit="mm")
+    assert not (out / "dataset").exists()
