@@ -28,3 +28,6 @@ def command(
     for stage, info in summary["stages"].items():
         console.print(f"  {stage:<14} {info['status']}")
     console.print(f"[green]demo written to {out} (summary.json, report.html)[/]")
+    if not summary["ok"]:
+        console.print("[red]a stage failed; see report.html[/]")
+        raise typer.Exit(code=1)

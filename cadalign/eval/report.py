@@ -71,6 +71,15 @@ def write_report(out: Path, summary: dict) -> Path:
     parts.append("<h2 id='stages'>Stages</h2>" + table(status))
     if summary["stages"].get("sim", {}).get("status") == "done":
         parts.append(_sim_section(out, summary["stages"]["sim"]))
+    build = summary["stages"].get("build-dataset", {})
+    if build.get("status") == "done" and build.get("vs_truth"):
+        rows = [{"ground truth": k, "coverage %": 100 * v["coverage"], "AbsRel": v["abs_rel"], "δ1": v["delta1"]}
+                for k, v in build["vs_truth"]["depth"].items()]
+        parts.append("<h2 id='build'>Dataset: CAD depth vs SfM depth against the true depth</h2>" + table(rows)
+                     + img_tag(out / build["dir"] / "align" / "align.png", "alignment")
+                     + img_tag(out / build["dir"] / "sfm" / "trajectory.png", "trajectory"))
+    elif build.get("error"):
+        parts.append(f"<h2 id='build'>Dataset</h2><pre class='pending'>{html.escape(build['error'])}</pre>")
     parts.append(
         "<h2 id='summary'>Summary (JSON)</h2><pre>"
         + html.escape(json.dumps(summary, indent=1)[:20000])
