@@ -13,8 +13,6 @@ instance's model id, class and world pose).
 
 from __future__ import annotations
 
-import os
-import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from cadalign.data import bop
-from cadalign.io import atomic_path, read_json, write_image, write_json
+from cadalign.io import atomic_path, link_or_copy, read_json, write_image, write_json
 from cadalign.render.raycast import RaycastFrame
 from cadalign.types import Camera, Rigid3
 
@@ -108,14 +106,3 @@ def merge_scene_files(scene_dir: Path, objects: Sequence[PosedObject], class_nam
 def save_npz(path: Path, **arrays: np.ndarray) -> None:
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **arrays)
-
-
-def link_or_copy(src: Path, dst: Path) -> None:
-    """Hard-link ``src`` to ``dst`` (replacing it), or copy where links are not possible."""
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    if dst.exists():
-        dst.unlink()
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copyfile(src, dst)

@@ -18,8 +18,6 @@ murky water (CLAHE, grey-world white balance), and COLMAP masks.
 from __future__ import annotations
 
 import logging
-import os
-import shutil
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -29,7 +27,7 @@ import cv2
 import numpy as np
 
 from cadalign.errors import InputError
-from cadalign.io import read_image, write_image
+from cadalign.io import link_or_copy, read_image, write_image
 from cadalign.sfm.config import FrameConfig
 
 log = logging.getLogger(__name__)
@@ -245,7 +243,7 @@ def extract_frames(
         if not decision.kept:
             continue
         if cfg.enhance == "none" and not is_video(source):
-            _link_or_copy(Path(decision.source), images_dir / decision.name)  # lossless, keeps EXIF
+            link_or_copy(Path(decision.source), images_dir / decision.name)  # lossless, keeps EXIF
         else:
             write_image(images_dir / decision.name, enhance(rgb, cfg))
         mask = _load_mask(cfg, decision.name, rgb.shape[:2])
@@ -259,16 +257,6 @@ def extract_frames(
         )
     log.info("frames: kept %d of %d (%s)", len(kept), len(decisions), _count_reasons(decisions) or "none rejected")
     return decisions
-
-
-def _link_or_copy(src: Path, dst: Path) -> None:
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    if dst.exists():
-        dst.unlink()
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copyfile(src, dst)
 
 
 def _count_reasons(decisions: list[FrameDecision]) -> str:
