@@ -10,8 +10,6 @@ import typer
 from cadalign.cli.common import console
 
 PENDING: dict[str, tuple[str, int]] = {
-    "align": ("Align a CAD model to an SfM point cloud with scale (global + Sim(3) ICP).", 5),
-    "build-dataset": ("Video + CAD to a metric, dense, BOP-format dataset.", 5),
     "train": ("Train the segmentation, depth or detection+pose networks.", 6),
     "infer": ("Per-frame 6-DoF poses of the CAD parts on ROV video.", 7),
     "fuse": ("Fuse depth, labels and poses into a semantic TSDF or surfel map.", 8),
