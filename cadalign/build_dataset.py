@@ -31,9 +31,11 @@ from pathlib import Path
 import numpy as np
 
 from cadalign.cad.model import CadModel
+from cadalign.config import to_dict
 from cadalign.data import bop
-from cadalign.io import fingerprint, prepare_stage_dir, read_json, write_json
+from cadalign.io import fingerprint, prepare_stage_dir, read_json, write_image, write_json
 from cadalign.render.bop_writer import PosedObject, frame_done, merge_scene_files, write_bop_frame
+from cadalign.render.camera_refine import CameraRefineConfig, rays_of, refine_cameras
 from cadalign.render.raycast import RaycastRenderer, RenderMesh
 from cadalign.types import Camera, Rigid3, Sim3
 
@@ -42,6 +44,7 @@ Progress = Callable[[Iterable, str, int], Iterable]
 SCENE = Path("all") / "000000"
 DEPTH_SCALE = 1.0
 SPEC_SUFFIXES = (".toml", ".yaml", ".yml")
+DEFAULT_REFINE = CameraRefineConfig()
 
 
 @dataclass(frozen=True)
@@ -83,36 +86,61 @@ def metric_pose(entry: dict, cad_from_sfm: Sim3) -> tuple[Camera, Rigid3]:
 
 
 def render_frames(structure: Structure, cameras: dict[str, dict], cad_from_sfm: Sim3, sfm_dir: Path,
-                  scene_dir: Path, progress: Progress | None = None) -> dict[int, str]:
-    """Ray-cast and write every registered frame (resumably); returns im_id -> source frame name."""
+                  scene_dir: Path, progress: Progress | None = None,
+                  refine: CameraRefineConfig | None = DEFAULT_REFINE) -> tuple[dict[int, str], dict[int, bool]]:
+    """Ray-cast and write every registered frame (resumably).
+
+    Rays come from the SfM camera model (its distortion included), poses from the SfM refined against the
+    CAD (:mod:`cadalign.render.camera_refine`) unless ``refine`` is None. Returns im_id -> source frame name
+    and im_id -> whether the frame's pose was verified against the CAD.
+    """
+    import pycolmap
+
     names = sorted(cameras)
     meshes = structure.render_meshes()
-    renderers: dict[bytes, RaycastRenderer] = {}
+    model_dir = sfm_dir / "sparse" / "0"
+    rec = pycolmap.Reconstruction(str(model_dir))
+    by_name = {im.name: im for im in rec.images.values()}
+    refined = {}
+    if refine is not None:
+        verts = np.concatenate([m.vertices_m for m in meshes])
+        offsets = np.cumsum([0] + [len(m.vertices_m) for m in meshes[:-1]])
+        faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)])
+        refined = refine_cameras(model_dir, cad_from_sfm, verts, faces, refine)
+    renderers: dict[int, RaycastRenderer] = {}
     ids = list(range(len(names)))
+    quality: dict[int, dict] = {}
     for k in progress(ids, "render", len(ids)) if progress else ids:
+        camera, T_world_from_cam = metric_pose(cameras[names[k]], cad_from_sfm)
+        r = refined.get(names[k])
+        if r is not None:
+            T_world_from_cam = r.T_world_from_cam
+            quality[k] = {"verified": r.verified, "pairs": r.n_pairs, "inliers": r.n_inliers, "rms_px": r.rms_px,
+                          "shift_m": r.shift_m, "turn_deg": r.turn_deg}
+        else:
+            quality[k] = {"verified": refine is None}
         if frame_done(scene_dir, k):
             continue
-        camera, T_world_from_cam = metric_pose(cameras[names[k]], cad_from_sfm)
-        key = camera.K.tobytes() + bytes([camera.width % 256, camera.height % 256])
-        if key not in renderers:
-            renderers[key] = RaycastRenderer(meshes, camera)
-        gt = renderers[key].render(T_world_from_cam)
+        cam = by_name[names[k]].camera
+        if cam.camera_id not in renderers:
+            renderers[cam.camera_id] = RaycastRenderer(meshes, camera, rays_cam=rays_of(cam))
+        gt = renderers[cam.camera_id].render(T_world_from_cam)
         sfm_depth = sfm_dir / "depth" / f"{Path(names[k]).stem}.npy"
         if sfm_depth.is_file():  # semi-dense SfM depth, now in metres
             d = np.load(sfm_depth).astype(np.float64) * cad_from_sfm.s
-            from cadalign.io import write_image
-
             write_image(scene_dir / "depth_sfm" / bop.frame_name(k), bop.encode_depth(d, DEPTH_SCALE), atomic=False)
         write_bop_frame(scene_dir, k, camera, T_world_from_cam.inverse(), gt, structure.objects, DEPTH_SCALE,
                         rgb_source=sfm_dir / "images" / names[k])
     merge_scene_files(scene_dir, structure.objects, structure.class_names)
     frame_names = {k: n for k, n in zip(ids, names, strict=True)}
     write_json(scene_dir / "frame_names.json", {str(k): n for k, n in frame_names.items()})
-    return frame_names
+    write_json(scene_dir / "frame_quality.json", {str(k): q for k, q in quality.items()})
+    return frame_names, {k: bool(q["verified"]) for k, q in quality.items()}
 
 
-def write_dataset_extras(ds: Path, structure: Structure, block: int = 10, gap: int = 1) -> dict[str, list[int]]:
-    """models/ + models_info.json, splits.json and per-split COCO annotations."""
+def write_dataset_extras(ds: Path, structure: Structure, verified: dict[int, bool] | None = None, block: int = 10,
+                         gap: int = 1) -> dict[str, list[int]]:
+    """models/ + models_info.json, splits.json and per-split COCO annotations (verified frames only)."""
     from cadalign.cad.models_info import write_model_ply_mm, write_models_info
     from cadalign.data.bop import BopScene
     from cadalign.data.coco import coco_annotations, write_coco
@@ -122,7 +150,8 @@ def write_dataset_extras(ds: Path, structure: Structure, block: int = 10, gap: i
         write_model_ply_mm(model, ds / "models" / f"obj_{oid:06d}.ply")
     write_models_info(structure.models, ds / "models" / "models_info.json")
     scene = BopScene(ds / SCENE)
-    splits = time_block_splits(scene.ids, block=block, gap=gap)
+    ids = [k for k in scene.ids if verified is None or verified.get(k, False)]
+    splits = time_block_splits(ids, block=block, gap=gap)
     write_json(ds / "splits.json", {"scene": str(SCENE), "block": block, "gap": gap, **splits})
     class_of_obj = {o.obj_id: o.class_id for o in structure.objects}
     for name, ids in splits.items():
@@ -131,9 +160,13 @@ def write_dataset_extras(ds: Path, structure: Structure, block: int = 10, gap: i
 
 
 def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced", picks: Path | None = None,
-                  gt: Path | None = None, cad_unit: str | None = None, overwrite: bool = False,
-                  progress: Progress | None = None) -> Path:
+                  gt: Path | None = None, cad_unit: str | None = None, calib: Path | None = None,
+                  overwrite: bool = False, progress: Progress | None = None) -> Path:
     """Run frames -> SfM -> align -> render -> write; returns ``out``. See the module doc for the layout.
+
+    ``calib``: a cameras.json with the camera's known intrinsics (first frame's K), held fixed in SfM. A
+    self-calibrated focal length off by 1 % moves every camera ~1 % along its axis (8 cm at 8 m), which
+    the CAD ground truth inherits; calibrate the ROV camera underwater and pass it.
 
     Raises:
         AlignmentError: the alignment failed its quality gate (no dataset is written).
@@ -152,7 +185,16 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     structure = load_structure(cad, cad_unit)
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
-    sfm_dir = sfm_run(SFM_PRESETS[preset], Path(source), out / "sfm", overwrite=overwrite, progress=progress)
+    sfm_cfg = SFM_PRESETS[preset]
+    if calib is not None:
+        import dataclasses
+
+        K = next(iter((read_json(calib).get("frames") or {"": {}}).values())).get("K")
+        if K is None:
+            raise ConfigError(f"{calib} has no frames with a 'K'; pass a cameras.json like 'cadalign sim' writes")
+        sfm_cfg = dataclasses.replace(sfm_cfg, camera=dataclasses.replace(
+            sfm_cfg.camera, intrinsics=(float(K[0]), float(K[4]), float(K[2]), float(K[5]))))
+    sfm_dir = sfm_run(sfm_cfg, Path(source), out / "sfm", overwrite=overwrite, progress=progress)
     seconds["sfm"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     parts = [(structure.models[o.obj_id], o.T_world_from_obj) for o in structure.objects]
@@ -166,15 +208,17 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
 
         shutil.rmtree(ds)
     config = {"align": fingerprint(read_json(align_json)["cad_from_sfm"]), "cad": str(Path(cad).resolve()),
-              "depth_scale": DEPTH_SCALE}
+              "depth_scale": DEPTH_SCALE, "camera_refine": to_dict(DEFAULT_REFINE)}
     prepare_stage_dir(ds, "build-dataset", config, overwrite=overwrite)
     t0 = time.perf_counter()
     cameras = read_json(sfm_dir / "cameras.json")["frames"]
-    frame_names = render_frames(structure, cameras, cad_from_sfm, sfm_dir, ds / SCENE, progress)
-    splits = write_dataset_extras(ds, structure)
+    frame_names, verified = render_frames(structure, cameras, cad_from_sfm, sfm_dir, ds / SCENE, progress)
+    splits = write_dataset_extras(ds, structure, verified)
     seconds["render_and_write"] = time.perf_counter() - t0
     report = {
-        "frames": len(frame_names), "splits": {k: len(v) for k, v in splits.items()},
+        "frames": len(frame_names), "frames_verified": int(sum(verified.values())),
+        "frames_not_verified": [frame_names[k] for k, ok in verified.items() if not ok],
+        "splits": {k: len(v) for k, v in splits.items()},
         "alignment": {k: v for k, v in read_json(align_json).items() if k in ("cad_from_sfm", "metrics", "gates")},
         "seconds": seconds, "sfm_report": read_json(sfm_dir / "sfm_report.json"),
     }

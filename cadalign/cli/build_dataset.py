@@ -17,6 +17,7 @@ def command(
     init: Path | None = typer.Option(None, "--init", help="Picked point pairs (JSON) for the coarse alignment."),
     gt: Path | None = typer.Option(None, "--gt", help="Simulator output folder: report errors against truth."),
     cad_unit: str | None = typer.Option(None, "--cad-unit", help="Unit of a CAD mesh file: m, cm, mm or in."),
+    calib: Path | None = typer.Option(None, "--calib", help="Known intrinsics (a cameras.json), fixed in SfM."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
 ) -> None:
     """Frames -> SfM -> CAD alignment (Sim3) -> per-frame CAD depth, normals, masks, poses -> BOP dataset."""
@@ -24,5 +25,5 @@ def command(
 
     with user_errors():
         out_dir = build_dataset(source, cad, out, preset=preset, picks=init, gt=gt, cad_unit=cad_unit,
-                                overwrite=overwrite, progress=track)
+                                calib=calib, overwrite=overwrite, progress=track)
     console.print(f"[green]dataset written to {out_dir / 'dataset'}; report {out_dir / 'build_report.html'}[/]")

@@ -83,7 +83,9 @@ class RaycastRenderer:
     mask, cast only inside the instance's projected bounding box.
     """
 
-    def __init__(self, meshes: Sequence[RenderMesh], camera: Camera) -> None:
+    def __init__(self, meshes: Sequence[RenderMesh], camera: Camera, rays_cam: np.ndarray | None = None) -> None:
+        """``rays_cam``: optional (H, W, 3) camera-frame ray directions with z = 1 through the pixel centres,
+        for lens models beyond the pinhole ``camera.K`` (e.g. SfM's radial distortion); default: from K."""
         import open3d as o3d
 
         if not meshes:
@@ -116,7 +118,10 @@ class RaycastRenderer:
         self._lut_class = np.zeros(max(class_of) + 1, dtype=np.uint8)
         for inst, cid in class_of.items():
             self._lut_class[inst] = cid
-        self._dirs_cam = pixel_rays_cam(camera)
+        self._dirs_cam = pixel_rays_cam(camera) if rays_cam is None else np.asarray(rays_cam, dtype=np.float64)
+        if self._dirs_cam.shape != (camera.height, camera.width, 3):
+            raise InputError(f"rays_cam has shape {self._dirs_cam.shape}; expected ({camera.height}, "
+                             f"{camera.width}, 3) for this camera")
         self._ray_len = np.linalg.norm(self._dirs_cam, axis=-1).astype(np.float32)
         self._rays_unit = (self._dirs_cam / self._ray_len[..., None]).astype(np.float32)
         self._dirs_cam32 = self._dirs_cam.astype(np.float32)

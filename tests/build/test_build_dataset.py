@@ -62,7 +62,9 @@ def test_dataset_matches_the_truth(built: Path) -> None:
     limits them to about 1 % in scale. They are looser than the issue's numbers for the 640x480 default
     scene (0.3 deg, 2 cm, 0.5 %), which the build benchmark measures, but catch any convention error
     (a flipped pose, a mm/m slip, a half-pixel shift shows up as metres, degrees or IoU far below these)."""
-    vt = read_json(built / "build_report.json")["vs_truth"]
+    report = read_json(built / "build_report.json")
+    assert report["frames_verified"] == report["frames"] and not report["frames_not_verified"]
+    vt = report["vs_truth"]
     a = vt["alignment"]
     assert a["rotation_deg"] <= 0.6 and a["translation_m"] <= 0.03 and a["scale_rel"] <= 0.015, a
     assert vt["depth"]["cad_depth"]["abs_rel"] <= 0.015, vt["depth"]
