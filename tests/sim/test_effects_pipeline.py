@@ -7,25 +7,21 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from effects_testdata import make_camera, make_scene
 
 from cadalign.errors import ConfigError
 from cadalign.sim.effects import EFFECTS, EffectSpec, FrameBuffers, apply_effects, buffers_from_range
 from cadalign.sim.effects.attenuation import AttenuationParams
 from cadalign.sim.effects_chain import INJECTED, build_chain, run_chain
-from cadalign.sim.spec import LightSpec, ObjectSpec, SceneSpec, TrajectorySpec, WaterSpec
-from cadalign.types import Camera, Rigid3
+from cadalign.sim.spec import LightSpec, TrajectorySpec, WaterSpec
+from cadalign.types import Rigid3
 
 PHYSICAL_ORDER = ("artificial_light", "attenuation", "forward_scatter", "backscatter", "marine_snow",
                   "motion_blur", "vignetting", "low_light")
 
 
-def make_camera(width: int, height: int, hfov_deg: float = 70.0) -> Camera:
-    fx = width / 2 / np.tan(np.radians(hfov_deg / 2))
-    return Camera(np.array([[fx, 0.0, width / 2], [0.0, fx, height / 2], [0.0, 0.0, 1.0]]), width, height)
 
 
-def make_scene(effects: tuple[str, ...], **kw: object) -> SceneSpec:
-    return SceneSpec(name="t", objects=(ObjectSpec(name="box", source="procedural:box"),), effects=effects, **kw)
 
 
 @pytest.fixture

@@ -10,6 +10,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from effects_testdata import chain_params, make_camera, make_scene
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
@@ -38,26 +39,16 @@ from cadalign.sim.effects import (
     water_from_jerlov,
 )
 from cadalign.sim.effects_chain import build_chain
-from cadalign.sim.spec import LightSpec, ObjectSpec, SceneSpec, TrajectorySpec, WaterSpec
-from cadalign.types import Camera, Rigid3
+from cadalign.sim.spec import LightSpec, TrajectorySpec
+from cadalign.types import Rigid3
 
 HEADLAMP = LightSpec(offset_m=(0.0, 0.0, 0.0), direction=(0.0, 0.0, 1.0), intensity=40.0, cone_deg=30.0)
 
 
-def make_camera(width: int, height: int, hfov_deg: float = 70.0) -> Camera:
-    """Pinhole camera with the principal point at the image centre (odd sizes: on a pixel centre)."""
-    fx = width / 2 / np.tan(np.radians(hfov_deg / 2))
-    return Camera(np.array([[fx, 0.0, width / 2], [0.0, fx, height / 2], [0.0, 0.0, 1.0]]), width, height)
 
 
-def make_scene(effects: tuple[str, ...], jerlov: str = "II", **kw: object) -> SceneSpec:
-    return SceneSpec(name="t", objects=(ObjectSpec(name="box", source="procedural:box"),), effects=effects,
-                     water=WaterSpec(jerlov=jerlov), **kw)
 
 
-def chain_params(name: str, jerlov: str = "II", **kw: object) -> object:
-    """The params ``build_chain`` makes for one effect of a scene in the given water."""
-    return dict(build_chain(make_scene((name,), jerlov, **kw)))[name]
 
 
 def flat_frame(width: int, height: int, range_m: float, value: float = 0.2, hfov_deg: float = 70.0,

@@ -11,6 +11,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from effects_testdata import chain_params, make_camera, make_scene
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -30,27 +31,16 @@ from cadalign.sim.effects import (
 from cadalign.sim.effects.backscatter import veiling_light
 from cadalign.sim.effects.forward_scatter import LEVELS_PX, gaussian_blur, range_sigma_px
 from cadalign.sim.effects_chain import build_chain
-from cadalign.sim.spec import ObjectSpec, SceneSpec, WaterSpec
-from cadalign.types import Camera, Rigid3
+from cadalign.types import Rigid3
 
 OCEANIC = ("I", "IA", "IB", "II", "III")
 SPECIAL_RANGES = (0.0, -0.0, -1.0, np.nan, np.inf, -np.inf, 1e4, 1e30, 3e38)
 
 
-def make_camera(width: int, height: int, hfov_deg: float = 70.0) -> Camera:
-    """Pinhole camera with the principal point at the image centre (odd sizes: on a pixel centre)."""
-    fx = width / 2 / np.tan(np.radians(hfov_deg / 2))
-    return Camera(np.array([[fx, 0.0, width / 2], [0.0, fx, height / 2], [0.0, 0.0, 1.0]]), width, height)
 
 
-def make_scene(effects: tuple[str, ...], jerlov: str = "II", **kw: object) -> SceneSpec:
-    return SceneSpec(name="t", objects=(ObjectSpec(name="box", source="procedural:box"),), effects=effects,
-                     water=WaterSpec(jerlov=jerlov), **kw)
 
 
-def chain_params(name: str, jerlov: str = "II", **kw: object) -> object:
-    """The params ``build_chain`` makes for one effect of a scene in the given water."""
-    return dict(build_chain(make_scene((name,), jerlov, **kw)))[name]
 
 
 def row_buffers(rgb_value: float, ranges: np.ndarray) -> FrameBuffers:
