@@ -106,7 +106,7 @@ def render_frames(structure: Structure, cameras: dict[str, dict], cad_from_sfm: 
         verts = np.concatenate([m.vertices_m for m in meshes])
         offsets = np.cumsum([0] + [len(m.vertices_m) for m in meshes[:-1]])
         faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)])
-        refined = refine_cameras(model_dir, cad_from_sfm, verts, faces, refine)
+        refined = refine_cameras(rec, cad_from_sfm, verts, faces, refine)
     renderers: dict[int, RaycastRenderer] = {}
     ids = list(range(len(names)))
     quality: dict[int, dict] = {}
@@ -189,11 +189,10 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     if calib is not None:
         import dataclasses
 
-        K = next(iter((read_json(calib).get("frames") or {"": {}}).values())).get("K")
-        if K is None:
-            raise ConfigError(f"{calib} has no frames with a 'K'; pass a cameras.json like 'cadalign sim' writes")
+        from cadalign.sfm.report import intrinsics_from_cameras_json
+
         sfm_cfg = dataclasses.replace(sfm_cfg, camera=dataclasses.replace(
-            sfm_cfg.camera, intrinsics=(float(K[0]), float(K[4]), float(K[2]), float(K[5]))))
+            sfm_cfg.camera, intrinsics=intrinsics_from_cameras_json(calib)))
     sfm_dir = sfm_run(sfm_cfg, Path(source), out / "sfm", overwrite=overwrite, progress=progress)
     seconds["sfm"] = time.perf_counter() - t0
     t0 = time.perf_counter()

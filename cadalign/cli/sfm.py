@@ -32,14 +32,9 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
 
 def _calibration(path: Path) -> dict[str, Any]:
     """``camera.intrinsics`` from a cameras.json (e.g. a simulation's gt/sim/000000/cameras.json)."""
-    from cadalign.errors import InputError
-    from cadalign.io import read_json
+    from cadalign.sfm.report import intrinsics_from_cameras_json
 
-    frames = read_json(path).get("frames") or {}
-    if not frames:
-        raise InputError(f"{path} has no 'frames'; pass a cameras.json like the one 'cadalign sim' writes")
-    K = next(iter(frames.values()))["K"]
-    return {"camera": {"intrinsics": [K[0], K[4], K[2], K[5]]}}
+    return {"camera": {"intrinsics": list(intrinsics_from_cameras_json(path))}}
 
 
 def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:

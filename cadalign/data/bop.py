@@ -55,7 +55,7 @@ def gt_entry(inst: BopInstance) -> dict:
     }
 
 
-def _bbox(mask: np.ndarray) -> list[int]:
+def mask_bbox(mask: np.ndarray) -> list[int]:
     """[x, y, w, h] of a boolean mask; [-1, -1, 0, 0] when empty (BOP's convention)."""
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
     if len(cols) == 0:
@@ -67,8 +67,8 @@ def gt_info_entry(full: np.ndarray, visib: np.ndarray, depth_valid: np.ndarray) 
     n_all = int(full.sum())
     n_vis = int(visib.sum())
     return {
-        "bbox_obj": _bbox(full),
-        "bbox_visib": _bbox(visib),
+        "bbox_obj": mask_bbox(full),
+        "bbox_visib": mask_bbox(visib),
         "px_count_all": n_all,
         "px_count_valid": int((full & depth_valid).sum()),
         "px_count_visib": n_vis,

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cadalign.data.bop import BopScene, frame_name
+from cadalign.data.bop import BopScene, frame_name, mask_bbox
 from cadalign.io import write_json
 
 
@@ -51,10 +51,9 @@ def coco_annotations(scene: BopScene, ids: Sequence[int], class_of_obj: dict[int
             area = int(mask.sum())
             if area == 0:
                 continue
-            rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
             anns.append({
                 "id": len(anns) + 1, "image_id": int(im_id), "category_id": int(class_of_obj[inst.obj_id]),
-                "bbox": [int(cols[0]), int(rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)],
+                "bbox": mask_bbox(mask),
                 "area": area, "iscrowd": 0, "segmentation": mask_to_rle(mask),
                 "obj_id": inst.obj_id, "gt_idx": g,
             })

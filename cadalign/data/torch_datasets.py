@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from cadalign.data.bop import BopScene
+from cadalign.data.bop import BopScene, mask_bbox
 from cadalign.errors import InputError
 from cadalign.io import read_json
 
@@ -97,8 +97,8 @@ class DetectionPoseDataset(_BopDataset):
             m = self.scene.mask(im_id, g, visible=True)
             if not m.any():
                 continue
-            rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
-            boxes.append([cols[0], rows[0], cols[-1] + 1, rows[-1] + 1])
+            x, y, w, h = mask_bbox(m)
+            boxes.append([x, y, x + w, y + h])
             masks.append(m)
             labels.append(self.classes.class_of_obj[inst.obj_id])
             obj_ids.append(inst.obj_id)

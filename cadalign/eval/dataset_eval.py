@@ -24,13 +24,11 @@ SIM_SCENE = Path("gt") / "sim" / "000000"
 
 def true_cad_from_sfm(cameras_sfm: dict[str, dict], cameras_true: dict[str, dict]) -> Sim3:
     """The Sim3 mapping SfM camera centres onto the true ones (Umeyama with scale over common frames)."""
-    names = sorted(set(cameras_sfm) & set(cameras_true))
+    from cadalign.sfm.report import camera_centres
 
-    def centre(e: dict) -> np.ndarray:
-        return -np.reshape(e["R_cam_from_world"], (3, 3)).T @ np.asarray(e["t_cam_from_world_m"], dtype=np.float64)
-
-    src = np.array([centre(cameras_sfm[n]) for n in names])
-    dst = np.array([centre(cameras_true[n]) for n in names])
+    common = sorted(set(cameras_sfm) & set(cameras_true))
+    _, src, _ = camera_centres({"frames": {n: cameras_sfm[n] for n in common}})
+    _, dst, _ = camera_centres({"frames": {n: cameras_true[n] for n in common}})
     return umeyama(src, dst, with_scale=True)
 
 

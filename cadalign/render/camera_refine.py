@@ -12,10 +12,11 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from cadalign.geometry import geodesic_angle
 from cadalign.types import Rigid3, Sim3
 
 log = logging.getLogger(__name__)
@@ -46,15 +47,13 @@ class RefinedCamera:
     turn_deg: float
 
 
-def refine_cameras(model_dir: Path, cad_from_sfm: Sim3, vertices_m: np.ndarray, faces: np.ndarray,
+def refine_cameras(rec: Any, cad_from_sfm: Sim3, vertices_m: np.ndarray, faces: np.ndarray,
                    cfg: CameraRefineConfig) -> dict[str, RefinedCamera]:
-    """Refine every registered camera of the COLMAP model in ``model_dir`` against the CAD mesh (world, m)."""
+    """Refine every registered camera of ``rec`` (a ``pycolmap.Reconstruction``) against the CAD mesh (world, m)."""
     import open3d as o3d
-    import pycolmap
 
     from cadalign.render.raycast import _o3d_mesh
 
-    rec = pycolmap.Reconstruction(str(model_dir))
     origin = vertices_m.mean(axis=0)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(_o3d_mesh(vertices_m - origin, faces))
@@ -76,15 +75,6 @@ def refine_cameras(model_dir: Path, cad_from_sfm: Sim3, vertices_m: np.ndarray, 
         xy = np.asarray(im.camera.cam_from_img(uv), dtype=np.float64).reshape(-1, 2) if len(uv) else uv
         out[im.name] = _refine_one(xy[near], snapped[near], float(im.camera.mean_focal_length()), T0, cfg)
     return out
-
-
-def camera_rays(model_dir: Path, image_name: str) -> np.ndarray:
-    """(H, W, 3) rays with z = 1 through the pixel centres of ``image_name``'s SfM camera, distortion included."""
-    import pycolmap
-
-    rec = pycolmap.Reconstruction(str(model_dir))
-    im = next(i for i in rec.images.values() if i.name == image_name)
-    return rays_of(im.camera)
 
 
 def rays_of(cam) -> np.ndarray:  # noqa: ANN001  (a pycolmap.Camera)
@@ -116,7 +106,7 @@ def _refine_one(xy: np.ndarray, X: np.ndarray, focal_px: float, T0: Rigid3, cfg:
     R = cv2.Rodrigues(rvec)[0]
     T = Rigid3(R, tvec.ravel()).inverse()
     shift = float(np.linalg.norm(T.t - T0.t))
-    turn = float(np.degrees(np.arccos(np.clip((np.trace(T.R.T @ T0.R) - 1) / 2, -1, 1))))
+    turn = float(np.degrees(geodesic_angle(T.R, T0.R)))
     ok = keep.sum() >= cfg.min_inliers and shift <= cfg.max_shift_m and turn <= cfg.max_turn_deg
     rms = float(np.sqrt(np.mean(err[keep] ** 2))) if keep.any() else float("nan")
     return RefinedCamera(T if ok else T0, bool(ok), n, int(keep.sum()), rms, shift, turn)

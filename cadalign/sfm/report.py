@@ -79,6 +79,18 @@ def model_stats(rec: Any) -> dict[str, Any]:
     }
 
 
+def intrinsics_from_cameras_json(path: Path) -> tuple[float, float, float, float]:
+    """``(fx, fy, cx, cy)`` of the first frame of a cameras.json (e.g. a simulation's gt cameras.json)."""
+    from cadalign.errors import InputError
+    from cadalign.io import read_json
+
+    frames = read_json(path).get("frames") or {}
+    if not frames:
+        raise InputError(f"{path} has no 'frames'; pass a cameras.json like the one 'cadalign sim' writes")
+    K = next(iter(frames.values()))["K"]
+    return float(K[0]), float(K[4]), float(K[2]), float(K[5])
+
+
 def camera_centres(cameras: dict[str, Any]) -> tuple[list[str], np.ndarray, np.ndarray]:
     """Names, (N, 3) centres ``-R^T t`` and (N, 3, 3) ``R_cam_from_world`` of a cameras.json dict."""
     names = sorted(cameras["frames"])

@@ -43,6 +43,6 @@ def posed_objects(scene: SimScene) -> list[PosedObject]:
     return [PosedObject(o.name, o.obj_id, o.class_id, o.T_world_from_obj) for o in scene.objects]
 
 
-def write_scene_files(scene: SimScene, scene_dir: Path, depth_scale: float) -> None:
+def write_scene_files(scene: SimScene, scene_dir: Path) -> None:
     """Merge the per-frame records into the BOP scene JSONs plus cadalign extras (see render.bop_writer)."""
     merge_scene_files(scene_dir, posed_objects(scene), scene.spec.classes)

@@ -88,7 +88,7 @@ def simulate(
     scene = build_scene(spec, scene_path)
     write_models(scene, out_dir / "gt" / "models")
     timings = _render_frames(scene, out_dir, progress)
-    write_scene_files(scene, out_dir / SCENE_SUBDIR, DEPTH_SCALE)
+    write_scene_files(scene, out_dir / SCENE_SUBDIR)
     if video:
         write_video(
             sorted((out_dir / "frames").glob("*.png")), out_dir / "video.mp4", fps=max(spec.trajectory.fps, 1)
