@@ -42,3 +42,8 @@ class UnitError(InputError):
 
 class AlignmentError(CadalignError):
     """A registration failed its quality gate; nothing was written."""
+
+
+class TrainingError(CadalignError):
+    """Training hit a non-finite input or loss (naming the sample and step), or a checkpoint of another
+    model or class list was offered to resume or evaluate."""

@@ -1,0 +1,410 @@
+"""The shared training loop (segmentation, depth, detection + pose).
+
+``train_loop(model, step_fn, dataset, cfg, run_dir)`` runs ``cfg.steps`` optimiser steps of AdamW with a
+cosine schedule after a linear warm-up. Batches come from an infinite, seeded sample stream: the
+concatenation of per-epoch permutations that depend only on ``(seed, epoch)``; step ``s`` takes stream
+positions ``[s*B, (s+1)*B)``, so the sampler position is the step count and a resumed run replays exactly
+the batches of an uninterrupted one. Augmentation gets a ``torch.Generator`` seeded from ``(seed, step)``.
+
+Files in ``run_dir``: ``checkpoints/last.pt`` (+ ``step_XXXXXX.pt`` every ``checkpoint_every``; also on
+SIGINT/SIGTERM and at the end), ``metrics.json`` (``{"rows": [{"step", "loss", "loss_avg", <step_fn
+metrics>, "lr", "seconds", <val metrics>}...]}``) and ``loss.png``. Under ``torchrun`` (``RANK`` and
+``WORLD_SIZE`` set) the model is wrapped in DistributedDataParallel (gloo on CPU), each rank takes its
+slice of the global batch, and only rank 0 writes files.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import signal
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+from torch import nn
+from torch.utils.data import DataLoader, Dataset, default_collate
+
+from cadalign.config import bounded, to_dict
+from cadalign.errors import ConfigError, TrainingError
+from cadalign.io import read_json, write_json
+from cadalign.train.checkpoint import (
+    LAST,
+    check_extra_state,
+    load_checkpoint,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+    unwrap,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    steps: int = bounded(200, ge=1)
+    """Optimiser steps in total."""
+    batch_size: int = bounded(4, ge=1)
+    """Global batch size (split across DDP ranks)."""
+    lr: float = bounded(1e-3, gt=0)
+    """Peak learning rate (AdamW)."""
+    weight_decay: float = bounded(1e-4, ge=0)
+    """AdamW weight decay."""
+    grad_clip: float = bounded(10.0, ge=0)
+    """Gradient norm clip; 0 = off."""
+    checkpoint_every: int = bounded(50, ge=1)
+    """Steps between checkpoints; one is also written on KeyboardInterrupt/SIGTERM and at the end."""
+    log_every: int = bounded(10, ge=1)
+    """Steps between metric rows in metrics.json."""
+    seed: int = 0
+    """Seed of model-independent randomness: sample order, augmentation, dropout."""
+    amp: bool = False
+    """Autocast (bf16) where the device supports it."""
+    num_workers: int = bounded(0, ge=0)
+    """DataLoader worker processes (0 = load in the main process)."""
+    warmup: float = bounded(0.05, ge=0, lt=1)
+    """Fraction of the steps with a linear learning-rate warm-up before the cosine decay."""
+
+
+# Fields that may change between a run and its resumption (they do not change the optimisation).
+_RESUMABLE_CHANGES = {"steps", "checkpoint_every", "log_every", "num_workers"}
+
+
+class StepFn(Protocol):
+    def __call__(self, model: nn.Module, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
+        """Return the scalar loss of ``batch`` and named float metrics for logging."""
+        ...
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    run_dir: Path
+    """The run folder (checkpoints/, metrics.json, loss.png)."""
+    steps_done: int
+    """Optimiser steps completed (including those of a resumed run)."""
+    final_loss: float
+    """Loss of the last step run (nan when no step ran)."""
+    seconds: float
+    """Wall time of this call."""
+    interrupted: bool
+    """True when stopped by KeyboardInterrupt/SIGTERM (a checkpoint was written)."""
+
+
+def stream_indices(n: int, seed: int, start: int, count: int) -> list[int]:
+    """Dataset indices at stream positions ``[start, start+count)`` of the seeded infinite sample stream."""
+    out: list[int] = []
+    perms: dict[int, torch.Tensor] = {}
+    for pos in range(start, start + count):
+        epoch = pos // n
+        if epoch not in perms:
+            g = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
+            perms[epoch] = torch.randperm(n, generator=g)
+        out.append(int(perms[epoch][pos % n]))
+    return out
+
+
+class _BatchSampler:
+    """Index lists of this rank's share of global batches ``start_step .. steps-1``."""
+
+    def __init__(self, n: int, cfg: LoopConfig, start_step: int, rank: int, world: int) -> None:
+        self.n, self.cfg, self.start, self.rank, self.world = n, cfg, start_step, rank, world
+        self.per_rank = cfg.batch_size // world
+
+    def __iter__(self) -> Iterator[list[int]]:
+        for step in range(self.start, self.cfg.steps):
+            idx = stream_indices(self.n, self.cfg.seed, step * self.cfg.batch_size, self.cfg.batch_size)
+            yield idx[self.rank * self.per_rank : (self.rank + 1) * self.per_rank]
+
+    def __len__(self) -> int:
+        return max(self.cfg.steps - self.start, 0)
+
+
+def _lr_lambda(cfg: LoopConfig) -> Callable[[int], float]:
+    warm = int(round(cfg.warmup * cfg.steps))
+
+    def f(step: int) -> float:
+        if step < warm:
+            return (step + 1) / warm
+        t = (step - warm) / max(cfg.steps - warm, 1)
+        return 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(t, 1.0)))
+
+    return f
+
+
+def _sample_names(batch: dict, rows: list[int] | None = None) -> str:
+    for key in ("im_id", "name"):
+        if key in batch:
+            v = batch[key]
+            vals = v.tolist() if isinstance(v, torch.Tensor) else list(v)
+            if rows is not None:
+                vals = [vals[i] for i in rows if i < len(vals)]
+            return f"{key}={vals}"
+    return "(the batch has no 'im_id' or 'name')"
+
+
+def check_finite_batch(batch: dict, step: int) -> None:
+    """Raise :class:`TrainingError` naming the sample(s) and key of any non-finite float input."""
+    for key, v in batch.items():
+        items = v if isinstance(v, (list, tuple)) else [v]
+        bad: list[int] = []
+        for j, t in enumerate(items):
+            if isinstance(t, torch.Tensor) and t.is_floating_point() and not bool(torch.isfinite(t).all()):
+                if t is v and t.ndim > 0:  # a stacked tensor: find the rows
+                    bad = [i for i in range(t.shape[0]) if not bool(torch.isfinite(t[i]).all())]
+                else:
+                    bad.append(j)
+        if bad:
+            raise TrainingError(
+                f"non-finite values (NaN/inf) in input '{key}' of sample {_sample_names(batch, bad)} at step {step}; "
+                "fix or remove that sample from the dataset"
+            )
+
+
+def _to_device(x: Any, device: torch.device) -> Any:
+    if isinstance(x, torch.Tensor):
+        return x.to(device, non_blocking=True)
+    if isinstance(x, dict):
+        return {k: _to_device(v, device) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_to_device(v, device) for v in x]
+    return x
+
+
+def _dist_setup(device: str) -> tuple[int, int]:
+    if "RANK" not in os.environ or int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+        return 0, 1
+    import torch.distributed as dist
+
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
+    return dist.get_rank(), dist.get_world_size()
+
+
+@contextlib.contextmanager
+def _stop_on_signals() -> Iterator[dict[str, bool]]:
+    """Turn SIGINT/SIGTERM into a flag checked between steps (main thread only)."""
+    flag = {"stop": False}
+
+    def handler(signum: int, frame: Any) -> None:
+        flag["stop"] = True
+
+    old: dict[int, Any] = {}
+    try:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old[sig] = signal.signal(sig, handler)
+    except ValueError:  # not the main thread: rely on KeyboardInterrupt
+        pass
+    try:
+        yield flag
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
+
+
+class _Run:
+    """Mutable state of one train_loop call (kept out of the public function for size)."""
+
+    def __init__(self, model: nn.Module, cfg: LoopConfig, run_dir: Path, extra_state: dict | None,
+                 rank: int) -> None:
+        self.model, self.cfg, self.run_dir, self.extra, self.rank = model, cfg, Path(run_dir), extra_state, rank
+        params = [p for p in model.parameters() if p.requires_grad]
+        self.opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+        self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, _lr_lambda(cfg))
+        self.step = 0
+        self.rows: list[dict[str, float]] = []
+        self.window: list[float] = []
+        self.seconds0 = 0.0
+        self.t0 = time.perf_counter()
+
+    def seconds(self) -> float:
+        """Training seconds over this run and the runs it resumed."""
+        return self.seconds0 + time.perf_counter() - self.t0
+
+    @property
+    def ckpt_dir(self) -> Path:
+        return self.run_dir / "checkpoints"
+
+    def state(self) -> dict[str, Any]:
+        return {
+            "model": unwrap(self.model).state_dict(), "optimizer": self.opt.state_dict(),
+            "scheduler": self.sched.state_dict(), "step": self.step, "sampler_position": self.step,
+            "rng": rng_state(), "extra_state": self.extra or {}, "loop_config": to_dict(self.cfg),
+            "window": list(self.window), "seconds": self.seconds(),
+        }
+
+    def save(self, *, numbered: bool) -> None:
+        if self.rank != 0:
+            return
+        state = self.state()
+        if numbered:
+            save_checkpoint(self.ckpt_dir / f"step_{self.step:06d}.pt", state)
+        save_checkpoint(self.ckpt_dir / LAST, state)
+
+    def restore(self, path: Path, device: torch.device) -> None:
+        ck = load_checkpoint(path, map_location=device)
+        check_extra_state(ck.get("extra_state"), self.extra, path)
+        old = ck.get("loop_config", {})
+        now = to_dict(self.cfg)
+        diff = [k for k in now if k not in _RESUMABLE_CHANGES and k in old and old[k] != now[k]]
+        if diff:
+            changes = ", ".join(f"{k}: {old[k]!r} -> {now[k]!r}" for k in diff)
+            raise ConfigError(
+                f"{path} was trained with other loop settings ({changes}); "
+                "resume with the same settings or use a new --out folder"
+            )
+        unwrap(self.model).load_state_dict(ck["model"])
+        self.opt.load_state_dict(ck["optimizer"])
+        self.sched.load_state_dict(ck["scheduler"])
+        self.sched.lr_lambdas[0] = _lr_lambda(self.cfg)  # a longer --steps re-stretches the schedule
+        self.step = int(ck["step"])
+        self.window = list(ck.get("window", []))
+        self.seconds0 = float(ck.get("seconds", 0.0))
+        self.t0 = time.perf_counter()
+        set_rng_state(ck["rng"])
+        mpath = self.run_dir / "metrics.json"
+        if mpath.is_file():
+            self.rows = [r for r in read_json(mpath).get("rows", []) if r["step"] <= self.step]
+        log.info("resumed %s at step %d", path, self.step)
+
+    def write_metrics(self, *, plot: bool) -> None:
+        if self.rank != 0:
+            return
+        write_json(self.run_dir / "metrics.json", {"loop_config": to_dict(self.cfg), "rows": self.rows})
+        if plot and self.rows:
+            from cadalign.train.plots import plot_metrics
+
+            plot_metrics(self.rows, self.run_dir / "loss.png")
+
+
+def train_loop(model: nn.Module, step_fn: StepFn, dataset: Dataset, cfg: LoopConfig, run_dir: Path, *,
+               collate_fn: Callable | None = None, augment: Callable[[dict, torch.Generator], dict] | None = None,
+               val_fn: Callable[[nn.Module], dict[str, float]] | None = None, val_every: int = 0,
+               resume: bool = False, device: str = "cpu",
+               progress: Callable[[int, int, dict[str, float]], None] | None = None,
+               extra_state: dict | None = None) -> TrainResult:
+    """Train ``model`` for ``cfg.steps`` steps of ``step_fn`` over ``dataset`` (see the module docstring).
+
+    Args:
+        model: the network (moved to ``device``).
+        step_fn: ``(model, batch) -> (loss, metrics)``; the batch is on ``device`` (after ``augment``).
+        dataset: map-style dataset of dict items.
+        cfg: loop settings.
+        run_dir: output folder.
+        collate_fn: batch collation (default: torch's default_collate).
+        augment: ``(batch, generator) -> batch`` on the device, seeded per step.
+        val_fn: ``model -> metrics`` run (eval mode, no grad, rank 0) every ``val_every`` steps and at the end.
+        resume: continue from ``run_dir/checkpoints/last.pt`` (a fresh start when there is none).
+        device: torch device string.
+        progress: ``(step, total, metrics)`` callback after each step.
+        extra_state: identity saved with each checkpoint and compared on resume (class list, model config).
+
+    Raises:
+        TrainingError: non-finite input/loss/gradient (naming the sample and step) or a mismatching checkpoint.
+        ConfigError: ``run_dir`` already holds checkpoints and ``resume`` is False, or the loop settings changed.
+    """
+    t0 = time.perf_counter()
+    rank, world = _dist_setup(device)
+    if cfg.batch_size % world:
+        raise ConfigError(f"batch_size {cfg.batch_size} must be a multiple of the {world} DDP ranks")
+    dev = torch.device(device)
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed % 2**32)
+    model.to(dev)
+    run = _Run(model, cfg, run_dir, extra_state, rank)
+    last = run.ckpt_dir / LAST
+    if last.is_file() and not resume:
+        raise ConfigError(f"{run_dir} already holds a training run; pass --resume to continue it or use a new --out")
+    if resume and last.is_file():
+        run.restore(last, dev)
+    if world > 1:
+        model = nn.parallel.DistributedDataParallel(model, device_ids=[dev.index] if dev.type == "cuda" else None)
+        run.model = model
+    if run.step >= cfg.steps:
+        log.info("%s: already trained %d/%d steps", run_dir, run.step, cfg.steps)
+        return TrainResult(Path(run_dir), run.step, math.nan, time.perf_counter() - t0, False)
+    loader = DataLoader(dataset, batch_sampler=_BatchSampler(len(dataset), cfg, run.step, rank, world),
+                        collate_fn=collate_fn or default_collate, num_workers=cfg.num_workers,
+                        # its own generator: drawing the worker base seed must not advance the global RNG
+                        generator=torch.Generator().manual_seed(cfg.seed + run.step))
+    loss_v, interrupted = math.nan, False
+    model.train()
+    with _stop_on_signals() as flag:
+        try:
+            for batch in loader:
+                loss_v, metrics = _one_step(run, step_fn, batch, dev, augment, world)
+                _after_step(run, loss_v, metrics, val_fn, val_every)
+                if progress is not None:
+                    progress(run.step, cfg.steps, {"loss": loss_v, **metrics})
+                if flag["stop"]:
+                    interrupted = True
+                    break
+        except KeyboardInterrupt:
+            interrupted = True
+    if interrupted:
+        log.warning("interrupted at step %d: checkpoint written, continue with --resume", run.step)
+    run.save(numbered=False)
+    run.write_metrics(plot=True)
+    return TrainResult(Path(run_dir), run.step, loss_v, time.perf_counter() - t0, interrupted)
+
+
+def _one_step(run: _Run, step_fn: StepFn, batch: dict, dev: torch.device,
+              augment: Callable | None, world: int) -> tuple[float, dict[str, float]]:
+    cfg = run.cfg
+    check_finite_batch(batch, run.step)
+    batch = _to_device(batch, dev)
+    if augment is not None:
+        g = torch.Generator(device=dev).manual_seed(cfg.seed * 7_919 + run.step * 104_729 + 1)
+        batch = augment(batch, g)
+    use_amp = cfg.amp and (dev.type == "cpu" or (dev.type == "cuda" and torch.cuda.is_bf16_supported()))
+    with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=use_amp):
+        loss, metrics = step_fn(run.model, batch)
+    if not bool(torch.isfinite(loss.detach()).all()):
+        raise TrainingError(f"non-finite loss ({float(loss.detach())}) on sample {_sample_names(batch)} at step "
+                            f"{run.step}; check those samples and lower the learning rate; no checkpoint was written")
+    run.opt.zero_grad(set_to_none=True)
+    loss.float().backward()
+    params = [p for p in run.model.parameters() if p.grad is not None]
+    norm = torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip if cfg.grad_clip > 0 else float("inf"))
+    if not bool(torch.isfinite(norm)):
+        raise TrainingError(f"non-finite gradient on sample {_sample_names(batch)} at step {run.step}; "
+                            "lower the learning rate or enable grad_clip; no checkpoint was written")
+    run.opt.step()
+    run.sched.step()
+    run.step += 1
+    loss_v = float(loss.detach())
+    if world > 1:
+        import torch.distributed as dist
+
+        t = torch.tensor([loss_v], device=dev)
+        dist.all_reduce(t)
+        loss_v = float(t) / world
+    return loss_v, {k: float(v) for k, v in metrics.items()}
+
+
+def _after_step(run: _Run, loss_v: float, metrics: dict[str, float], val_fn: Callable | None,
+                val_every: int) -> None:
+    cfg = run.cfg
+    run.window.append(loss_v)
+    do_val = val_fn is not None and run.rank == 0 and (
+        (val_every > 0 and run.step % val_every == 0) or run.step == cfg.steps)
+    if run.step % cfg.log_every == 0 or do_val or run.step == cfg.steps:
+        row = {"step": run.step, "loss": loss_v, "loss_avg": float(np.mean(run.window)), **metrics,
+               "lr": run.opt.param_groups[0]["lr"], "seconds": run.seconds()}
+        if do_val:
+            inner = unwrap(run.model)
+            inner.eval()
+            with torch.no_grad():
+                row.update({f"val_{k}": float(v) for k, v in val_fn(inner).items()})
+            inner.train()
+        run.rows.append(row)
+        run.window = []
+        run.write_metrics(plot=False)
+    if run.step % cfg.checkpoint_every == 0 and run.step < cfg.steps:
+        run.save(numbered=True)

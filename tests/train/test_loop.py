@@ -1,0 +1,151 @@
+"""The shared training loop: determinism, resume, non-finite guards, files written."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch import nn
+from torch.utils.data import Dataset
+
+from cadalign.errors import ConfigError, TrainingError
+from cadalign.io import read_json
+from cadalign.train.checkpoint import load_checkpoint
+from cadalign.train.loop import LoopConfig, check_finite_batch, stream_indices, train_loop
+
+
+class _Toy(Dataset):
+    """y = 2x + 1 with a little noise; item 5 optionally holds a NaN."""
+
+    def __init__(self, n: int = 12, nan_at: int | None = None) -> None:
+        g = torch.Generator().manual_seed(3)
+        self.x = torch.randn(n, 4, generator=g)
+        self.y = self.x.sum(1, keepdim=True) * 2 + 1
+        self.nan_at = nan_at
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+    def __getitem__(self, i: int) -> dict:
+        x = self.x[i].clone()
+        if i == self.nan_at:
+            x[1] = float("nan")
+        return {"x": x, "y": self.y[i], "im_id": 100 + i}
+
+
+def _model() -> nn.Module:
+    torch.manual_seed(0)
+    return nn.Sequential(nn.Linear(4, 8), nn.Dropout(0.2), nn.ReLU(), nn.Linear(8, 1))
+
+
+def _step(model: nn.Module, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
+    loss = ((model(batch["x"]) - batch["y"]) ** 2).mean()
+    return loss, {"mae": float((model(batch["x"]) - batch["y"]).abs().mean().detach())}
+
+
+def _noise_augment(batch: dict, g: torch.Generator) -> dict:
+    return {**batch, "x": batch["x"] + 0.01 * torch.randn(batch["x"].shape, generator=g)}
+
+
+CFG = LoopConfig(steps=12, batch_size=3, lr=1e-2, checkpoint_every=5, log_every=1, seed=4)
+
+
+def test_stream_depends_only_on_seed_and_epoch():
+    a = stream_indices(5, 1, 0, 15)
+    assert sorted(a[:5]) == list(range(5)) and sorted(a[5:10]) == list(range(5))
+    assert stream_indices(5, 1, 7, 4) == a[7:11]
+    assert stream_indices(5, 2, 0, 15) != a
+
+
+def test_resume_gives_identical_losses(tmp_path):
+    full = train_loop(_model(), _step, _Toy(), CFG, tmp_path / "full", augment=_noise_augment)
+    assert full.steps_done == 12 and not full.interrupted
+    rows_full = read_json(tmp_path / "full" / "metrics.json")["rows"]
+
+    part = train_loop(_model(), _step, _Toy(), LoopConfig(**{**CFG.__dict__, "steps": 5}), tmp_path / "part",
+                      augment=_noise_augment)
+    assert part.steps_done == 5
+    # the 5-step run has a different cosine schedule, so resume from the full run's step-5 checkpoint instead
+    (tmp_path / "res" / "checkpoints").mkdir(parents=True)
+    ck = load_checkpoint(tmp_path / "full" / "checkpoints" / "step_000005.pt")
+    torch.save(ck, tmp_path / "res" / "checkpoints" / "last.pt")
+    res = train_loop(_model(), _step, _Toy(), CFG, tmp_path / "res", augment=_noise_augment, resume=True)
+    assert res.steps_done == 12
+    rows_res = read_json(tmp_path / "res" / "metrics.json")["rows"]
+    assert [r["step"] for r in rows_res] == list(range(6, 13))
+    assert [r["loss"] for r in rows_res] == [r["loss"] for r in rows_full[5:]]
+    assert math.isclose(res.final_loss, full.final_loss, rel_tol=0, abs_tol=0)
+    assert (tmp_path / "full" / "loss.png").stat().st_size > 1000
+
+
+def test_interrupt_then_resume_matches(tmp_path):
+    full = train_loop(_model(), _step, _Toy(), CFG, tmp_path / "full")
+    calls = {"n": 0}
+
+    def stop_at_7(step: int, total: int, metrics: dict) -> None:
+        calls["n"] += 1
+        if step == 7:
+            raise KeyboardInterrupt
+
+    cut = train_loop(_model(), _step, _Toy(), CFG, tmp_path / "cut", progress=stop_at_7)
+    assert cut.interrupted and cut.steps_done == 7
+    res = train_loop(_model(), _step, _Toy(), CFG, tmp_path / "cut", resume=True)
+    rows_full = read_json(tmp_path / "full" / "metrics.json")["rows"]
+    rows_cut = read_json(tmp_path / "cut" / "metrics.json")["rows"]
+    assert [r["loss"] for r in rows_cut] == [r["loss"] for r in rows_full]
+    assert res.final_loss == full.final_loss
+    # a finished run is skipped
+    again = train_loop(_model(), _step, _Toy(), CFG, tmp_path / "cut", resume=True)
+    assert again.steps_done == 12 and math.isnan(again.final_loss)
+
+
+def test_loss_decreases_and_val_rows(tmp_path):
+    val_x = torch.randn(16, 4)
+
+    def val_fn(m: nn.Module) -> dict[str, float]:
+        assert not m.training
+        return {"mse": float(((m(val_x) - (val_x.sum(1, keepdim=True) * 2 + 1)) ** 2).mean())}
+
+    cfg = LoopConfig(steps=60, batch_size=4, lr=2e-2, log_every=10, checkpoint_every=100)
+    out = train_loop(_model(), _step, _Toy(), cfg, tmp_path, val_fn=val_fn, val_every=30)
+    rows = read_json(tmp_path / "metrics.json")["rows"]
+    assert [r["step"] for r in rows] == [10, 20, 30, 40, 50, 60]
+    assert "val_mse" in rows[2] and "val_mse" in rows[5] and "val_mse" not in rows[0]
+    assert rows[-1]["loss_avg"] < 0.5 * rows[0]["loss_avg"]
+    assert out.final_loss == rows[-1]["loss"] and {"mae", "lr", "seconds"} <= set(rows[0])
+
+
+def test_nan_input_names_sample_and_writes_no_checkpoint(tmp_path):
+    with pytest.raises(TrainingError, match=r"input 'x' of sample im_id=\[105\] at step \d+"):
+        train_loop(_model(), _step, _Toy(nan_at=5), CFG, tmp_path)
+    ck = tmp_path / "checkpoints"
+    assert not (ck / "last.pt").exists() or all(
+        torch.isfinite(v).all() for v in load_checkpoint(ck / "last.pt")["model"].values())
+
+
+def test_nan_loss_raises(tmp_path):
+    def bad_step(model: nn.Module, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
+        loss, m = _step(model, batch)
+        return loss * float("inf") if batch["im_id"][0] == 103 else loss, m
+
+    with pytest.raises(TrainingError, match=r"non-finite loss .* im_id=\[.*103.*\] at step"):
+        train_loop(_model(), bad_step, _Toy(), CFG, tmp_path)
+
+
+def test_check_finite_batch_lists():
+    batch = {"masks": [torch.zeros(2), torch.tensor([1.0, float("inf")])], "name": ["a", "b"]}
+    with pytest.raises(TrainingError, match=r"'masks' of sample name=\['b'\] at step 3"):
+        check_finite_batch(batch, 3)
+
+
+def test_refuses_existing_run_other_identity_and_other_settings(tmp_path):
+    small = LoopConfig(**{**CFG.__dict__, "steps": 2})
+    train_loop(_model(), _step, _Toy(), small, tmp_path, extra_state={"classes": ["bg", "valve"]})
+    with pytest.raises(ConfigError, match="--resume"):
+        train_loop(_model(), _step, _Toy(), small, tmp_path)
+    with pytest.raises(TrainingError, match="different classes"):
+        train_loop(_model(), _step, _Toy(), small, tmp_path, resume=True, extra_state={"classes": ["bg", "pipe"]})
+    with pytest.raises(ConfigError, match="lr"):
+        train_loop(_model(), _step, _Toy(), LoopConfig(**{**small.__dict__, "lr": 0.5}), tmp_path, resume=True,
+                   extra_state={"classes": ["bg", "valve"]})
