@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import json
+import math
 import types
 import typing
 from collections.abc import Mapping
@@ -57,7 +58,11 @@ def read_mapping(path: Path) -> dict[str, Any]:
     if not path.is_file():
         raise ConfigError(f"config file not found: {path}")
     suffix = path.suffix.lower()
-    text = path.read_text(encoding="utf-8")
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not a UTF-8 text file ({exc.reason} at byte {exc.start}); save it as UTF-8 "
+                          "text") from exc
     try:
         if suffix == ".toml":
             import tomllib
@@ -73,8 +78,8 @@ def read_mapping(path: Path) -> dict[str, Any]:
             raise ConfigError(f"{path}: unsupported config format {suffix!r}; use .toml, .yaml or .json")
     except ConfigError:
         raise
-    except Exception as exc:  # parser errors differ per format; report them uniformly
-        raise ConfigError(f"{path}: could not parse: {exc}") from exc
+    except Exception as exc:  # parser errors differ per format (and RecursionError); report them uniformly
+        raise ConfigError(f"{path}: could not parse: {str(exc)[:300]}; fix the syntax at the place named") from exc
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: top level must be a table/mapping, got {type(data).__name__}")
     return data
@@ -145,8 +150,17 @@ def _strip_optional(tp: Any) -> Any:
 
 
 def _check_bounds(value: Any, metadata: Mapping[str, Any], source: str, key: str) -> None:
+    """Check numeric bounds; tuples/lists (e.g. per-channel coefficients) are checked element by element."""
+    if value is None or not any(b in metadata for b in _BOUND_CHECKS):
+        return
+    if isinstance(value, (tuple, list)):
+        for i, v in enumerate(value):
+            _check_bounds(v, metadata, source, f"{key}[{i}]")
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return
     for bound_name, (ok, symbol) in _BOUND_CHECKS.items():
-        if bound_name in metadata and value is not None and not ok(value, metadata[bound_name]):
+        if bound_name in metadata and not ok(value, metadata[bound_name]):
             raise ConfigError(
                 f"{source}: '{key}' = {value!r} is out of range; it must be {symbol} {metadata[bound_name]}"
             )
@@ -218,7 +232,13 @@ def _coerce_scalar(value: Any, tp: Any, source: str, key: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise _type_error(source, key, value, "a number")
-        return float(value)
+        try:
+            number = float(value)
+        except OverflowError:  # an integer beyond float range
+            number = math.inf
+        if not math.isfinite(number):  # TOML and YAML accept nan and inf; no setting means them
+            raise ConfigError(f"{source}: '{key}' = {value!r:.40} is not a finite number; give a finite value")
+        return number
     if tp is str:
         if not isinstance(value, str):
             raise _type_error(source, key, value, "a string")

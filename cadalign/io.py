@@ -80,9 +80,11 @@ def read_json(path: Path) -> Any:
     if not path.is_file():
         raise InputError(f"missing file: {path}")
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path} is not valid JSON ({exc}); delete it and re-run the stage") from exc
+        return json.loads(path.read_bytes().decode("utf-8"))
+    except (ValueError, RecursionError) as exc:  # JSONDecodeError, UnicodeDecodeError, absurd nesting
+        reason = f"{type(exc).__name__}: {exc}" if not isinstance(exc, json.JSONDecodeError) else str(exc)
+        raise InputError(f"{path} is not valid JSON ({reason:.200}); delete it and re-run the stage "
+                         "that wrote it") from exc
 
 
 def write_image(path: Path, image: np.ndarray, *, atomic: bool = True) -> Path:

@@ -17,13 +17,30 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from cadalign.errors import DegenerateGeometryError, InputError
 
-def _as_f64(a: object, shape: tuple[int, ...], name: str) -> np.ndarray:
-    arr = np.array(a, dtype=np.float64)
+
+def _as_f64(a: object, shape: tuple[int, ...], name: str, *, finite: bool = False) -> np.ndarray:
+    try:
+        arr = np.array(a, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} must be a {shape} array of numbers, got {a!r:.80}") from exc
     if arr.shape != shape:
-        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
+        raise InputError(f"{name} must have shape {shape}, got {arr.shape}")
+    if finite and not np.all(np.isfinite(arr)):
+        raise InputError(f"{name} must be finite, got {arr.tolist()}; a transform with NaN/inf is undefined")
     arr.setflags(write=False)
     return arr
+
+
+def _checked_apply(out: np.ndarray, x: np.ndarray, what: str) -> np.ndarray:
+    """``out`` unless finite input points overflowed to inf/NaN (then a DegenerateGeometryError)."""
+    if not np.all(np.isfinite(out)) and np.all(np.isfinite(x)):
+        raise DegenerateGeometryError(
+            f"{what}.apply overflowed float64 (points up to {np.abs(x).max():.3g} m); the transform's scale or "
+            "translation is out of range - check the units of the inputs"
+        )
+    return out
 
 
 @dataclass(frozen=True)
@@ -39,8 +56,8 @@ class Rigid3:
     t: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "R", _as_f64(self.R, (3, 3), "R"))
-        object.__setattr__(self, "t", _as_f64(self.t, (3,), "t"))
+        object.__setattr__(self, "R", _as_f64(self.R, (3, 3), "Rigid3.R", finite=True))
+        object.__setattr__(self, "t", _as_f64(self.t, (3,), "Rigid3.t", finite=True))
 
     @staticmethod
     def identity() -> Rigid3:
@@ -51,7 +68,7 @@ class Rigid3:
         """Build from a (4, 4) homogeneous matrix."""
         M = np.asarray(M, dtype=np.float64)
         if M.shape != (4, 4):
-            raise ValueError(f"expected a (4, 4) matrix, got {M.shape}")
+            raise InputError(f"expected a (4, 4) matrix, got {M.shape}")
         return Rigid3(M[:3, :3], M[:3, 3])
 
     def matrix(self) -> np.ndarray:
@@ -71,7 +88,8 @@ class Rigid3:
     def apply(self, x: np.ndarray) -> np.ndarray:
         """Transform points ``(..., 3)``."""
         x = np.asarray(x, dtype=np.float64)
-        return x @ self.R.T + self.t
+        with np.errstate(over="ignore", invalid="ignore"):
+            return _checked_apply(x @ self.R.T + self.t, x, "Rigid3")
 
 
 @dataclass(frozen=True)
@@ -83,12 +101,18 @@ class Sim3:
     t: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self) -> None:
-        s = float(self.s)
+        try:
+            s = float(self.s)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"Sim3 scale must be a number, got {self.s!r:.80}") from exc
         if not np.isfinite(s) or s <= 0:
-            raise ValueError(f"Sim3 scale must be finite and > 0, got {s}")
+            raise DegenerateGeometryError(
+                f"Sim3 scale must be finite and > 0, got {s}; a zero, negative or overflowing scale has no "
+                "similarity (check the alignment that produced it and the units of its inputs)"
+            )
         object.__setattr__(self, "s", s)
-        object.__setattr__(self, "R", _as_f64(self.R, (3, 3), "R"))
-        object.__setattr__(self, "t", _as_f64(self.t, (3,), "t"))
+        object.__setattr__(self, "R", _as_f64(self.R, (3, 3), "Sim3.R", finite=True))
+        object.__setattr__(self, "t", _as_f64(self.t, (3,), "Sim3.t", finite=True))
 
     @staticmethod
     def identity() -> Sim3:
@@ -105,15 +129,21 @@ class Sim3:
         return M
 
     def inverse(self) -> Sim3:
+        """The inverse similarity; raises DegenerateGeometryError when ``1 / s`` or ``t / s`` overflows."""
         inv_s = 1.0 / self.s
-        return Sim3(inv_s, self.R.T, -inv_s * (self.R.T @ self.t))
+        with np.errstate(over="ignore", invalid="ignore"):
+            return Sim3(inv_s, self.R.T, -inv_s * (self.R.T @ self.t))
 
     def __matmul__(self, other: Sim3) -> Sim3:
-        return Sim3(self.s * other.s, self.R @ other.R, self.s * (self.R @ other.t) + self.t)
+        """Compose; raises DegenerateGeometryError when the product's scale or translation overflows."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            return Sim3(self.s * other.s, self.R @ other.R, self.s * (self.R @ other.t) + self.t)
 
     def apply(self, x: np.ndarray) -> np.ndarray:
+        """Transform points ``(..., 3)``; finite points that overflow float64 raise DegenerateGeometryError."""
         x = np.asarray(x, dtype=np.float64)
-        return self.s * (x @ self.R.T) + self.t
+        with np.errstate(over="ignore", invalid="ignore"):
+            return _checked_apply(self.s * (x @ self.R.T) + self.t, x, "Sim3")
 
     def rigid(self) -> Rigid3:
         """The rotation and translation, dropping the scale."""
@@ -135,9 +165,9 @@ class Camera:
     height: int
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "K", _as_f64(self.K, (3, 3), "K"))
+        object.__setattr__(self, "K", _as_f64(self.K, (3, 3), "Camera.K", finite=True))
         if int(self.width) <= 0 or int(self.height) <= 0:
-            raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
+            raise InputError(f"image size must be positive, got {self.width}x{self.height}")
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
 

@@ -125,8 +125,74 @@ class BopFrame:
     info: tuple[dict, ...]
 
 
+def _is_number(v: object) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+
+
+def _numbers(entry: dict, key: str, n: int, where: str) -> None:
+    v = entry.get(key)
+    if not isinstance(v, list) or len(v) != n or not all(_is_number(x) for x in v):
+        raise InputError(f"{where}: '{key}' must be a list of {n} finite numbers, got {v!r:.80}; "
+                         "re-export the scene or fix the entry")
+
+
+def _rotation(entry: dict, key: str, where: str) -> None:
+    _numbers(entry, key, 9, where)
+    R = np.reshape(entry[key], (3, 3))
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
+        raise InputError(f"{where}: '{key}' is not a rotation matrix (row-major 3x3, R R^T = I, det +1); "
+                         "re-export the scene or fix the entry")
+
+
+def _table(data: object, path: Path, kind: type) -> dict[str, object]:
+    """Check a BOP json's top level: an object whose keys are image ids and whose values are ``kind``."""
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: the top level must be an object keyed by image id, got {type(data).__name__}")
+    for k, v in data.items():
+        if not (k.isascii() and k.isdigit()):
+            raise InputError(f"{path}: key {k!r:.40} is not an image id (a non-negative integer)")
+        if not isinstance(v, kind):
+            raise InputError(f"{path}: the entry of image {k} must be a JSON {'object' if kind is dict else 'list'}")
+    return data
+
+
+def _check_camera(c: dict, where: str) -> None:
+    _numbers(c, "cam_K", 9, where)
+    if not (c["cam_K"][0] > 0 and c["cam_K"][4] > 0):
+        raise InputError(f"{where}: 'cam_K' must have positive focal lengths, got {c['cam_K']}")
+    if "depth_scale" in c and not (_is_number(c["depth_scale"]) and c["depth_scale"] > 0):
+        raise InputError(f"{where}: 'depth_scale' must be a positive number, got {c['depth_scale']!r:.40}")
+    for key in ("width", "height"):
+        if key in c and not (isinstance(c[key], int) and not isinstance(c[key], bool) and c[key] > 0):
+            raise InputError(f"{where}: '{key}' must be a positive integer, got {c[key]!r:.40}")
+    if ("width" in c) != ("height" in c):
+        raise InputError(f"{where}: give both 'width' and 'height' or neither")
+    if ("cam_R_w2c" in c) != ("cam_t_w2c" in c):
+        raise InputError(f"{where}: give both 'cam_R_w2c' and 'cam_t_w2c' or neither")
+    if "cam_R_w2c" in c:
+        _rotation(c, "cam_R_w2c", where)
+        _numbers(c, "cam_t_w2c", 3, where)
+
+
+def _check_instances(gts: list, where: str) -> None:
+    for i, g in enumerate(gts):
+        w = f"{where}, instance {i}"
+        if not isinstance(g, dict):
+            raise InputError(f"{w}: must be a JSON object with cam_R_m2c, cam_t_m2c and obj_id")
+        _rotation(g, "cam_R_m2c", w)
+        _numbers(g, "cam_t_m2c", 3, w)
+        oid = g.get("obj_id")
+        if not (isinstance(oid, int) and not isinstance(oid, bool) and oid >= 1):
+            raise InputError(f"{w}: 'obj_id' must be a positive integer (BOP model ids start at 1), got {oid!r:.40}")
+
+
 class BopScene:
-    """Read access to one BOP scene folder (metres on the way out)."""
+    """Read access to one BOP scene folder (metres on the way out).
+
+    The json files are validated when the scene is opened: a missing key, a wrong type, a non-finite
+    number, a non-rotation ``R`` or image ids that disagree between the files raise
+    :class:`~cadalign.errors.InputError` naming the file, the image id and the key.
+    """
 
     def __init__(self, scene_dir: Path) -> None:
         self.dir = Path(scene_dir)
@@ -135,19 +201,46 @@ class BopScene:
                 raise InputError(
                     f"{self.dir} is not a BOP scene: {name} is missing (re-run the stage that wrote it)"
                 )
-        self._cam = read_json(self.dir / "scene_camera.json")
-        self._gt = read_json(self.dir / "scene_gt.json")
-        info_path = self.dir / "scene_gt_info.json"
-        self._info = read_json(info_path) if info_path.is_file() else {}
+        cam_path, gt_path, info_path = (self.dir / n for n in ("scene_camera.json", "scene_gt.json",
+                                                                "scene_gt_info.json"))
+        self._cam = _table(read_json(cam_path), cam_path, dict)
+        self._gt = _table(read_json(gt_path), gt_path, list)
+        self._info = _table(read_json(info_path), info_path, list) if info_path.is_file() else {}
         missing = sorted(set(self._cam) ^ set(self._gt), key=int)
         if missing:
             raise InputError(
-                f"{self.dir}: image ids {missing[:10]} are in only one of scene_camera.json/scene_gt.json"
+                f"{self.dir}: image ids {missing[:10]} are in only one of scene_camera.json/scene_gt.json; "
+                "re-run the stage that wrote the scene (or delete the stray entries)"
             )
+        for k, c in self._cam.items():
+            _check_camera(c, f"{cam_path}, image {k}")
+        for k, gts in self._gt.items():
+            _check_instances(gts, f"{gt_path}, image {k}")
+        for k, infos in self._info.items():
+            if k not in self._gt or len(infos) != len(self._gt[k]):
+                n_gt = len(self._gt[k]) if k in self._gt else "no"
+                raise InputError(f"{info_path}, image {k}: {len(infos)} entries but scene_gt.json has {n_gt} "
+                                 "instances for it; re-run the stage that wrote the scene")
+            if not all(isinstance(i, dict) for i in infos):
+                raise InputError(f"{info_path}, image {k}: every entry must be a JSON object")
 
     @property
     def ids(self) -> list[int]:
         return sorted(int(k) for k in self._cam)
+
+    def _read(self, folder: str, name: str, im_id: int, *, unchanged: bool) -> np.ndarray:
+        path = self.dir / folder / name
+        if not path.is_file():
+            raise InputError(f"{path} is missing: image {im_id} is listed in scene_camera.json but has no {folder} "
+                             "file; re-run the stage that wrote the scene")
+        return read_image(path, unchanged=unchanged)
+
+    def _check_size(self, img: np.ndarray, im_id: int, folder: str, name: str) -> np.ndarray:
+        cam = self.frame(im_id).camera
+        if img.shape[:2] != (cam.height, cam.width):
+            raise InputError(f"{self.dir / folder / name} is {img.shape[1]}x{img.shape[0]} but scene_camera.json "
+                             f"says image {im_id} is {cam.width}x{cam.height}; re-run the stage that wrote the scene")
+        return img
 
     def frame(self, im_id: int) -> BopFrame:
         key = str(im_id)
@@ -157,7 +250,7 @@ class BopScene:
         K = np.array(c["cam_K"], dtype=np.float64).reshape(3, 3)
         w, h = c.get("width"), c.get("height")
         if w is None or h is None:
-            h, w = read_image(self.dir / "rgb" / frame_name(im_id)).shape[:2]
+            h, w = self._read("rgb", frame_name(im_id), im_id, unchanged=False).shape[:2]
         T = None
         if "cam_R_w2c" in c:
             T = Rigid3(np.reshape(c["cam_R_w2c"], (3, 3)), np.asarray(c["cam_t_w2c"]) / M_TO_MM)
@@ -173,12 +266,21 @@ class BopScene:
         )
 
     def rgb(self, im_id: int) -> np.ndarray:
-        return read_image(self.dir / "rgb" / frame_name(im_id))
+        name = frame_name(im_id)
+        return self._check_size(self._read("rgb", name, im_id, unchanged=False), im_id, "rgb", name)
 
     def depth_m(self, im_id: int) -> np.ndarray:
-        png = read_image(self.dir / "depth" / frame_name(im_id), unchanged=True)
-        return decode_depth(png, self.frame(im_id).depth_scale)
+        name = frame_name(im_id)
+        png = self._read("depth", name, im_id, unchanged=True)
+        if png.ndim != 2 or png.dtype != np.uint16:
+            raise InputError(f"{self.dir / 'depth' / name} must be a single-channel 16-bit PNG (BOP depth), got "
+                             f"{png.dtype} with shape {png.shape}; re-write it with the depth in mm / depth_scale")
+        return decode_depth(self._check_size(png, im_id, "depth", name), self.frame(im_id).depth_scale)
 
     def mask(self, im_id: int, gt_idx: int, *, visible: bool = True) -> np.ndarray:
         folder = "mask_visib" if visible else "mask"
-        return read_image(self.dir / folder / mask_name(im_id, gt_idx), unchanged=True) > 127
+        name = mask_name(im_id, gt_idx)
+        img = self._read(folder, name, im_id, unchanged=True)
+        if img.ndim != 2:
+            img = img[..., 0]
+        return self._check_size(img, im_id, folder, name) > 127

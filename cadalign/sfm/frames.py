@@ -36,6 +36,8 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm")
 _MIN_TRACKED = 12
 _DIFF_DUPLICATE = 0.01  # mean |grey difference| / 255 below which a frame without corners is a duplicate
+_DARK_P99 = 12  # a frame whose 99th-percentile grey level is at most this is black (lamps off, lens cap)
+_BRIGHT_P1 = 243  # a frame whose 1st-percentile grey level is at least this is overexposed (washed out)
 
 Progress = Callable[[Iterable, str, int], Iterable]
 
@@ -48,7 +50,8 @@ class FrameDecision:
         name: output file name (``000123.png`` for video frame 123, the file name for images).
         source: the video frame index or the source image path.
         kept: whether the frame goes to SfM.
-        reason: why a frame was rejected ('blurred', 'near-duplicate', 'max_frames'); '' when kept.
+        reason: why a frame was rejected ('black', 'overexposed', 'blurred', 'near-duplicate', 'max_frames');
+            '' when kept.
         sharpness: variance of the Laplacian at analysis size.
         motion: median corner motion since the last kept frame (fraction of the diagonal); -1 for the first.
     """
@@ -99,26 +102,59 @@ def _analysis_gray(image: np.ndarray, width: int) -> np.ndarray:
     return gray
 
 
+def exposure_problem(gray: np.ndarray) -> str:
+    """'black' or 'overexposed' when an (H, W) uint8 grey frame carries (almost) no image, else ''."""
+    p1, p99 = np.percentile(gray, (1, 99))
+    if p99 <= _DARK_P99:
+        return "black"
+    if p1 >= _BRIGHT_P1:
+        return "overexposed"
+    return ""
+
+
+def _check_frame(rgb: object, name: str, source: str, first: tuple[str, tuple[int, ...]] | None) -> None:
+    """Refuse a frame that is not an (H, W[, C]) image or whose size differs from the first frame's."""
+    if not isinstance(rgb, np.ndarray) or rgb.ndim not in (2, 3) or min(rgb.shape[:2], default=0) < 2:
+        shape = getattr(rgb, "shape", None)
+        raise InputError(f"frame {name} ({source}) is not an image (shape {shape}); remove or replace it")
+    if first is not None and rgb.shape[:2] != first[1]:
+        h, w = rgb.shape[:2]
+        raise InputError(
+            f"frames of mixed sizes: {name} ({source}) is {w}x{h} but {first[0]} is {first[1][1]}x{first[1][0]}; "
+            "SfM uses one camera for all frames - resize them to one size or split the input by camera")
+
+
 def select_frames(
     candidates: Iterable[tuple[str, str, np.ndarray]], cfg: FrameConfig
 ) -> Iterator[tuple[FrameDecision, np.ndarray]]:
     """Decide for each candidate ``(name, source, rgb)`` whether it goes to SfM; yields (decision, rgb).
 
     Pure apart from reading the iterator: the same candidates and config always give the same
-    decisions. Blur is judged against the median sharpness of the last ``blur_window`` candidates
-    (causal), duplicates against the last kept frame; in 'motion' sampling a frame is kept only once
-    the motion reaches ``keyframe_motion``.
+    decisions. Black and overexposed frames (see :func:`exposure_problem`) are rejected first; blur
+    is judged against the median sharpness of the last ``blur_window`` usable candidates (causal),
+    duplicates against the last kept frame; in 'motion' sampling a frame is kept only once the motion
+    reaches ``keyframe_motion``.
+
+    Raises:
+        InputError: a candidate is not an image, or its size differs from the first candidate's.
     """
     recent: deque[float] = deque(maxlen=cfg.blur_window)
     last_kept: np.ndarray | None = None
+    first: tuple[str, tuple[int, ...]] | None = None
     n_kept = 0
     min_motion = cfg.keyframe_motion if cfg.sampling == "motion" else cfg.min_motion
     for name, source, rgb in candidates:
+        _check_frame(rgb, name, source, first)
+        first = first or (name, rgb.shape[:2])
         gray = _analysis_gray(rgb, cfg.analysis_width)
+        exposure = exposure_problem(gray)
+        if exposure:
+            yield FrameDecision(name, source, False, exposure, sharpness(gray), -1.0), rgb
+            continue
         sharp = sharpness(gray)
         reference = float(np.median(recent)) if recent else sharp
         recent.append(sharp)
-        motion = -1.0 if last_kept is None or last_kept.shape != gray.shape else motion_between(last_kept, gray)
+        motion = -1.0 if last_kept is None else motion_between(last_kept, gray)
         if cfg.max_frames and n_kept >= cfg.max_frames:
             reason = "max_frames"
         elif sharp < cfg.min_sharpness or (cfg.blur_ratio > 0 and sharp < cfg.blur_ratio * reference):
@@ -162,9 +198,13 @@ def list_images(folder: Path) -> list[Path]:
 
 def video_candidates(path: Path, cfg: FrameConfig) -> tuple[Iterator[tuple[str, str, np.ndarray]], int]:
     """Candidate frames of a video (OpenCV) and their expected count."""
+    if Path(path).stat().st_size == 0:
+        raise InputError(f"video {path} is empty (0 bytes); re-copy or re-export the recording")
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
-        raise InputError(f"could not open video {path}; check the file or extract frames to a folder first")
+        raise InputError(f"could not open video {path}: the file is corrupt or its codec is not supported by "
+                         "OpenCV; re-encode it (e.g. ffmpeg -i IN -c:v libx264 OUT.mp4) or extract frames to a "
+                         "folder first")
     fps = cap.get(cv2.CAP_PROP_FPS) or 0.0
     total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
     step = max(1, round(fps / cfg.fps)) if cfg.sampling == "fps" and fps > 0 else 1
@@ -249,14 +289,36 @@ def extract_frames(
         mask = _load_mask(cfg, decision.name, rgb.shape[:2])
         if mask is not None:
             write_image(masks_dir / f"{decision.name}.png", mask.astype(np.uint8) * 255)
+    if not decisions:
+        raise InputError(f"{source}: no frame could be decoded (a zero-length or corrupt video); check that it "
+                         "plays, re-encode it (e.g. ffmpeg -i IN -c:v libx264 OUT.mp4) or extract frames to a folder")
+    _warn_exposure(source, decisions)
     kept = [d for d in decisions if d.kept]
     if len(kept) < 2:
         raise InputError(
             f"{source}: only {len(kept)} of {len(decisions)} frames are usable "
-            f"({_count_reasons(decisions)}); lower frames.blur_ratio / frames.min_motion or check the input"
+            f"({_count_reasons(decisions)}{_exposure_names(decisions)}); lower frames.blur_ratio / "
+            "frames.min_motion or check the input"
         )
     log.info("frames: kept %d of %d (%s)", len(kept), len(decisions), _count_reasons(decisions) or "none rejected")
     return decisions
+
+
+def _exposure_names(decisions: list[FrameDecision]) -> str:
+    """'; black: a.png, b.png; overexposed: ...' (first few names per reason), or ''."""
+    parts = []
+    for reason in ("black", "overexposed"):
+        names = [d.name for d in decisions if d.reason == reason]
+        if names:
+            more = f" and {len(names) - 5} more" if len(names) > 5 else ""
+            parts.append(f"{reason}: {', '.join(names[:5])}{more}")
+    return "; " + "; ".join(parts) if parts else ""
+
+
+def _warn_exposure(source: Path, decisions: list[FrameDecision]) -> None:
+    names = _exposure_names(decisions)
+    if names:
+        log.warning("%s: skipped frames with no usable image (lamps off / lens cap / washed out)%s", source, names)
 
 
 def _count_reasons(decisions: list[FrameDecision]) -> str:

@@ -12,8 +12,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
+
 from cadalign.config import bounded, from_dict, read_mapping
-from cadalign.errors import InputError
+from cadalign.errors import ConfigError, InputError
 
 TrajectoryKind = Literal["orbit", "lawnmower", "approach", "hover"]
 TextureName = Literal["painted_steel", "yellow_paint", "rust", "marine_growth", "sediment", "galvanised"]
@@ -63,15 +65,18 @@ class TrajectorySpec:
     """Exposure time, seconds (motion blur integrates the motion over it)."""
 
 
+JerlovType = Literal["I", "IA", "IB", "II", "III", "1C", "3C", "5C", "7C", "9C"]
+
+
 @dataclass(frozen=True)
 class WaterSpec:
-    jerlov: str = "II"
+    jerlov: JerlovType = "II"
     """Jerlov water type (I, IA, IB, II, III, 1C, 3C, 5C, 7C, 9C); ignored when beta_D is given."""
-    beta_D: tuple[float, float, float] | None = None
-    """Explicit direct-signal attenuation per R,G,B channel, 1/m."""
-    beta_B: tuple[float, float, float] | None = None
-    """Explicit backscatter coefficient per R,G,B channel, 1/m."""
-    B_inf: tuple[float, float, float] | None = None
+    beta_D: tuple[float, float, float] | None = bounded(None, ge=0.0)
+    """Explicit direct-signal attenuation per R,G,B channel, 1/m (>= 0)."""
+    beta_B: tuple[float, float, float] | None = bounded(None, ge=0.0)
+    """Explicit backscatter coefficient per R,G,B channel, 1/m (>= 0)."""
+    B_inf: tuple[float, float, float] | None = bounded(None, ge=0.0, le=1.0)
     """Explicit veiling light per R,G,B channel, linear [0, 1]."""
 
 
@@ -151,6 +156,13 @@ class SceneSpec:
                 raise ValueError(f"object '{o.name}' has class '{o.class_name}'; allowed: {list(self.classes[1:])}")
         if not self.objects:
             raise ValueError("a scene needs at least one object")
+        from cadalign.cad.procedural import DEFAULT_SIZES_M
+
+        for o in self.objects:
+            kind = o.source.split(":", 1)[1] if o.source.startswith("procedural:") else None
+            if kind is not None and kind not in DEFAULT_SIZES_M:
+                raise ValueError(f"object '{o.name}': unknown procedural part '{kind}'; allowed: "
+                                 f"{', '.join('procedural:' + k for k in DEFAULT_SIZES_M)}")
 
 
 def load_scene(path: Path) -> SceneSpec:
@@ -160,8 +172,64 @@ def load_scene(path: Path) -> SceneSpec:
     spec = from_dict(SceneSpec, data, source=str(path))
     from cadalign.sim.effects_chain import build_chain
 
-    build_chain(spec, source=str(path))  # validates effect names and parameter tables now, not mid-render
+    try:
+        build_chain(spec, source=str(path))  # validates effect names and parameter tables now, not mid-render
+    except ConfigError as exc:
+        if str(path) in str(exc):
+            raise
+        raise ConfigError(f"{path}: {exc}") from exc
+    check_camera_clearance(spec, source=str(path))
     return spec
+
+
+def _inside_solid(spec: ObjectSpec, p_world: np.ndarray) -> np.ndarray:
+    """(N,) whether world points lie inside a procedural box or cylinder (other parts: never)."""
+    from scipy.spatial.transform import Rotation
+
+    from cadalign.cad.procedural import DEFAULT_SIZES_M
+
+    kind = spec.source.split(":", 1)[1] if spec.source.startswith("procedural:") else ""
+    if kind not in ("box", "cylinder"):
+        return np.zeros(len(p_world), bool)
+    size = np.asarray(spec.size_m or DEFAULT_SIZES_M[kind], dtype=np.float64) * spec.scale
+    R = Rotation.from_euler("xyz", spec.rpy_deg, degrees=True).as_matrix()
+    p = (p_world - np.asarray(spec.position)) @ R  # object frame: base centre at the origin, z up
+    in_z = (p[:, 2] > 0) & (p[:, 2] < size[2])
+    if kind == "box":
+        return in_z & np.all(np.abs(p[:, :2]) < size[:2] / 2, axis=1)
+    return in_z & (np.sum((p[:, :2] / (size[:2] / 2)) ** 2, axis=1) < 1)
+
+
+def check_camera_clearance(spec: SceneSpec, source: str = "<scene>") -> None:
+    """Refuse trajectories that put the camera under the seabed or inside a solid procedural part.
+
+    Cheap and conservative: camera centres of every frame against the seabed plane (z = 0) and
+    the exact volumes of procedural boxes and cylinders; other parts (open frames, meshes) are
+    not checked.
+
+    Raises:
+        ConfigError: naming the file, the first offending frame, its position and the fix.
+    """
+    from cadalign.sim.trajectory import frame_poses
+
+    try:
+        eyes = np.array([T.t for T in frame_poses(spec.trajectory, spec.trajectory.frames, spec.seed)])
+    except ValueError as exc:  # look_at with coincident eye and target
+        raise ConfigError(
+            f"{source}: [trajectory] gives no valid camera pose ({exc}); move 'center' or the path"
+        ) from exc
+    if spec.seabed is not None and np.any(eyes[:, 2] <= 0):
+        k = int(np.flatnonzero(eyes[:, 2] <= 0)[0])
+        raise ConfigError(f"{source}: the camera of frame {k} is under the seabed (z = {eyes[k, 2]:.3g} m); "
+                          "raise trajectory.height_m above 0 (the seabed is at z = 0)")
+    for o in spec.objects:
+        inside = _inside_solid(o, eyes)
+        if inside.any():
+            k = int(np.flatnonzero(inside)[0])
+            raise ConfigError(
+                f"{source}: the camera of frame {k} at {np.round(eyes[k], 3).tolist()} m is inside object "
+                f"'{o.name}' ({o.source}); change the trajectory (radius_m, height_m, center) or the object's "
+                "position/size_m")
 
 
 def data_dir() -> Path:
