@@ -56,7 +56,7 @@ def read_mapping(path: Path) -> dict[str, Any]:
     """Read a TOML, YAML or JSON file into a dict, with errors naming the file."""
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"config file not found: {path}")
+        raise ConfigError(f"config file not found: {path}; check the path")
     suffix = path.suffix.lower()
     try:
         text = path.read_bytes().decode("utf-8")

@@ -68,7 +68,7 @@ class Rigid3:
         """Build from a (4, 4) homogeneous matrix."""
         M = np.asarray(M, dtype=np.float64)
         if M.shape != (4, 4):
-            raise InputError(f"expected a (4, 4) matrix, got {M.shape}")
+            raise InputError(f"Rigid3.from_matrix expects a (4, 4) homogeneous matrix, got shape {M.shape}")
         return Rigid3(M[:3, :3], M[:3, 3])
 
     def matrix(self) -> np.ndarray:
@@ -167,7 +167,7 @@ class Camera:
     def __post_init__(self) -> None:
         object.__setattr__(self, "K", _as_f64(self.K, (3, 3), "Camera.K", finite=True))
         if int(self.width) <= 0 or int(self.height) <= 0:
-            raise InputError(f"image size must be positive, got {self.width}x{self.height}")
+            raise InputError(f"Camera image size must be positive, got {self.width}x{self.height}")
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
 

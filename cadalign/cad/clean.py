@@ -204,8 +204,13 @@ def clean_model(model: CadModel, *, merge_tol_m: float = 1e-6, area_tol_m2: floa
     if rep.faces_out == 0:
         raise InputError(f"CAD '{where}': all {rep.faces_in} faces are degenerate (zero area or repeated "
                          "vertices); check the export, e.g. that the unit/scale is not collapsing it")
-    level = logging.INFO if rep.changed or rep.non_manifold_edges else logging.DEBUG
+    level = logging.INFO if rep.changed else logging.DEBUG
     logger.log(level, "cleaned CAD '%s': %s", where, rep.summary())
+    if rep.non_manifold_edges:
+        logger.warning(
+            "CAD '%s' has %d non-manifold edges (shared by more than two faces): rendering and ray casting are "
+            "fine, but inside/outside tests (SDF, watertightness) are unreliable. Repair it if those matter "
+            "(MeshLab: Filters > Cleaning and Repairing > Repair non Manifold Edges).", where, rep.non_manifold_edges)
     vc = None if model.vertex_colors is None else model.vertex_colors[rep.vertex_source]
     fc = None if model.face_colors is None else model.face_colors[rep.kept_face_ids]
     cleaned = replace(model, vertices_m=v, faces=f, part_labels=model.part_labels[rep.kept_face_ids],

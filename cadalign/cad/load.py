@@ -56,6 +56,8 @@ def _check_path(path: Path) -> Path:
         raise InputError(f"CAD file not found: '{path}' (resolved from {Path.cwd()}); check the path")
     if not path.is_file():
         raise InputError(f"CAD path '{path}' is not a file; pass the mesh file itself")
+    if path.stat().st_size == 0:
+        raise InputError(f"CAD file '{path}' is empty (0 bytes); the export or copy did not finish - re-export it")
     if path.suffix.lower() not in SUPPORTED_EXTENSIONS:
         raise InputError(f"CAD file '{path}' has unsupported extension '{path.suffix}'; supported: "
                          f"{', '.join(SUPPORTED_EXTENSIONS)}. Convert it (e.g. with MeshLab or Blender) to PLY or OBJ")
@@ -172,7 +174,8 @@ def read_cad_parts(path: str | Path) -> CadParts:
         offset += len(mesh.vertices)
     if not faces:
         raise InputError(f"CAD file '{path}' has no triangle faces (it may hold only points, lines or an empty "
-                         "scene); export the object as a surface mesh")
+                         f"scene, or not be a valid {path.suffix.lstrip('.').upper()} file); export the object as "
+                         "a surface mesh")
     vc, fc = _merge_colors(meshes, colors)
     return CadParts(np.concatenate(verts), np.concatenate(faces), np.concatenate(labels), tuple(names), vc, fc,
                     _declared_unit(scene))

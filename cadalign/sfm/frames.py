@@ -275,7 +275,8 @@ def extract_frames(
     elif source.exists():
         raise InputError(f"{source} is neither a video ({', '.join(VIDEO_SUFFIXES)}) nor a folder of images")
     else:
-        raise InputError(f"input not found: {source}")
+        raise InputError(f"input not found: {source}; pass an existing video ({', '.join(VIDEO_SUFFIXES)}) or a "
+                         "folder of frames")
     decisions: list[FrameDecision] = []
     stream = select_frames(candidates, cfg)
     for decision, rgb in progress(stream, "frames", total) if progress else stream:

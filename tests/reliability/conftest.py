@@ -1,0 +1,32 @@
+"""Fixtures for the reliability tests: a tiny simulated BOP scene and the bad-input catalogue recorder.
+
+Set ``CADALIGN_BAD_INPUT_TABLE=path.md`` to write the catalogue (bad input -> the message the user
+sees) as a markdown table when the session ends.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+from reliability_testdata import CATALOGUE, markdown_table
+from sim_testdata import write_tiny_scene
+
+
+@pytest.fixture(scope="session")
+def tiny_bop(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> Path:
+    """The BOP scene folder of a 2-frame effect-free 160x120 simulation (read-only: copy before corrupting)."""
+    from cadalign.sim.run import SCENE_SUBDIR, simulate
+
+    root = tmp_path_factory.mktemp("rel_bop")
+    scene = write_tiny_scene(root / "tiny.toml", effects=[], frames=2)
+    return simulate(scene, root / "sim", video=False, contact_sheet=False) / SCENE_SUBDIR
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _write_catalogue() -> object:
+    yield
+    target = os.environ.get("CADALIGN_BAD_INPUT_TABLE")
+    if target and CATALOGUE:
+        Path(target).write_text(markdown_table(CATALOGUE), encoding="utf-8")
