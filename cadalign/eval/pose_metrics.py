@@ -1,0 +1,234 @@
+"""6-DoF pose and detection metrics: box/mask IoU, matching, rotation/translation errors, ADD(-S), BOP MSSD/MSPD.
+
+Definitions follow the BOP toolkit (https://github.com/thodan/bop_toolkit, ``bop_toolkit_lib/pose_error.py``
+and ``scripts/eval_bop19_pose.py``):
+
+- ADD: mean distance between model points under the estimated and the true pose; ADD-S (BOP's ``adi``):
+  mean over the true-pose points of the distance to the nearest estimated-pose point.
+- MSSD: ``min_S max_x |T_est x - T_gt S x|`` over the symmetry transforms ``S`` (metres);
+  MSPD: the same in pixels after projection with ``K``.
+- Continuous symmetries are discretised as BOP does with ``max_sym_disc_step = 0.01``:
+  ``ceil(pi / 0.01) = 315`` rotations (we keep the identity, which BOP's loop starts after).
+- Recall thresholds (BOP19): MSSD ``e < th * diameter`` for ``th = 0.05, 0.10, ..., 0.50``; MSPD
+  ``e < th * w / 640`` px for ``th = 5, 10, ..., 50``; the average recall is the mean over thresholds.
+
+Rotation error is the geodesic angle minimised over the symmetry group; for a continuous symmetry about
+axis ``a`` the minimum over the circle is exact: ``arccos(a . (R_gt^T R_est D^T) a)`` (the smallest
+rotation between ``a`` and its image), so no discretisation error enters it. Boxes are ``x0, y0, x1, y1``
+in pixels with ``x1``/``y1`` exclusive (pixel-edge coordinates of :mod:`cadalign.types`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from cadalign.cad.symmetry import Symmetry
+from cadalign.errors import InputError
+
+MSSD_THRESHOLDS = tuple(round(0.05 * k, 2) for k in range(1, 11))
+"""BOP19 MSSD thresholds as fractions of the object diameter."""
+MSPD_THRESHOLDS_PX = tuple(5.0 * k for k in range(1, 11))
+"""BOP19 MSPD thresholds in pixels at 640 px image width (scaled by ``width / 640``)."""
+BOP_SYM_DISC_STEP = 0.01
+"""BOP's ``max_sym_disc_step`` for discretising continuous symmetries."""
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pairwise IoU of boxes ``a`` (N, 4) and ``b`` (M, 4), xyxy pixels; returns (N, M), 0 for empty boxes."""
+    a = np.asarray(a, dtype=np.float64).reshape(-1, 4)
+    b = np.asarray(b, dtype=np.float64).reshape(-1, 4)
+    area_a = np.clip(a[:, 2] - a[:, 0], 0, None) * np.clip(a[:, 3] - a[:, 1], 0, None)
+    area_b = np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None)
+    lt = np.maximum(a[:, None, :2], b[None, :, :2])
+    rb = np.minimum(a[:, None, 2:], b[None, :, 2:])
+    inter = np.prod(np.clip(rb - lt, 0, None), axis=-1)
+    union = area_a[:, None] + area_b[None, :] - inter
+    return np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
+
+
+def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
+    """IoU of two boolean masks of the same shape (0 when both are empty)."""
+    a, b = np.asarray(a, bool), np.asarray(b, bool)
+    if a.shape != b.shape:
+        raise InputError(f"mask shapes differ: {a.shape} vs {b.shape}")
+    union = np.count_nonzero(a | b)
+    return float(np.count_nonzero(a & b) / union) if union else 0.0
+
+
+def match_detections(
+    pred_boxes: np.ndarray, pred_labels: np.ndarray, pred_scores: np.ndarray,
+    gt_boxes: np.ndarray, gt_labels: np.ndarray, iou_thresh: float = 0.5,
+) -> list[tuple[int, int]]:
+    """Greedy one-to-one matching by descending score, same class, box IoU >= ``iou_thresh`` (COCO style).
+
+    Returns:
+        ``(pred_index, gt_index)`` pairs; each prediction takes the free GT box of its class with the
+        highest IoU.
+    """
+    iou = box_iou(pred_boxes, gt_boxes)
+    gt_labels = np.asarray(gt_labels)
+    taken = np.zeros(len(gt_labels), dtype=bool)
+    pairs = []
+    for i in np.argsort(-np.asarray(pred_scores, dtype=np.float64), kind="stable"):
+        ok = (gt_labels == pred_labels[i]) & ~taken & (iou[i] >= iou_thresh) if len(gt_labels) else taken
+        if not np.any(ok):
+            continue
+        j = int(np.argmax(np.where(ok, iou[i], -1.0)))
+        taken[j] = True
+        pairs.append((int(i), j))
+    return pairs
+
+
+@dataclass(frozen=True)
+class DetectionCounts:
+    """True/false positives and misses of one class (or of all)."""
+
+    tp: int
+    fp: int
+    fn: int
+
+    @property
+    def precision(self) -> float:
+        return self.tp / (self.tp + self.fp) if self.tp + self.fp else 0.0
+
+    @property
+    def recall(self) -> float:
+        return self.tp / (self.tp + self.fn) if self.tp + self.fn else 0.0
+
+    @property
+    def f1(self) -> float:
+        p, r = self.precision, self.recall
+        return 2 * p * r / (p + r) if p + r else 0.0
+
+    def as_dict(self) -> dict:
+        return {"tp": self.tp, "fp": self.fp, "fn": self.fn, "precision": self.precision,
+                "recall": self.recall, "f1": self.f1}
+
+
+def symmetry_transforms(symmetry: Symmetry | None, diameter_m: float | None = None) -> list[np.ndarray]:
+    """The (4, 4) symmetry transforms used by MSSD/MSPD/ADD: identity first; continuous ones discretised as BOP.
+
+    ``diameter_m`` is accepted for interface clarity only: BOP's step count ``ceil(pi / 0.01)`` does not
+    depend on it.
+    """
+    del diameter_m
+    if symmetry is None or symmetry.kind == "none":
+        return [np.eye(4)]
+    return symmetry.discretize(int(math.ceil(math.pi / BOP_SYM_DISC_STEP)))
+
+
+def _angle(R: np.ndarray) -> float:
+    # stable for small angles: atan2(|skew part|, trace part)
+    s = np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(math.atan2(s, c))
+
+
+def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray, symmetry: Symmetry | None = None) -> float:
+    """Geodesic angle (degrees) between two (3, 3) rotations, minimised over the object's symmetries."""
+    R_est, R_gt = np.asarray(R_est, float), np.asarray(R_gt, float)
+    M = R_gt.T @ R_est
+    sym = symmetry if symmetry is not None else Symmetry.none()
+    best = math.inf
+    for D in [np.eye(4), *sym.discrete]:
+        N = M @ D[:3, :3].T
+        if sym.kind == "continuous":
+            a = np.asarray(sym.axis, float)
+            ang = math.acos(float(np.clip(a @ N @ a, -1.0, 1.0)))
+        else:
+            ang = _angle(N)
+        best = min(best, ang)
+    return math.degrees(best)
+
+
+def translation_error_m(t_est: np.ndarray, t_gt: np.ndarray) -> float:
+    """Euclidean distance (metres) between two translations (3,)."""
+    return float(np.linalg.norm(np.asarray(t_est, float) - np.asarray(t_gt, float)))
+
+
+def _apply(R: np.ndarray, t: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    return pts @ np.asarray(R, float).T + np.asarray(t, float)
+
+
+def add(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, pts: np.ndarray) -> float:
+    """ADD: mean distance (m) of model points (N, 3) under the estimated and the true pose."""
+    return float(np.linalg.norm(_apply(R_est, t_est, pts) - _apply(R_gt, t_gt, pts), axis=1).mean())
+
+
+def add_s(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, pts: np.ndarray) -> float:
+    """ADD-S (BOP ``adi``): mean over true-pose points of the distance to the nearest estimated-pose point."""
+    d, _ = cKDTree(_apply(R_est, t_est, pts)).query(_apply(R_gt, t_gt, pts), k=1)
+    return float(np.mean(d))
+
+
+def mssd(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, pts: np.ndarray,
+         syms: list[np.ndarray]) -> float:
+    """Maximum Symmetry-aware Surface Distance (m): ``min_S max_x |T_est x - T_gt S x|``."""
+    pe = _apply(R_est, t_est, pts)
+    return min(float(np.linalg.norm(pe - _apply(R_gt @ S[:3, :3], R_gt @ S[:3, 3] + t_gt, pts), axis=1).max())
+               for S in syms)
+
+
+def _project(K: np.ndarray, X: np.ndarray) -> np.ndarray:
+    z = np.where(np.abs(X[:, 2:3]) > 1e-9, X[:, 2:3], 1e-9)
+    return (X[:, :2] / z) @ np.asarray(K, float)[:2, :2].T + np.asarray(K, float)[:2, 2]
+
+
+def mspd(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, K: np.ndarray,
+         pts: np.ndarray, syms: list[np.ndarray]) -> float:
+    """Maximum Symmetry-aware Projection Distance (px): MSSD's max after projection with ``K`` (3, 3)."""
+    pe = _project(K, _apply(R_est, t_est, pts))
+    return min(float(np.linalg.norm(pe - _project(K, _apply(R_gt @ S[:3, :3], R_gt @ S[:3, 3] + t_gt, pts)),
+                                    axis=1).max()) for S in syms)
+
+
+def recall_curve(errors: np.ndarray, n_targets: int, thresholds: np.ndarray) -> np.ndarray:
+    """Recall per threshold: the fraction of ``n_targets`` whose error is strictly below it (NaN/inf fail)."""
+    e = np.asarray(errors, dtype=np.float64)
+    e = e[np.isfinite(e)]
+    if n_targets <= 0:
+        return np.full(len(thresholds), np.nan)
+    return np.array([np.count_nonzero(e < th) / n_targets for th in thresholds])
+
+
+def mssd_thresholds_m(diameter_m: float) -> np.ndarray:
+    """BOP19 MSSD thresholds in metres for an object of diameter ``diameter_m``."""
+    return np.asarray(MSSD_THRESHOLDS) * diameter_m
+
+
+def mspd_thresholds_px(image_width: int) -> np.ndarray:
+    """BOP19 MSPD thresholds in pixels for an image ``image_width`` pixels wide."""
+    return np.asarray(MSPD_THRESHOLDS_PX) * image_width / 640.0
+
+
+def error_stats(values: np.ndarray) -> dict[str, float]:
+    """``min/max/mean/std/median`` and ``n`` of the finite values (thesis Table 4.5 layout); NaN when empty."""
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    if len(v) == 0:
+        return {"n": 0, "min": math.nan, "max": math.nan, "mean": math.nan, "std": math.nan, "median": math.nan}
+    return {"n": int(len(v)), "min": float(v.min()), "max": float(v.max()), "mean": float(v.mean()),
+            "std": float(v.std()), "median": float(np.median(v))}
+
+
+def binned_by(values: dict[str, np.ndarray], key: np.ndarray, edges: tuple[float, ...]) -> list[dict]:
+    """Mean and median of each error array in ``values`` per bin of ``key`` (e.g. camera distance, m).
+
+    Bins are ``[edges[i], edges[i + 1])``; empty bins are kept with ``n = 0``.
+    """
+    key = np.asarray(key, dtype=np.float64)
+    rows = []
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        sel = (key >= lo) & (key < hi)
+        row: dict = {"lo": float(lo), "hi": float(hi), "n": int(sel.sum())}
+        for name, v in values.items():
+            vv = np.asarray(v, dtype=np.float64)[sel]
+            vv = vv[np.isfinite(vv)]
+            row[f"{name}_mean"] = float(vv.mean()) if len(vv) else math.nan
+            row[f"{name}_median"] = float(np.median(vv)) if len(vv) else math.nan
+        rows.append(row)
+    return rows

@@ -1,0 +1,319 @@
+"""Refinement of a 6-DoF pose against the CAD model: silhouette/contour alignment and depth ICP.
+
+(a) :func:`refine_silhouette`: damped Gauss-Newton (Levenberg-Marquardt with step acceptance) on the signed
+distance transform of the predicted mask, sampled at the projections of the model's outline points: points
+on the occluding contour (edges between a front- and a back-facing face) that also lie on the outline of
+the model's own rendered silhouette. Each residual is the signed distance (px) of a projected outline point
+to the mask boundary, so the outline is pulled onto the zero level set from both sides (a shrunken or
+grown silhouette is penalised, unlike a one-sided chamfer); residuals are Huber-weighted and truncated.
+
+(b) :func:`refine_depth_icp`: point-to-plane ICP of surface samples of the CAD to the back-projected depth
+inside the (eroded) mask, Huber-weighted, correspondences found in the model frame (one k-d tree per model).
+
+Both update ``T_cam_from_obj <- exp(xi) T_cam_from_obj`` with a twist ``xi = (omega, v)`` in the camera
+frame. A point moves as ``X' = X + omega x X + v``; its projection's Jacobian is ``du/dX [-[X]_x, I]``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from scipy.ndimage import binary_erosion
+
+from cadalign.config import bounded
+from cadalign.geometry.rotations import axis_angle_to_matrix
+from cadalign.infer.model_geom import ModelGeometry, contour_points, project_points, render_silhouette
+from cadalign.types import Rigid3
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    method: Literal["none", "silhouette", "depth", "both"] = "both"
+    """Which refinements run: ``both`` = silhouette, then depth ICP when a depth map is given."""
+    silhouette_iters: int = bounded(15, ge=0)
+    """Gauss-Newton iterations of the contour alignment."""
+    depth_iters: int = bounded(10, ge=0)
+    """Point-to-plane ICP iterations."""
+    max_contour_points: int = bounded(400, ge=10)
+    """Model contour points per iteration (evenly thinned)."""
+    huber_px: float = bounded(2.0, gt=0)
+    """Huber threshold of the contour residuals, pixels."""
+    trunc_px: float = bounded(25.0, gt=0)
+    """Contour residuals longer than this (pixels) are ignored (other objects' edges, occluders)."""
+    own_edge_px: float = bounded(0.8, gt=0)
+    """A contour point is on the outline when within this (px) of its own rendered silhouette's boundary."""
+    max_depth_points: int = bounded(1500, ge=10)
+    """Back-projected depth points used by ICP."""
+    icp_max_corr: float = bounded(0.1, gt=0)
+    """Largest ICP correspondence distance as a fraction of the model diameter."""
+    icp_huber_m: float = bounded(0.005, gt=0)
+    """Huber threshold of the point-to-plane residuals, metres."""
+    damping: float = bounded(1e-2, ge=0)
+    """Levenberg-Marquardt damping, relative to the mean diagonal of the normal matrix."""
+    min_step: float = bounded(1e-6, ge=0)
+    """Stop when the update's rotation (rad) and translation / diameter both fall below this."""
+    seed: int = 0
+    """Seed of the point subsampling."""
+
+
+PRESETS: dict[str, RefineConfig] = {
+    "none": RefineConfig(method="none"),
+    "fast": RefineConfig(silhouette_iters=5, depth_iters=5, max_contour_points=200, max_depth_points=600),
+    "balanced": RefineConfig(),
+    "accurate": RefineConfig(silhouette_iters=30, depth_iters=20, max_contour_points=800, max_depth_points=4000),
+}
+
+
+@dataclass(frozen=True)
+class RefineResult:
+    """The refined pose, the iterations run per stage, the cost after each iteration and the time taken."""
+
+    T_cam_from_obj: Rigid3
+    iterations: dict[str, int] = field(default_factory=dict)
+    costs: dict[str, list[float]] = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+def apply_twist(xi: np.ndarray, T: Rigid3) -> Rigid3:
+    """``exp(xi) T`` with ``xi = (omega, v)`` (rad, m), rotation by Rodrigues, left-multiplied in the camera frame."""
+    dR = axis_angle_to_matrix(np.asarray(xi[:3], float))
+    return Rigid3(dR @ T.R, dR @ T.t + np.asarray(xi[3:], float))
+
+
+def _proj_jacobian(K: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """(N, 2, 6) Jacobian of the projection of camera points X (N, 3) wrt the twist (omega, v)."""
+    x, y, z = X[:, 0], X[:, 1], X[:, 2]
+    iz = 1.0 / z
+    du = np.zeros((len(X), 2, 3))
+    du[:, 0, 0] = K[0, 0] * iz
+    du[:, 0, 2] = -K[0, 0] * x * iz * iz
+    du[:, 1, 1] = K[1, 1] * iz
+    du[:, 1, 2] = -K[1, 1] * y * iz * iz
+    dX = np.zeros((len(X), 3, 6))
+    dX[:, 0, 1], dX[:, 0, 2] = z, -y  # -[X]_x
+    dX[:, 1, 0], dX[:, 1, 2] = -z, x
+    dX[:, 2, 0], dX[:, 2, 1] = y, -x
+    dX[:, :, 3:] = np.eye(3)
+    return du @ dX
+
+
+def _small(step: np.ndarray, cfg: RefineConfig, geom: ModelGeometry) -> bool:
+    return bool(np.linalg.norm(step[:3]) < cfg.min_step and np.linalg.norm(step[3:]) < cfg.min_step * geom.diameter_m)
+
+
+def _huber_weights(r: np.ndarray, k: float) -> np.ndarray:
+    a = np.abs(r)
+    return np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
+
+
+def _solve(J: np.ndarray, r: np.ndarray, w: np.ndarray, damping: float) -> np.ndarray | None:
+    """Weighted damped Gauss-Newton step ``argmin sum w (r + J xi)^2``; None when under-determined."""
+    if len(r) < 6:
+        return None
+    Jw = J * w[:, None]
+    H = Jw.T @ J
+    g = Jw.T @ r
+    H += damping * np.mean(np.diag(H)) * np.eye(6)
+    try:
+        return -np.linalg.solve(H, g)
+    except np.linalg.LinAlgError:
+        return None
+
+
+@dataclass(frozen=True)
+class SignedDistance:
+    """Signed distance (px) to a mask's boundary in a window: > 0 outside, < 0 inside, 0 on the boundary.
+
+    The boundary lies halfway between an inside and an outside pixel centre, hence the 0.5 px corrections.
+    Outside the image the mask is extended by replicating its border pixels, so an object cut by the
+    image border is not outlined there.
+    """
+
+    sdf: np.ndarray
+    grad: np.ndarray
+    offset: np.ndarray
+
+    @staticmethod
+    def of(mask: np.ndarray, margin: int) -> SignedDistance:
+        import cv2
+
+        m = np.asarray(mask, bool)
+        rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+        x0, x1 = cols[0] - margin, cols[-1] + 1 + margin
+        y0, y1 = rows[0] - margin, rows[-1] + 1 + margin
+        H, W = m.shape
+        sub = m[max(y0, 0):min(y1, H), max(x0, 0):min(x1, W)].astype(np.uint8)
+        sub = cv2.copyMakeBorder(sub, max(-y0, 0), max(y1 - H, 0), max(-x0, 0), max(x1 - W, 0), cv2.BORDER_REPLICATE)
+        d_out = cv2.distanceTransform(1 - sub, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        d_in = cv2.distanceTransform(sub, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        sdf = np.where(sub > 0, 0.5 - d_in, d_out - 0.5).astype(np.float64)
+        if not (sub == 0).any():  # the mask fills the window: no boundary anywhere
+            sdf = np.full(sub.shape, -float(margin))
+        gy, gx = np.gradient(sdf)
+        return SignedDistance(sdf, np.stack([gx, gy], -1), np.array([x0, y0], float))
+
+    def sample(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Bilinear (values (N,), gradients (N, 2), inside-window flags (N,)) at pixel coordinates (N, 2)."""
+        p = uv - 0.5 - self.offset  # array index space: pixel centres at integers
+        H, W = self.sdf.shape
+        ok = (p[:, 0] >= 0) & (p[:, 1] >= 0) & (p[:, 0] <= W - 1.001) & (p[:, 1] <= H - 1.001)
+        p = np.clip(p, 0, [W - 1.001, H - 1.001])
+        i0 = np.floor(p).astype(int)
+        f = p - i0
+        w = [(1 - f[:, 0]) * (1 - f[:, 1]), f[:, 0] * (1 - f[:, 1]), (1 - f[:, 0]) * f[:, 1], f[:, 0] * f[:, 1]]
+        idx = [(i0[:, 1], i0[:, 0]), (i0[:, 1], i0[:, 0] + 1), (i0[:, 1] + 1, i0[:, 0]), (i0[:, 1] + 1, i0[:, 0] + 1)]
+        val = sum(wk * self.sdf[ix] for wk, ix in zip(w, idx, strict=True))
+        grad = sum(wk[:, None] * self.grad[ix] for wk, ix in zip(w, idx, strict=True))
+        return val, grad, ok
+
+
+def _outline_points(geom: ModelGeometry, T: Rigid3, K: np.ndarray, shape: tuple[int, int], cfg: RefineConfig,
+                    rng: np.random.Generator) -> np.ndarray:
+    """Contour points (model frame) that lie on the outline of the model's own rendered silhouette."""
+    P = contour_points(geom, T, K, max_points=4 * cfg.max_contour_points, rng=rng)
+    if len(P) == 0:
+        return P
+    uv = project_points(K, T.apply(P))
+    lo = np.floor(uv.min(0)).astype(int) - 3
+    hi = np.ceil(uv.max(0)).astype(int) + 3
+    if np.any(hi - lo > 4 * max(shape)):  # absurd pose: skip the visibility filter
+        return P[: cfg.max_contour_points]
+    sil = render_silhouette(geom, T, K, (int(hi[1] - lo[1]), int(hi[0] - lo[0])), (int(lo[0]), int(lo[1])))
+    if not sil.any():
+        return P[:0]
+    own, _, ok = SignedDistance.of(sil, 2).sample(uv - lo)  # window coordinates
+    sil_ok = ok & (np.abs(own) <= cfg.own_edge_px)
+    P = P[sil_ok]
+    if len(P) > cfg.max_contour_points:
+        P = P[np.sort(rng.choice(len(P), cfg.max_contour_points, replace=False))]
+    return P
+
+
+def _contour_step(geom: ModelGeometry, T: Rigid3, K: np.ndarray, sd: SignedDistance, shape: tuple[int, int],
+                  cfg: RefineConfig, rng: np.random.Generator, damping: float) -> tuple[np.ndarray | None, float]:
+    """One damped Gauss-Newton step on the signed distances of the outline points; (step, cost before)."""
+    P = _outline_points(geom, T, K, shape, cfg, rng)
+    if len(P) < 6:
+        return None, float("nan")
+    Xc = T.apply(P)
+    uv = project_points(K, Xc)
+    r, g, ok = sd.sample(uv)
+    keep = ok & (np.abs(r) < cfg.trunc_px)
+    if keep.sum() < 6:
+        return None, float("nan")
+    J = np.einsum("nk,nkj->nj", g[keep], _proj_jacobian(K, Xc[keep]))
+    cost = float(np.mean(np.minimum(np.abs(r[ok]), cfg.trunc_px)))
+    return _solve(J, r[keep], _huber_weights(r[keep], cfg.huber_px), damping), cost
+
+
+def refine_silhouette(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, mask: np.ndarray, cfg: RefineConfig,
+                      iters: int | None = None) -> tuple[Rigid3, int, list[float]]:
+    """Align the projected CAD outline to the boundary of ``mask`` (H, W) bool; returns (pose, iters, costs).
+
+    ``costs`` are the mean truncated |signed distance| (px) of the outline points after each accepted update
+    (the first is the initial pose's).
+    """
+    n = cfg.silhouette_iters if iters is None else iters
+    if np.count_nonzero(mask) < 6 or n == 0:
+        return T_init, 0, []
+    sd = SignedDistance.of(mask, int(np.ceil(cfg.trunc_px)) + 2)
+    rng = np.random.default_rng(cfg.seed)
+    K = np.asarray(K, float)
+    # Levenberg-Marquardt: a step is kept only if the chamfer cost (re-measured with fresh
+    # correspondences) does not grow; depth along the ray is weakly observed for small silhouettes and
+    # plain Gauss-Newton drifts along it at equal cost.
+    T, costs, done, lam = T_init, [], 0, cfg.damping
+    step, cost = _contour_step(geom, T, K, sd, mask.shape, cfg, rng, lam)
+    for _ in range(n):
+        if step is None:
+            break
+        T_new = apply_twist(step, T)
+        step_new, cost_new = _contour_step(geom, T_new, K, sd, mask.shape, cfg, rng, lam)
+        done += 1
+        if step_new is not None and cost_new <= cost:
+            costs.append(cost)
+            small = _small(step, cfg, geom)
+            T, step, cost, lam = T_new, step_new, cost_new, max(lam / 3.0, 1e-9)
+            if small:
+                break
+        else:
+            lam *= 10.0
+            if lam > 1e3:
+                break
+            step, cost = _contour_step(geom, T, K, sd, mask.shape, cfg, rng, lam)
+    costs.append(cost)
+    return T, done, costs
+
+
+def masked_depth_points(depth_m: np.ndarray, mask: np.ndarray, K: np.ndarray, max_points: int,
+                        rng: np.random.Generator) -> np.ndarray:
+    """(N, 3) camera points of valid depth inside the mask eroded by one pixel (mixed edge depths dropped)."""
+    inner = binary_erosion(np.asarray(mask, bool), iterations=1, border_value=0)
+    r, c = np.nonzero(inner & np.isfinite(depth_m) & (depth_m > 0))
+    if len(r) > max_points:
+        pick = np.sort(rng.choice(len(r), max_points, replace=False))
+        r, c = r[pick], c[pick]
+    z = depth_m[r, c].astype(np.float64)
+    x = (c + 0.5 - K[0, 2]) / K[0, 0] * z
+    y = (r + 0.5 - K[1, 2]) / K[1, 1] * z
+    return np.stack([x, y, z], axis=1)
+
+
+def refine_depth_icp(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, depth_m: np.ndarray, mask: np.ndarray,
+                     cfg: RefineConfig, iters: int | None = None) -> tuple[Rigid3, int, list[float]]:
+    """Point-to-plane ICP of the CAD to the masked depth; returns (pose, iterations run, mean |residual| m)."""
+    rng = np.random.default_rng(cfg.seed)
+    Q = masked_depth_points(depth_m, mask, np.asarray(K, float), cfg.max_depth_points, rng)
+    n = cfg.depth_iters if iters is None else iters
+    if len(Q) < 6 or n == 0:
+        return T_init, 0, []
+    max_d = cfg.icp_max_corr * geom.diameter_m
+    T, costs, done = T_init, [], 0
+    for _ in range(n):
+        q_obj = T.inverse().apply(Q)
+        dist, j = geom.tree.query(q_obj, distance_upper_bound=max_d)
+        ok = np.isfinite(dist)
+        if ok.sum() < 6:
+            break
+        p_c = T.apply(geom.samples[j[ok]])
+        n_c = geom.sample_normals[j[ok]] @ T.R.T
+        facing = np.einsum("ij,ij->i", n_c, p_c) < 0  # back-facing samples cannot be seen
+        p_c, n_c, q = p_c[facing], n_c[facing], Q[ok][facing]
+        if len(q) < 6:
+            break
+        r = np.einsum("ij,ij->i", n_c, p_c - q)
+        J = np.concatenate([np.cross(p_c, n_c), n_c], axis=1)
+        costs.append(float(np.mean(np.abs(r))))
+        step = _solve(J, r, _huber_weights(r, cfg.icp_huber_m), cfg.damping)
+        if step is None:
+            break
+        T = apply_twist(step, T)
+        done += 1
+        if _small(step, cfg, geom):
+            break
+    return T, done, costs
+
+
+def refine(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, mask: np.ndarray, cfg: RefineConfig,
+           depth_m: np.ndarray | None = None) -> RefineResult:
+    """Run the configured refinements in order (silhouette, then depth ICP when ``depth_m`` is given)."""
+    t0 = time.perf_counter()
+    T, iters, costs = T_init, {}, {}
+    if cfg.method in ("silhouette", "both"):
+        T, iters["silhouette"], costs["silhouette"] = refine_silhouette(geom, T, K, mask, cfg)
+    if cfg.method in ("depth", "both") and depth_m is not None:
+        T, iters["depth"], costs["depth"] = refine_depth_icp(geom, T, K, depth_m, mask, cfg)
+    return RefineResult(T, iters, costs, time.perf_counter() - t0)
+
+
+def silhouette_iou(geom: ModelGeometry, T: Rigid3, K: np.ndarray, mask: np.ndarray) -> float:
+    """IoU of the model's rendered silhouette at ``T`` with ``mask`` (H, W) (used to pick among candidates)."""
+    sil = render_silhouette(geom, T, np.asarray(K, float), mask.shape)
+    union = np.count_nonzero(sil | mask)
+    return float(np.count_nonzero(sil & mask) / union) if union else 0.0
