@@ -1,0 +1,106 @@
+"""Pictures of emulated sensors: a LiDAR scan coloured by class, a sonar fan, class images (PNG)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from cadalign.emulate.lidar import LidarScan
+from cadalign.emulate.sonar import SonarImage, fan_image, to_uint8
+from cadalign.io import atomic_path
+
+PALETTE = np.array([
+    [90, 90, 90], [230, 159, 0], [86, 180, 233], [0, 158, 115], [240, 228, 66], [0, 114, 178],
+    [213, 94, 0], [204, 121, 167], [255, 255, 255], [120, 60, 160],
+], dtype=np.uint8)
+"""Class colours (index = class id modulo the palette; class 0, background, is grey)."""
+
+
+def class_colours(class_id: np.ndarray) -> np.ndarray:
+    """(..., 3) uint8 colours of class ids; negative ids (no return) are black."""
+    c = np.asarray(class_id)
+    out = PALETTE[np.mod(c, len(PALETTE))]
+    out[c < 0] = 0
+    return out
+
+
+def _class_name(names: tuple[str, ...], c: int) -> str:
+    return names[c] if 0 <= c < len(names) else f"class {c}"
+
+
+def _save(fig, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    with atomic_path(Path(path)) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return Path(path)
+
+
+def lidar_figure(scan: LidarScan, path: Path, class_names: tuple[str, ...] = (), title: str = "") -> Path:
+    """Bird's-eye view and, for spinning scans, the ring x azimuth image, both coloured by class."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    spinning = bool(len(scan.ring)) and scan.ring.min() >= 0
+    fig, axes = plt.subplots(1, 2 if spinning else 1, figsize=(14 if spinning else 7, 6), squeeze=False)
+    ax = axes[0, 0]
+    cols = class_colours(scan.class_id) / 255.0
+    order = np.argsort(scan.xyz_world[:, 2])  # draw high points last (on top)
+    ax.scatter(scan.xyz_world[order, 0], scan.xyz_world[order, 1], c=cols[order], s=0.3, linewidths=0)
+    ax.set_aspect("equal")
+    ax.set_facecolor("black")
+    ax.set_xlabel("world x (m)")
+    ax.set_ylabel("world y (m)")
+    ax.set_title(f"{title} LiDAR returns by class (top view), {len(scan.range_m)} / {scan.n_rays} rays")
+    for c in np.unique(scan.class_id):
+        ax.scatter([], [], color=PALETTE[c % len(PALETTE)] / 255.0, label=_class_name(class_names, int(c)), s=20)
+    ax.legend(loc="upper right", fontsize=8)
+    if spinning:
+        n_ring = int(scan.ring.max()) + 1
+        n_az = max(1, int(round(2 * np.pi / _az_step(scan.azimuth_rad))))
+        img = np.zeros((n_ring, n_az, 3), np.uint8)
+        col = np.mod(np.rint(scan.azimuth_rad / (2 * np.pi) * n_az).astype(np.int64), n_az)
+        img[n_ring - 1 - scan.ring, col] = class_colours(scan.class_id)
+        axes[0, 1].imshow(img, aspect="auto", interpolation="nearest", extent=(0, 360, 0, n_ring))
+        axes[0, 1].set_xlabel("azimuth (deg)")
+        axes[0, 1].set_ylabel("ring (low to high)")
+        axes[0, 1].set_title("range image: class per beam (black = no return)")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def _az_step(az: np.ndarray) -> float:
+    u = np.unique(np.round(np.mod(az, 2 * np.pi), 9))
+    return float(np.min(np.diff(u))) if len(u) > 1 else 2 * np.pi
+
+
+def sonar_figure(img: SonarImage, path: Path, dynamic_range_db: float, class_names: tuple[str, ...] = (),
+                 title: str = "") -> Path:
+    """The sonar fan (log intensity) beside the class of the strongest return per cell."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    r_max = float(img.ranges_m[-1])
+    half = float(np.max(np.abs(img.bearings_rad)))
+    half_w = r_max * np.sin(min(half, np.pi / 2))
+    extent = (-half_w, half_w, 0, r_max)
+    fig, axes = plt.subplots(1, 2, figsize=(14, 6))
+    axes[0].imshow(fan_image(to_uint8(img.intensity, dynamic_range_db), img), cmap="copper", extent=extent)
+    axes[0].set_title(f"{title} multibeam sonar intensity ({dynamic_range_db:.0f} dB)")
+    axes[1].imshow(fan_image(class_colours(img.class_id), img), extent=extent)
+    axes[1].set_title("class of the strongest return per cell")
+    for c in np.unique(img.class_id[img.class_id >= 0]):
+        axes[1].scatter([], [], color=PALETTE[c % len(PALETTE)] / 255.0, label=_class_name(class_names, int(c)))
+    if (img.class_id >= 0).any():
+        axes[1].legend(loc="upper right", fontsize=8)
+    for ax in axes:
+        ax.set_xlabel("across (m, + = starboard/right)")
+        ax.set_ylabel("forward range (m)")
+    fig.tight_layout()
+    return _save(fig, path)

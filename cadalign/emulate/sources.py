@@ -1,0 +1,202 @@
+"""Load a SOURCE to emulate sensors in: a CAD scene, a mesh PLY with layers, or one image + depth.
+
+- a scene spec (``.toml``/``.yaml``): every object's CAD mesh posed in the world, class from the spec, part
+  id = instance id (object ``k`` -> ``k + 1``, seabed 0), colour = the main colour of its material;
+- a mesh ``.ply``: e.g. a fused map or a layered mesh written by ``cadalign emulate mesh``; per-vertex
+  ``red/green/blue`` and per-vertex or per-face ``class``/``class_id``/``label``, ``part``/``part_id``/
+  ``instance`` and ``pane``/``pane_id`` properties are used when present;
+- one image: an RGB frame of a BOP scene folder (``.../rgb/000000.png``; depth, class and instance maps and
+  K are read beside it) or an ``.npz`` with ``rgb``, ``depth_m``, ``K`` and optional ``class_id``,
+  ``part_id``, ``pane_mask`` -> a layered mesh (:mod:`cadalign.emulate.layered_mesh`) in the camera frame.
+
+PLY writing for :class:`LayeredMesh` lives here too, so written meshes load back unchanged.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cadalign.emulate.mesh import LayeredMesh, concatenate
+from cadalign.errors import InputError
+from cadalign.io import atomic_path
+
+log = logging.getLogger(__name__)
+SCENE_SUFFIXES = (".toml", ".yaml", ".yml")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".npz")
+_CLASS_KEYS = ("class", "class_id", "label")
+_PART_KEYS = ("part", "part_id", "instance")
+_PANE_KEYS = ("pane", "pane_id")
+
+
+@dataclass(frozen=True)
+class ImageInput:
+    """One RGB-D frame to lift into a layered mesh.
+
+    Attributes:
+        rgb: (H, W, 3) uint8.
+        depth_m: (H, W) z-depth in metres (<= 0 / non-finite = invalid).
+        K: (3, 3) intrinsics (pixel centres at integer + 0.5).
+        class_id: optional (H, W) class per pixel.
+        part_id: optional (H, W) part / instance id per pixel.
+        pane_mask: optional (H, W) bool mask of planar panes (windows, glass, flat panels).
+        T_world_from_cam: optional (4, 4) pose of the camera; the mesh stays in the camera frame when None.
+        class_names: names of the class ids.
+    """
+
+    rgb: np.ndarray
+    depth_m: np.ndarray
+    K: np.ndarray
+    class_id: np.ndarray | None = None
+    part_id: np.ndarray | None = None
+    pane_mask: np.ndarray | None = None
+    T_world_from_cam: np.ndarray | None = None
+    class_names: tuple[str, ...] = ()
+
+
+def scene_mesh(path: Path) -> LayeredMesh:
+    """The CAD scene of a scene spec as one layered mesh in the world frame."""
+    from cadalign.sim.scene import build_scene
+    from cadalign.sim.spec import load_scene
+    from cadalign.sim.textures import BASE_COLOURS
+
+    spec = load_scene(Path(path))
+    scene = build_scene(spec, Path(path), width=8, height=8)
+
+    def part(vertices: np.ndarray, faces: np.ndarray, texture: str, class_id: int, part_id: int) -> LayeredMesh:
+        n = len(faces)
+        rgb = np.rint(np.asarray(BASE_COLOURS[texture][0]) * 255).astype(np.uint8)
+        return LayeredMesh(vertices, faces, np.tile(rgb, (n, 1)), np.full(n, class_id), np.full(n, part_id),
+                           np.zeros(n), class_names=spec.classes)
+
+    meshes = [part(o.T_world_from_obj.apply(o.mesh.vertices), o.mesh.faces, o.texture, o.class_id, k + 1)
+              for k, o in enumerate(scene.objects)]
+    if scene.seabed is not None:
+        meshes.append(part(scene.seabed.vertices, scene.seabed.faces, spec.seabed.texture, 0, 0))
+    return concatenate(meshes)
+
+
+def _field(data: np.ndarray | None, keys: tuple[str, ...]) -> np.ndarray | None:
+    if data is None or data.dtype.names is None:
+        return None
+    for k in keys:
+        if k in data.dtype.names:
+            return np.asarray(data[k])
+    return None
+
+
+def _face_layer(vdata, fdata, faces: np.ndarray, keys: tuple[str, ...]) -> np.ndarray:
+    """A per-face layer from face properties, else from vertex properties (the first corner's), else 0."""
+    f = _field(fdata, keys)
+    if f is not None:
+        return f.astype(np.int32)
+    v = _field(vdata, keys)
+    return np.zeros(len(faces), np.int32) if v is None else v.astype(np.int32)[faces[:, 0]]
+
+
+def ply_mesh(path: Path) -> LayeredMesh:
+    """A mesh PLY with optional colour / class / part / pane properties per vertex or face."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"mesh not found: {path}")
+    try:
+        m = trimesh.load(path, process=False, force="mesh")
+    except Exception as exc:  # trimesh raises many types for corrupt files
+        raise InputError(f"could not read mesh {path}: {exc}") from exc
+    if len(m.faces) == 0:
+        raise InputError(f"{path} has no faces; emulation needs a triangle mesh (not a point cloud)")
+    raw = m.metadata.get("_ply_raw", {})
+    vdata, fdata = raw.get("vertex", {}).get("data"), raw.get("face", {}).get("data")
+    faces = np.asarray(m.faces, dtype=np.int64)
+    vrgb = None
+    if vdata is not None and all(c in (vdata.dtype.names or ()) for c in ("red", "green", "blue")):
+        vrgb = np.stack([vdata[c] for c in ("red", "green", "blue")], 1).astype(np.uint8)
+    if fdata is not None and all(c in (fdata.dtype.names or ()) for c in ("red", "green", "blue")):
+        frgb = np.stack([fdata[c] for c in ("red", "green", "blue")], 1).astype(np.uint8)
+    elif vrgb is not None:
+        frgb = np.rint(vrgb[faces].astype(np.float64).mean(1)).astype(np.uint8)
+    else:
+        frgb = np.full((len(faces), 3), 180, np.uint8)
+    return LayeredMesh(np.asarray(m.vertices), faces, frgb, _face_layer(vdata, fdata, faces, _CLASS_KEYS),
+                       _face_layer(vdata, fdata, faces, _PART_KEYS), _face_layer(vdata, fdata, faces, _PANE_KEYS),
+                       vrgb)
+
+
+def write_ply(mesh: LayeredMesh, path: Path) -> Path:
+    """Binary PLY (float64 vertices, optional vertex colour, per-face colour/class/part/pane), atomically."""
+    vt = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    if mesh.vertex_rgb is not None:
+        vt += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    vd = np.zeros(len(mesh.vertices_m), dtype=vt)
+    vd["x"], vd["y"], vd["z"] = mesh.vertices_m.T
+    if mesh.vertex_rgb is not None:
+        vd["red"], vd["green"], vd["blue"] = mesh.vertex_rgb.T
+    ft = [("n", "u1"), ("vi", "<i4", (3,)), ("red", "u1"), ("green", "u1"), ("blue", "u1"),
+          ("class_id", "<i4"), ("part_id", "<i4"), ("pane_id", "<i4")]
+    fd = np.zeros(mesh.n_faces, dtype=ft)
+    fd["n"], fd["vi"] = 3, mesh.faces
+    fd["red"], fd["green"], fd["blue"] = mesh.face_rgb.T
+    fd["class_id"], fd["part_id"], fd["pane_id"] = mesh.class_id, mesh.part_id, mesh.pane_id
+    vprops = "".join(f"property {'double' if t == '<f8' else 'uchar'} {n}\n" for n, t in vt)
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment cadalign layered mesh (metres)\n"
+        + "".join(f"comment class {i} {n}\n" for i, n in enumerate(mesh.class_names))
+        + f"element vertex {len(vd)}\n{vprops}element face {len(fd)}\nproperty list uchar int vertex_indices\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\nproperty int class_id\n"
+        "property int part_id\nproperty int pane_id\nend_header\n"
+    )
+    with atomic_path(Path(path)) as tmp:
+        tmp.write_bytes(header.encode("ascii") + vd.tobytes() + fd.tobytes())
+    return Path(path)
+
+
+def read_image_input(path: Path) -> ImageInput:
+    """An RGB-D frame from an ``.npz`` or from an RGB image inside a BOP scene folder (``rgb/NNNNNN.png``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"image source not found: {path}")
+    if path.suffix.lower() == ".npz":
+        with np.load(path) as z:
+            missing = [k for k in ("rgb", "depth_m", "K") if k not in z.files]
+            if missing:
+                raise InputError(f"{path} lacks {missing}; an image source .npz needs rgb, depth_m and K")
+            opt = {k: z[k] for k in ("class_id", "part_id", "pane_mask", "T_world_from_cam") if k in z.files}
+            return ImageInput(z["rgb"], z["depth_m"], z["K"], **opt)
+    from cadalign.data.bop import BopScene
+    from cadalign.io import read_image
+
+    scene_dir = path.parent.parent
+    if path.parent.name != "rgb" or not (scene_dir / "scene_camera.json").is_file():
+        raise InputError(f"{path}: an image source must be an RGB frame of a BOP scene folder "
+                         "(SCENE/rgb/NNNNNN.png with depth/ and scene_camera.json beside it) or an .npz")
+    bop = BopScene(scene_dir)
+    im_id = int(path.stem)
+    frame = bop.frame(im_id)
+    extra = {}
+    for key, folder in (("class_id", "class"), ("part_id", "instance")):
+        p = scene_dir / folder / path.name
+        if p.is_file():
+            extra[key] = read_image(p, unchanged=True).astype(np.int32)
+    T = None if frame.T_cam_from_world is None else frame.T_cam_from_world.inverse().matrix()
+    return ImageInput(bop.rgb(im_id), bop.depth_m(im_id), frame.camera.K, T_world_from_cam=T, **extra)
+
+
+def load_source(path: Path, *, image_config: object | None = None) -> LayeredMesh:
+    """The layered mesh of any SOURCE (see the module docstring); world frame when a pose is known."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix in SCENE_SUFFIXES:
+        return scene_mesh(path)
+    if suffix == ".ply":
+        return ply_mesh(path)
+    if suffix in IMAGE_SUFFIXES:
+        from cadalign.emulate.layered_mesh import PRESETS, mesh_from_image
+
+        return mesh_from_image(read_image_input(path), image_config or PRESETS["default"])
+    raise InputError(f"unsupported SOURCE {path}: use a scene spec ({', '.join(SCENE_SUFFIXES)}), a mesh .ply, "
+                     f"or an image ({', '.join(IMAGE_SUFFIXES)})")
