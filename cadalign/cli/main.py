@@ -5,7 +5,7 @@ from __future__ import annotations
 import typer
 
 from cadalign import __version__
-from cadalign.cli import align, bench, build_dataset, common, demo, pending, sfm, sim
+from cadalign.cli import align, bench, build_dataset, common, demo, emulate, pending, sfm, sim
 
 app = typer.Typer(
     name="cadalign",
@@ -38,7 +38,8 @@ app.command("align")(align.command)
 app.command("build-dataset")(build_dataset.command)
 app.command("demo")(demo.command)
 app.add_typer(bench.app, name="bench")
-pending.register(app, skip={"sim", "sfm", "align", "build-dataset", "demo", "bench"})
+app.add_typer(emulate.app, name="emulate")
+pending.register(app, skip={"sim", "sfm", "align", "build-dataset", "demo", "bench", "emulate"})
 
 
 def main() -> None:
