@@ -1,0 +1,90 @@
+"""``cadalign train seg|depth DS --out RUN``: train the dense networks (the pose engineer adds ``pose``)."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from cadalign.cli.common import console, user_errors
+
+app = typer.Typer(help="Train the segmentation, depth or detection+pose networks.", no_args_is_help=True)
+
+DS_HELP = "Dataset root with splits.json (trains on its train ids) or a BOP scene folder (e.g. gt/sim/000000)."
+
+
+def overrides(steps: int | None, seed: int | None) -> dict[str, Any]:
+    """Command-line overrides of the loop settings."""
+    loop = {k: v for k, v in (("steps", steps), ("seed", seed)) if v is not None}
+    return {"loop": loop} if loop else {}
+
+
+@contextlib.contextmanager
+def progress_bar(description: str) -> Iterator[Callable[[int, int, dict[str, float]], None]]:
+    """A rich progress bar fed by the training loop's ``progress(step, total, metrics)`` callback."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  TextColumn("{task.fields[info]}"), console=console) as bar:
+        task = bar.add_task(description, total=None, info="")
+
+        def update(step: int, total: int, metrics: dict[str, float]) -> None:
+            info = " ".join(f"{k} {v:.4g}" for k, v in list(metrics.items())[:3])
+            bar.update(task, completed=step, total=total, info=info)
+
+        yield update
+
+
+def _report(result: Any, out: Path) -> None:
+    state = "interrupted (continue with --resume)" if result.interrupted else "done"
+    console.print(f"[green]{state}: {result.steps_done} steps, last loss {result.final_loss:.4g}, "
+                  f"{result.seconds:.0f} s -> {out}[/]")
+
+
+@app.command("seg")
+def seg(
+    ds: Path = typer.Argument(..., help=DS_HELP),
+    out: Path = typer.Option(..., "--out", help="Run folder: checkpoints/, metrics.json, loss.png, train_config.json."),
+    preset: str = typer.Option("fast", "--preset", help="fast | balanced | accurate."),
+    config: Path | None = typer.Option(None, "--config", help="TOML/YAML overrides of the preset (see training/)."),
+    resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoints/last.pt."),
+    steps: int | None = typer.Option(None, "--steps", min=1, help="Override the preset's optimiser steps."),
+    seed: int | None = typer.Option(None, "--seed", help="Override the seed."),
+    split: str = typer.Option("train", "--split", help="Frames to train on: train | val | test | all."),
+    device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
+) -> None:
+    """Train the ResUNet segmentation network (classes from the dataset's objects.json)."""
+    from cadalign.config import resolve
+    from cadalign.train.seg import PRESETS, SegTrainConfig, train_seg
+
+    with user_errors():
+        cfg = resolve(SegTrainConfig, PRESETS, preset, config, overrides(steps, seed))
+        with progress_bar("train seg") as progress:
+            result = train_seg(cfg, ds, out, split=split, resume=resume, device=device, progress=progress)
+    _report(result, out)
+
+
+@app.command("depth")
+def depth(
+    ds: Path = typer.Argument(..., help=DS_HELP),
+    out: Path = typer.Option(..., "--out", help="Run folder: checkpoints/, metrics.json, loss.png, train_config.json."),
+    preset: str = typer.Option("fast", "--preset", help="fast | balanced | accurate."),
+    config: Path | None = typer.Option(None, "--config", help="TOML/YAML overrides of the preset (see training/)."),
+    resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoints/last.pt."),
+    steps: int | None = typer.Option(None, "--steps", min=1, help="Override the preset's optimiser steps."),
+    seed: int | None = typer.Option(None, "--seed", help="Override the seed."),
+    split: str = typer.Option("train", "--split", help="Frames to train on: train | val | test | all."),
+    device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
+) -> None:
+    """Train the DispNet-style metric depth network (masked loss on valid depth pixels)."""
+    from cadalign.config import resolve
+    from cadalign.train.depth import PRESETS, DepthTrainConfig, train_depth
+
+    with user_errors():
+        cfg = resolve(DepthTrainConfig, PRESETS, preset, config, overrides(steps, seed))
+        with progress_bar("train depth") as progress:
+            result = train_depth(cfg, ds, out, split=split, resume=resume, device=device, progress=progress)
+    _report(result, out)

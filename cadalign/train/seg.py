@@ -1,0 +1,146 @@
+"""Semantic segmentation training (ResUNet): config, presets, loss step and ``train_seg``.
+
+The class list comes from the dataset (``objects.json``), never from the code. The loss is cross-entropy,
+optionally with median-frequency class weights (clipped at ``max_class_weight``) and a soft-Dice term, which
+keeps small classes such as hot stabs from being ignored.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import nn
+
+from cadalign.config import bounded, to_dict
+from cadalign.models.resunet import ResUNet, ResUNetConfig
+from cadalign.train.augment import AugmentConfig, augment_dense
+from cadalign.train.common import write_run_record
+from cadalign.train.data import ScaledDataset, class_pixel_counts, select
+from cadalign.train.loop import LoopConfig, TrainResult, train_loop
+from cadalign.train.losses import cross_entropy, median_frequency_weights, soft_dice
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SegTrainConfig:
+    model: ResUNetConfig = ResUNetConfig()
+    """Network width and depth."""
+    loop: LoopConfig = LoopConfig()
+    """Optimisation: steps, batch size, learning rate, checkpoints, seed."""
+    augment: AugmentConfig = AugmentConfig()
+    """Colour/turbidity jitter, flips, crops."""
+    scale: float = bounded(0.5, gt=0, le=1)
+    """Image scale the network sees (0.5: 640x480 frames become 320x240); predictions are upsampled back."""
+    class_weighting: Literal["none", "median_frequency"] = "median_frequency"
+    """Cross-entropy class weights."""
+    max_class_weight: float = bounded(10.0, ge=1)
+    """Clip of the median-frequency weights (a class seen in a few pixels must not dominate)."""
+    dice_weight: float = bounded(0.5, ge=0)
+    """Weight of the soft-Dice term added to the cross-entropy (0 = off)."""
+    val_every: int = bounded(0, ge=0)
+    """Steps between validation mIoU rows (0: only at the end); needs a non-empty val split."""
+
+
+PRESETS: dict[str, SegTrainConfig] = {
+    "fast": SegTrainConfig(model=ResUNetConfig(base_channels=12), scale=0.5,
+                           loop=LoopConfig(steps=600, batch_size=4, lr=3e-3, checkpoint_every=100, log_every=10)),
+    "balanced": SegTrainConfig(model=ResUNetConfig(base_channels=32), scale=0.5,
+                               loop=LoopConfig(steps=3000, batch_size=8, lr=2e-3, checkpoint_every=250, log_every=25)),
+    "accurate": SegTrainConfig(model=ResUNetConfig(base_channels=48), scale=1.0, val_every=1000,
+                               loop=LoopConfig(steps=10000, batch_size=8, lr=1e-3, checkpoint_every=500,
+                                               log_every=50)),
+}
+
+
+def class_weights(ds: ScaledDataset, n_classes: int, cfg: SegTrainConfig) -> np.ndarray | None:
+    """The cross-entropy class weights of ``cfg`` over the (scaled) training labels, or None."""
+    if cfg.class_weighting == "none":
+        return None
+    counts, image_counts = class_pixel_counts(ds, n_classes)
+    w = np.minimum(median_frequency_weights(counts, image_counts), cfg.max_class_weight)
+    return np.where(counts > 0, np.maximum(w, 1.0 / cfg.max_class_weight), 0.0)
+
+
+def seg_step(weight: torch.Tensor | None, dice_weight: float) -> Callable:
+    """The loop's step function: ``(model, batch) -> (CE [+ dice_weight * Dice], {"ce", "dice", "acc"})``."""
+
+    def step(model: nn.Module, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
+        logits = model(batch["image"])
+        w = weight.to(logits.device) if weight is not None else None
+        ce = cross_entropy(logits, batch["label"], w)
+        metrics = {"ce": float(ce.detach())}
+        loss = ce
+        if dice_weight > 0:
+            dice = soft_dice(logits, batch["label"])
+            loss = ce + dice_weight * dice
+            metrics["dice"] = float(dice.detach())
+        metrics["acc"] = float((logits.detach().argmax(1) == batch["label"]).float().mean())
+        return loss, metrics
+
+    return step
+
+
+def val_miou(ds: ScaledDataset, classes: tuple[str, ...], device: str, batch: int = 4) -> Callable:
+    """A ``val_fn`` for the loop: mIoU, foreground mIoU and per-class IoU on ``ds`` at the training scale."""
+
+    n = len(classes)
+
+    def fn(model: nn.Module) -> dict[str, float]:
+        cm = np.zeros(n * n, dtype=np.int64)  # the full metrics live in cadalign.eval; IoU is all we log here
+        for i in range(0, len(ds), batch):
+            items = [ds[j] for j in range(i, min(i + batch, len(ds)))]
+            pred = model(torch.stack([it["image"] for it in items]).to(device)).argmax(1).cpu()
+            lab = torch.stack([it["label"] for it in items])
+            keep = lab < n
+            cm += np.bincount((lab[keep] * n + pred[keep]).numpy(), minlength=n * n)
+        cm = cm.reshape(n, n)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            iou = np.diag(cm) / (cm.sum(0) + cm.sum(1) - np.diag(cm))
+        out = {"miou": float(np.nanmean(iou)), "miou_fg": float(np.nanmean(iou[1:]))}
+        out.update({f"iou_{c}": float(v) for c, v in zip(classes, iou, strict=True)})
+        return out
+
+    return fn
+
+
+def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train", val_split: str | None = "val",
+              resume: bool = False, device: str = "cpu",
+              progress: Callable[[int, int, dict[str, float]], None] | None = None) -> TrainResult:
+    """Train a ResUNet on the ``split`` frames of ``ds`` into the run folder ``out`` (see cadalign.train.loop).
+
+    ``out/train_config.json`` records the resolved config, class list, class weights and data selection; the
+    checkpoint carries the class list and model config, and resuming with other ones is refused.
+    """
+    from cadalign.data.torch_datasets import SegmentationDataset
+
+    sel = select(ds, split)
+    base = SegmentationDataset(sel.scene_dir, sel.ids)
+    classes = base.classes.names
+    data = ScaledDataset(base, cfg.scale)
+    weights = class_weights(data, len(classes), cfg)
+    torch.manual_seed(cfg.loop.seed)
+    model = ResUNet(len(classes), cfg.model)
+    identity = {"task": "seg", "classes": list(classes), "model": to_dict(cfg.model), "scale": cfg.scale}
+    write_run_record(out, "seg", cfg, {**identity, "class_weights": None if weights is None else weights.tolist(),
+                                       "dataset": {"scene": str(sel.scene_dir), "split": split,
+                                                   "ids": list(sel.ids), "source": sel.source}}, resume=resume)
+    log.info("seg: %d %s frames of %s, classes %s, weights %s", len(sel.ids), split, sel.scene_dir, classes,
+             None if weights is None else np.round(weights, 2).tolist())
+    val_fn = None
+    if val_split:
+        try:
+            vsel = select(ds, val_split)
+            val_fn = val_miou(ScaledDataset(SegmentationDataset(vsel.scene_dir, vsel.ids), cfg.scale), classes, device)
+        except Exception as exc:  # no val frames: train without validation rows
+            log.info("no validation (%s)", exc)
+    w = None if weights is None else torch.tensor(weights, dtype=torch.float32)
+    return train_loop(model, seg_step(w, cfg.dice_weight), data, cfg.loop, out,
+                      augment=(lambda b, g: augment_dense(b, g, cfg.augment)), val_fn=val_fn,
+                      val_every=cfg.val_every, resume=resume, device=device, progress=progress, extra_state=identity)
