@@ -1,0 +1,246 @@
+"""Training the Mask R-CNN + pose network on a BOP dataset (``cadalign train pose``).
+
+``run(cfg, dataset, out_dir)`` trains with the shared loop (:mod:`cadalign.train.loop`) and then scores
+the held-out frames (``eval_test.json``: detection precision/recall/F1 at IoU 0.5, mask IoU, translation and
+rotation errors of the matched detections, per class). The dataset is a ``cadalign build-dataset`` folder
+(``all/000000``, ``models/``, ``splits.json``) or one BOP scene folder (e.g. the simulator's
+``gt/sim/000000``, models in ``../../models``, split by time blocks here).
+
+Images, masks, boxes and K are resized to the network input once per frame and cached in memory (a build
+dataset is at most a few hundred frames). No flips: mirroring changes the handedness of the pose.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import shutil
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torch.utils.data import Dataset
+
+from cadalign.cad.symmetry import Symmetry
+from cadalign.config import bounded, to_dict
+from cadalign.data.bop import mask_bbox
+from cadalign.data.splits import time_block_splits
+from cadalign.data.torch_datasets import DetectionPoseDataset, detection_collate
+from cadalign.errors import InputError
+from cadalign.io import prepare_stage_dir, read_json, write_json
+from cadalign.models.maskrcnn.detector import MODEL_KIND, MaskRCNNConfig, MaskRCNNPose
+from cadalign.train.augment import AugmentConfig, colour_jitter
+from cadalign.train.loop import LoopConfig, TrainResult, train_loop
+from cadalign.train.pose_losses import ObjectGeometry, PoseLoss, PoseLossConfig
+
+log = logging.getLogger(__name__)
+
+MM_TO_M = 1e-3
+
+
+@dataclass(frozen=True)
+class PoseTrainConfig:
+    model: MaskRCNNConfig = field(default_factory=MaskRCNNConfig)
+    """The network (backbone, heads, input size, pose parameterisation)."""
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    """Optimiser steps, batch size, learning rate, checkpoints."""
+    loss: PoseLossConfig = field(default_factory=PoseLossConfig)
+    """Pose-loss weights and symmetry sampling."""
+    augment: AugmentConfig = field(default_factory=lambda: AugmentConfig(hflip=0.0, turbidity=0.0, crop_prob=0.0))
+    """Colour jitter only (flips and crops are not used for poses)."""
+    model_points: int = bounded(500, ge=8)
+    """CAD surface points per object for the point-matching loss."""
+    eval_score_thresh: float = bounded(0.5, ge=0, le=1)
+    """Score threshold of the held-out evaluation."""
+
+
+_FAST_MODEL = MaskRCNNConfig(
+    depth=18, width=32, fpn_channels=64, input_hw=(240, 320), anchor_sizes=(16.0, 32.0, 64.0, 128.0, 256.0),
+    rpn_pre_nms_train=1000, rpn_post_nms_train=500, rpn_pre_nms_test=500, rpn_post_nms_test=200,
+    roi_batch_per_image=128, box_rep=256, mask_channels=64, pose_channels=64, pose_rep=256,
+)
+PRESETS: dict[str, PoseTrainConfig] = {
+    "fast": PoseTrainConfig(model=_FAST_MODEL, loop=LoopConfig(steps=1500, batch_size=2, lr=1e-3, log_every=10,
+                                                               checkpoint_every=100)),
+    "balanced": PoseTrainConfig(
+        model=dataclasses.replace(_FAST_MODEL, depth=34, width=64, fpn_channels=128, input_hw=(480, 640),
+                                  anchor_sizes=(32.0, 64.0, 128.0, 256.0, 512.0), roi_batch_per_image=256,
+                                  box_rep=512, mask_channels=128, pose_channels=128, pose_rep=512),
+        loop=LoopConfig(steps=6000, batch_size=2, lr=5e-4, checkpoint_every=250)),
+    "accurate": PoseTrainConfig(model=MaskRCNNConfig(depth=50), loop=LoopConfig(steps=20000, batch_size=4, lr=5e-4,
+                                                                                checkpoint_every=500)),
+}
+
+
+@dataclass(frozen=True)
+class PoseDataset:
+    """Where a dataset's parts are: the BOP scene, the models folder and the frame ids per split."""
+
+    scene_dir: Path
+    models_dir: Path
+    splits: dict[str, list[int]]
+
+
+def locate_dataset(path: Path) -> PoseDataset:
+    """Resolve a build-dataset folder or a BOP scene folder (see the module docstring)."""
+    path = Path(path)
+    if (path / "all" / "000000" / "scene_gt.json").is_file():
+        scene, models = path / "all" / "000000", path / "models"
+        splits = read_json(path / "splits.json") if (path / "splits.json").is_file() else None
+    elif (path / "scene_gt.json").is_file():
+        scene, models, splits = path, path.parent.parent / "models", None
+    else:
+        raise InputError(f"{path} is neither a dataset folder (all/000000/, models/, splits.json) nor a BOP scene "
+                         "(scene_gt.json); pass the 'dataset' folder of 'cadalign build-dataset' or a BOP scene")
+    if not (models / "models_info.json").is_file():
+        raise InputError(f"{models}/models_info.json is missing: the dataset has no CAD models for the pose loss")
+    if splits is None:
+        from cadalign.data.bop import BopScene
+
+        splits = time_block_splits(BopScene(scene).ids, (0.8, 0.0, 0.2), block=8, gap=1)
+    return PoseDataset(scene, models, {k: [int(i) for i in v] for k, v in splits.items()})
+
+
+def symmetry_from_bop(entry: dict) -> Symmetry:
+    """A :class:`Symmetry` (metres) from a BOP ``models_info.json`` entry (millimetres)."""
+    mats = []
+    for flat in entry.get("symmetries_discrete", []):
+        T = np.asarray(flat, dtype=np.float64).reshape(4, 4)
+        T[:3, 3] *= MM_TO_M
+        mats.append(T)
+    cont = entry.get("symmetries_continuous", [])
+    if cont:
+        c = cont[0]
+        return Symmetry("continuous", tuple(mats), np.asarray(c["axis"], float),
+                        np.asarray(c.get("offset", [0, 0, 0]), float) * MM_TO_M)
+    return Symmetry.discrete_from(mats) if mats else Symmetry.none()
+
+
+def load_object_geometry(models_dir: Path, n_points: int, seed: int = 0) -> dict[int, ObjectGeometry]:
+    """Surface samples (metres), diameters and symmetries of every BOP model in ``models_dir`` (files in mm)."""
+    import trimesh
+
+    info = read_json(Path(models_dir) / "models_info.json")
+    out = {}
+    for key, entry in sorted(info.items(), key=lambda kv: int(kv[0])):
+        path = Path(models_dir) / f"obj_{int(key):06d}.ply"
+        if not path.is_file():
+            raise InputError(f"{path} is missing but listed in models_info.json; rebuild the dataset's models/")
+        mesh = trimesh.load(path, force="mesh", process=False)
+        pts = np.asarray(trimesh.sample.sample_surface(mesh, n_points, seed=seed + int(key))[0], dtype=np.float64)
+        out[int(key)] = ObjectGeometry(pts * MM_TO_M, float(entry["diameter"]) * MM_TO_M, symmetry_from_bop(entry))
+    return out
+
+
+def _resize_item(item: dict, hw: tuple[int, int]) -> dict:
+    """Resize image, masks, boxes (from the resized masks) and K to ``hw``; drops instances that vanish."""
+    h0, w0 = item["image"].shape[-2:]
+    h, w = hw
+    if (h0, w0) == (h, w):
+        return item
+    image = F.interpolate(item["image"][None], size=hw, mode="bilinear", align_corners=False, antialias=True)[0]
+    masks = item["masks"]
+    if len(masks):
+        masks = F.interpolate(masks[:, None].float(), size=hw, mode="bilinear", align_corners=False,
+                              antialias=True)[:, 0] >= 0.5
+    keep = [i for i in range(len(masks)) if bool(masks[i].any())]
+    boxes = [mask_bbox(masks[i].numpy()) for i in keep]
+    K = torch.diag(torch.tensor([w / w0, h / h0, 1.0])) @ item["K"]
+    sel = torch.tensor(keep, dtype=torch.int64)
+    xyxy = torch.tensor([[x, y, x + bw, y + bh] for x, y, bw, bh in boxes], dtype=torch.float32).reshape(-1, 4)
+    return {**item, "image": image, "masks": masks[sel] if len(masks) else masks, "boxes": xyxy,
+            "labels": item["labels"][sel], "obj_ids": item["obj_ids"][sel], "R": item["R"][sel],
+            "t": item["t"][sel], "K": K}
+
+
+class ResizedDetectionDataset(Dataset):
+    """:class:`DetectionPoseDataset` items resized to the network input, cached after the first read."""
+
+    def __init__(self, scene_dir: Path, ids: list[int], hw: tuple[int, int]) -> None:
+        self.base = DetectionPoseDataset(scene_dir, ids)
+        self.hw = hw
+        self._cache: dict[int, dict] = {}
+
+    def __len__(self) -> int:
+        return len(self.base)
+
+    def __getitem__(self, i: int) -> dict:
+        if i not in self._cache:
+            self._cache[i] = _resize_item(self.base[i], self.hw)
+        return self._cache[i]
+
+
+def targets_from_batch(batch: dict) -> list[dict]:
+    """Per-image target dicts from a :func:`detection_collate` batch."""
+    keys = ("boxes", "labels", "masks", "R", "t", "K", "obj_ids")
+    return [{k: batch[k][i] for k in keys} for i in range(len(batch["boxes"]))]
+
+
+def make_step_fn(loss: PoseLoss) -> Callable[[nn.Module, dict], tuple[torch.Tensor, dict[str, float]]]:
+    """The loop's ``step_fn``: the sum of the detector's and the pose losses; each part as a metric."""
+
+    def step_fn(model: nn.Module, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
+        losses = model(batch["image"], targets_from_batch(batch), pose_loss=loss)
+        total = sum(losses.values())
+        return total, {k: float(v.detach()) for k, v in losses.items()}
+
+    return step_fn
+
+
+def make_augment(cfg: AugmentConfig) -> Callable[[dict, torch.Generator], dict] | None:
+    if not cfg.enabled:
+        return None
+    return lambda batch, g: {**batch, "image": colour_jitter(batch["image"], g, cfg)}
+
+
+def extra_state(cfg: PoseTrainConfig, classes: tuple[str, ...]) -> dict:
+    """The identity saved with each checkpoint (checked on resume and by ``load_pose_model``)."""
+    return {"model": MODEL_KIND, "classes": list(classes), "model_config": to_dict(cfg.model)}
+
+
+def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = False, overwrite: bool = False,
+        progress: Callable[[int, int, dict[str, float]], None] | None = None) -> TrainResult:
+    """Train on the dataset's train split, write ``train_config.json`` and score the test split.
+
+    Raises:
+        ConfigError: ``out_dir`` holds a run of another config (unless ``overwrite``) or checkpoints without
+            ``resume``.
+        InputError: the dataset or its models are missing.
+    """
+    ds = locate_dataset(dataset)
+    record = to_dict(cfg)
+    record["loop"].pop("steps")  # a resumed run may extend the number of steps
+    prepare_stage_dir(out_dir, "train_pose", {"config": record, "dataset": str(Path(dataset).resolve())},
+                      overwrite=overwrite)
+    if overwrite and not resume and (Path(out_dir) / "checkpoints").is_dir():
+        shutil.rmtree(Path(out_dir) / "checkpoints")
+    write_json(Path(out_dir) / "train_config.json", {"config": to_dict(cfg), "dataset": str(dataset),
+                                                     "splits": {k: len(v) for k, v in ds.splits.items()}})
+    train_ids = ds.splits.get("train") or []
+    if not train_ids:
+        raise InputError(f"{dataset}: the train split is empty; the dataset needs more frames")
+    data = ResizedDetectionDataset(ds.scene_dir, train_ids, cfg.model.input_hw)
+    classes = data.base.classes.names
+    geometry = load_object_geometry(ds.models_dir, cfg.model_points, cfg.loop.seed)
+    loss = PoseLoss(geometry, cfg.loss)
+    torch.manual_seed(cfg.loop.seed)
+    model = MaskRCNNPose(cfg.model, classes)
+    result = train_loop(model, make_step_fn(loss), data, cfg.loop, Path(out_dir), collate_fn=detection_collate,
+                        augment=make_augment(cfg.augment), resume=resume, progress=progress,
+                        extra_state=extra_state(cfg, classes))
+    test_ids = ds.splits.get("test") or []
+    if test_ids and not result.interrupted:
+        from cadalign.train.pose_eval import evaluate
+
+        model.eval()
+        syms = {k: [T[:3, :3] for T in o.symmetry.discretize(cfg.loss.continuous_samples)]
+                for k, o in geometry.items()}
+        report = evaluate(model, ResizedDetectionDataset(ds.scene_dir, test_ids, cfg.model.input_hw),
+                          cfg.eval_score_thresh, syms)
+        write_json(Path(out_dir) / "eval_test.json", report)
+        log.info("held-out frames: %s", report["summary"])
+    return result
