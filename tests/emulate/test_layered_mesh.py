@@ -1,0 +1,105 @@
+"""Layered mesh from one image: triangle cuts, layers, round trip through a novel view, panes, PLY I/O."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cadalign.emulate.layered_mesh import LayeredMeshConfig, grid_faces, mesh_from_image
+from cadalign.emulate.sources import ImageInput, ply_mesh, write_ply
+from cadalign.emulate.views import render
+from cadalign.errors import InputError
+from cadalign.geometry import intrinsics
+from cadalign.types import Camera, Rigid3
+
+H, W = 24, 32
+K = intrinsics(30.0, 30.0, 16.0, 12.0)
+
+
+def _image(depth: np.ndarray, **kw) -> ImageInput:
+    rng = np.random.default_rng(0)
+    return ImageInput(rng.integers(0, 256, depth.shape + (3,), dtype=np.uint8), depth, K, **kw)
+
+
+def test_grid_faces_count_and_cuts() -> None:
+    flat = np.full((H, W), 2.0)
+    ok = np.ones((H, W), bool)
+    assert len(grid_faces(flat, ok, 0.05)) == 2 * (H - 1) * (W - 1)
+    hole = ok.copy()
+    hole[10, 10] = False  # an interior vertex belongs to 6 triangles of this split
+    assert len(grid_faces(flat, hole, 0.05)) == 2 * (H - 1) * (W - 1) - 6
+    step = flat.copy()
+    step[:, 16:] = 2.2  # a 10 % jump between columns 15 and 16: the quads across it are cut (both triangles)
+    assert len(grid_faces(step, ok, 0.05)) == 2 * (H - 1) * (W - 2)
+    assert len(grid_faces(step, ok, 0.15)) == 2 * (H - 1) * (W - 1)  # below the threshold: kept
+
+
+def test_layers_and_camera_facing_normals() -> None:
+    depth = np.full((H, W), 3.0)
+    cls = np.zeros((H, W), np.int32)
+    cls[:, W // 2:] = 2
+    mesh = mesh_from_image(_image(depth, class_id=cls, part_id=cls * 5), LayeredMeshConfig())
+    assert mesh.n_faces == 2 * (H - 1) * (W - 1)
+    assert set(np.unique(mesh.class_id)) == {0, 2} and set(np.unique(mesh.part_id)) == {0, 10}
+    assert np.all(mesh.pane_id == 0)
+    np.testing.assert_allclose(mesh.face_normals() @ [0, 0, -1.0], 1.0, atol=1e-12)
+
+
+def test_novel_view_from_the_source_camera_reproduces_the_image() -> None:
+    yy, xx = np.mgrid[0:H, 0:W]
+    depth = 2.0 + 0.01 * xx + 0.02 * yy  # a smooth slanted surface
+    depth[5:9, 20:26] = 1.0  # a box in front: cut from the background by the jump
+    inp = _image(depth)
+    mesh = mesh_from_image(inp, LayeredMeshConfig())
+    v = render(mesh, Camera(K, W, H), Rigid3())
+    hit = v.face >= 0
+    assert hit[1:-1, 1:-1].mean() > 0.9
+    np.testing.assert_allclose(v.depth_m[hit], depth[hit], atol=1e-5)  # every seen pixel centre is a vertex
+    np.testing.assert_array_equal(v.rgb[hit], inp.rgb[hit])  # vertex colours at barycentric corners
+    assert not hit[5:9, 19].any() or np.all(np.abs(v.depth_m[5:9, 19] - depth[5:9, 19]) < 1e-5)
+
+
+def test_world_pose_stride_and_invalid_inputs() -> None:
+    T = Rigid3(np.eye(3), [1.0, 2.0, 3.0])
+    depth = np.full((H, W), 2.0)
+    depth[0, 0] = np.nan
+    depth[1, 1] = 0.0
+    mesh = mesh_from_image(_image(depth, T_world_from_cam=T.matrix()), LayeredMeshConfig(stride=2))
+    assert np.allclose(mesh.vertices_m[:, 2], 5.0)
+    assert mesh.n_faces == 2 * (H // 2 - 1) * (W // 2 - 1) - 1  # pixel (0, 0) is a corner: 1 triangle lost
+    with pytest.raises(InputError, match="class_id"):
+        mesh_from_image(_image(depth, class_id=np.zeros((2, 2))), LayeredMeshConfig())
+    with pytest.raises(InputError, match=r"\(H, W, 3\)"):
+        mesh_from_image(ImageInput(np.zeros((H, W)), depth, K), LayeredMeshConfig())
+
+
+def test_pane_replaces_the_unreliable_depth_inside_a_window() -> None:
+    depth = np.full((H, W), 4.0)
+    window = np.zeros((H, W), bool)
+    window[6:18, 8:24] = True
+    depth[7:17, 9:23] = 9.0  # the depth sees through the glass, except on the rim
+    cls = np.where(window, 3, 1)
+    mesh = mesh_from_image(_image(depth, class_id=cls, pane_mask=window), LayeredMeshConfig())
+    assert mesh.pane_id.max() == 1
+    pane = mesh.pane_id == 1
+    assert np.all(mesh.class_id[pane] == 3)
+    v = render(mesh, Camera(K, W, H), Rigid3())
+    inside = np.zeros((H, W), bool)
+    inside[8:16, 10:22] = True
+    np.testing.assert_allclose(v.depth_m[inside], 4.0, atol=1e-5)  # the pane, not the see-through depth
+    assert np.all(v.pane_id[inside] == 1) and np.all(v.class_id[inside] == 3)
+    assert np.all(v.pane_id[0] == 0)
+    without = mesh_from_image(_image(depth, pane_mask=window), LayeredMeshConfig(panes=False))
+    assert without.pane_id.max() == 0
+
+
+def test_ply_round_trip_keeps_every_layer(tmp_path) -> None:
+    depth = np.full((H, W), 2.0)
+    mesh = mesh_from_image(_image(depth, class_id=np.ones((H, W)), part_id=np.full((H, W), 7)), LayeredMeshConfig())
+    back = ply_mesh(write_ply(mesh, tmp_path / "m.ply"))
+    np.testing.assert_array_equal(back.vertices_m, mesh.vertices_m)
+    np.testing.assert_array_equal(back.faces, mesh.faces)
+    for name in ("face_rgb", "class_id", "part_id", "pane_id", "vertex_rgb"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(mesh, name))
+    with pytest.raises(InputError, match="not found"):
+        ply_mesh(tmp_path / "missing.ply")
