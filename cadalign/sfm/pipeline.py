@@ -35,6 +35,7 @@ from cadalign.errors import InputError
 from cadalign.io import MANIFEST_NAME, atomic_path, fingerprint, prepare_stage_dir, read_json, write_json
 from cadalign.sfm import colmap
 from cadalign.sfm.config import SfMConfig
+from cadalign.sfm.consistency import keep_largest_piece, sequence_consistency
 from cadalign.sfm.depth import sparse_depth
 from cadalign.sfm.frames import IMAGE_SUFFIXES, Progress, extract_frames, is_video
 from cadalign.sfm.refine import model_loop_pairs, refine
@@ -50,6 +51,7 @@ log = logging.getLogger(__name__)
 STEPS = ("frames", "features", "matches", "mapping", "refine", "export")
 REPORT_NAME = "sfm_report.json"
 _OUTPUTS = ("images", "masks", "frames.json", "database.db", "database.db-shm", "database.db-wal", "sparse",
+            "database.pre_loop.db", "database.kept.db",
             "mapping_tmp", "cameras.json", "depth", "trajectory.png", "trajectory_vs_gt.png", REPORT_NAME, "steps",
             MANIFEST_NAME)
 
@@ -185,8 +187,63 @@ def _step_matches(cfg: SfMConfig, lay: Layout) -> dict[str, Any]:
 
 
 def _step_mapping(cfg: SfMConfig, lay: Layout, progress: Progress | None) -> dict[str, Any]:
+    """Map (with loop closure), check the model's consistency, and retry with the next seed while it has
+    breaks; each attempt starts from the matches as they were before any loop closure."""
     names = _kept_names(lay)
     work = lay.root / "mapping_tmp"
+    pristine, kept_db = lay.root / "database.pre_loop.db", lay.root / "database.kept.db"
+    shutil.copyfile(lay.database, pristine)
+    best: tuple[tuple[int, int], list[Any], dict[str, Any]] | None = None
+    attempts = []
+    for a in range(cfg.mapper.attempts):
+        if a:
+            shutil.copyfile(pristine, lay.database)
+        acfg = dataclasses.replace(cfg, seed=cfg.seed + a)
+        models, info = _map_once(acfg, lay, names, work, progress)
+        mp = cfg.mapper
+        cons = sequence_consistency(models[0], lay.database, names, max_px=mp.break_px, max_ratio=mp.break_ratio,
+                                    min_matches=mp.break_min_matches)
+        attempts.append({"seed": acfg.seed, "registered": models[0].num_reg_images(), **cons.to_dict()})
+        key = (len(cons.breaks), -models[0].num_reg_images())
+        if best is None or key < best[0]:
+            best = (key, models, {**info, "consistency": cons.to_dict()})
+            shutil.copyfile(lay.database, kept_db)
+        if cons.ok:
+            break
+        log.warning("SfM attempt %d (seed %d): model breaks between %s; %s", a + 1, acfg.seed,
+                    ", ".join(f"{b.frame_a}/{b.frame_b} ({b.median_px:.1f} px)" for b in cons.breaks),
+                    "trying the next seed" if a + 1 < cfg.mapper.attempts else "no attempts left")
+    assert best is not None
+    _, models, info = best
+    shutil.move(kept_db, lay.database)
+    pristine.unlink()
+    info["attempts"] = attempts
+    dropped: dict[str, str] = {}
+    if best[0][0]:
+        log.warning("the kept SfM model still has %d consistency break(s): its poses are not reliable "
+                    "across them (see sfm_report.json 'consistency')", best[0][0])
+        if cfg.mapper.on_break == "largest_piece":
+            cons = sequence_consistency(models[0], lay.database, names, max_px=cfg.mapper.break_px,
+                                        max_ratio=cfg.mapper.break_ratio, min_matches=cfg.mapper.break_min_matches)
+            dropped = keep_largest_piece(models[0], names, cons)
+            log.warning("kept the largest consistent piece: %d frames dropped", len(dropped))
+    _write_model(models[0], lay.model)
+    shutil.rmtree(work, ignore_errors=True)
+    if len(models) > 1:
+        log.warning("SfM produced %d disconnected models (%s frames); keeping the largest",
+                    len(models), ", ".join(str(r.num_reg_images()) for r in models))
+    reasons = {**colmap.unregistered_reasons(cfg, lay.database, names, models), **dropped}
+    if reasons:
+        log.warning("%d of %d frames are not in the kept model", len(reasons), len(names))
+    info["models"] = [{**model_stats(r), "kept": k == 0, "frames": [im.name for im in registered_images(r)]}
+                      for k, r in enumerate(models)]
+    info["unregistered"] = reasons
+    return info
+
+
+def _map_once(cfg: SfMConfig, lay: Layout, names: list[str], work: Path,
+              progress: Progress | None) -> tuple[list[Any], dict[str, Any]]:
+    """One mapping pass plus pose-guided loop closure; returns the models (largest first) and what it did."""
     t0 = time.perf_counter()
     result = colmap.reconstruct(cfg, lay.database, lay.images, work, names, progress)
     models = result.models
@@ -205,18 +262,7 @@ def _step_mapping(cfg: SfMConfig, lay: Layout, progress: Progress | None) -> dic
                 again = dataclasses.replace(cfg, mapper=dataclasses.replace(cfg.mapper, kind=result.mapper))
                 models = colmap.reconstruct(again, lay.database, lay.images, work, names, progress).models
         info["seconds_loop_closure"] = time.perf_counter() - t0
-    _write_model(models[0], lay.model)
-    shutil.rmtree(work, ignore_errors=True)
-    if len(models) > 1:
-        log.warning("SfM produced %d disconnected models (%s frames); keeping the largest",
-                    len(models), ", ".join(str(r.num_reg_images()) for r in models))
-    reasons = colmap.unregistered_reasons(cfg, lay.database, names, models)
-    if reasons:
-        log.warning("%d of %d frames are not in the kept model", len(reasons), len(names))
-    info["models"] = [{**model_stats(r), "kept": k == 0, "frames": [im.name for im in registered_images(r)]}
-                      for k, r in enumerate(models)]
-    info["unregistered"] = reasons
-    return info
+    return models, info
 
 
 def _num_verified(cfg: SfMConfig, database: Path) -> int:
@@ -317,6 +363,8 @@ def _finish_report(lay: Layout, keep_gt: bool) -> None:
         "pairs_verified": marks["matches"]["pairs_verified"],
         "mapper": marks["mapping"]["mapper"],
         "loop_pairs_verified": marks["mapping"]["loop_pairs_verified"],
+        "consistency": marks["mapping"].get("consistency"),
+        "mapping_attempts": marks["mapping"].get("attempts", []),
         "refinement": {k: marks["refine"][k] for k in ("rounds", "before", "after")},
         "depth": marks["export"]["depth"],
         "seconds": {s: marks[s]["seconds"] for s in STEPS},
