@@ -54,13 +54,22 @@ class RefineConfig:
     """Largest ICP correspondence distance as a fraction of the model diameter."""
     icp_huber_m: float = bounded(0.005, gt=0)
     """Huber threshold of the point-to-plane residuals, metres."""
+    prior_t_m: float = bounded(0.05, gt=0)
+    """Silhouette: standard deviation of the prior on the detector's translation (m)."""
+    prior_r_deg: float = bounded(10.0, gt=0)
+    """Silhouette: standard deviation of the prior on the detector's rotation (deg)."""
+    icp_max_corr_start: float = bounded(0.5, gt=0)
+    """ICP's wide gate (fraction of the diameter), while under half the points pair within ``icp_max_corr``."""
     damping: float = bounded(1e-2, ge=0)
-    """Levenberg-Marquardt damping, relative to the mean diagonal of the normal matrix."""
+    """Silhouette: Levenberg-Marquardt damping, relative to the mean diagonal of the normal matrix."""
     min_step: float = bounded(1e-6, ge=0)
     """Stop when the update's rotation (rad) and translation / diameter both fall below this."""
     seed: int = 0
     """Seed of the point subsampling."""
 
+
+ICP_DAMPING = 1e-6
+"""Relative damping of the ICP normal equations (well conditioned: only guards exact singularity)."""
 
 PRESETS: dict[str, RefineConfig] = {
     "none": RefineConfig(method="none"),
@@ -195,9 +204,29 @@ def _outline_points(geom: ModelGeometry, T: Rigid3, K: np.ndarray, shape: tuple[
     return P
 
 
-def _contour_step(geom: ModelGeometry, T: Rigid3, K: np.ndarray, sd: SignedDistance, shape: tuple[int, int],
-                  cfg: RefineConfig, rng: np.random.Generator, damping: float) -> tuple[np.ndarray | None, float]:
-    """One damped Gauss-Newton step on the signed distances of the outline points; (step, cost before)."""
+def _prior(T: Rigid3, T_init: Rigid3, cfg: RefineConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Rows (r (6,), J (6, 6)) of the Gaussian prior on the deviation from the detector's pose, in px units.
+
+    The deviation is (rotation vector of ``R R_init^T``, ``t - t_init``); a twist step (omega, v) changes it by
+    (omega, omega x t + v). Scaled by ``huber_px / sigma`` so one sigma costs as much as one Huber-size pixel.
+    """
+    from cadalign.geometry.rotations import matrix_to_axis_angle, skew
+
+    dev = np.concatenate([matrix_to_axis_angle(T.R @ T_init.R.T), T.t - T_init.t])
+    S = np.diag([cfg.huber_px / np.radians(cfg.prior_r_deg)] * 3 + [cfg.huber_px / cfg.prior_t_m] * 3)
+    J = np.eye(6)
+    J[3:, :3] = -skew(T.t)
+    return S @ dev, S @ J
+
+
+def _contour_step(geom: ModelGeometry, T: Rigid3, T_init: Rigid3, K: np.ndarray, sd: SignedDistance,
+                  shape: tuple[int, int], cfg: RefineConfig, rng: np.random.Generator,
+                  damping: float) -> tuple[np.ndarray | None, float]:
+    """One damped Gauss-Newton step on the outline's signed distances plus the prior; (step, cost at ``T``).
+
+    The cost is the mean Huber loss of the outline residuals (truncated at ``trunc_px``) plus the prior term
+    divided by the number of residuals, matching the normal equations solved for the step.
+    """
     P = _outline_points(geom, T, K, shape, cfg, rng)
     if len(P) < 6:
         return None, float("nan")
@@ -207,17 +236,22 @@ def _contour_step(geom: ModelGeometry, T: Rigid3, K: np.ndarray, sd: SignedDista
     keep = ok & (np.abs(r) < cfg.trunc_px)
     if keep.sum() < 6:
         return None, float("nan")
+    k, a = cfg.huber_px, np.minimum(np.abs(r[ok]), cfg.trunc_px)
+    loss = np.where(a <= k, 0.5 * a * a, k * (a - 0.5 * k))
+    rp, Jp = _prior(T, T_init, cfg)
+    cost = float((loss.sum() + 0.5 * rp @ rp) / max(ok.sum(), 1))
     J = np.einsum("nk,nkj->nj", g[keep], _proj_jacobian(K, Xc[keep]))
-    cost = float(np.mean(np.minimum(np.abs(r[ok]), cfg.trunc_px)))
-    return _solve(J, r[keep], _huber_weights(r[keep], cfg.huber_px), damping), cost
+    Jall = np.concatenate([J, Jp])
+    rall = np.concatenate([r[keep], rp])
+    w = np.concatenate([_huber_weights(r[keep], cfg.huber_px), np.ones(6)])
+    return _solve(Jall, rall, w, damping), cost
 
 
 def refine_silhouette(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, mask: np.ndarray, cfg: RefineConfig,
                       iters: int | None = None) -> tuple[Rigid3, int, list[float]]:
     """Align the projected CAD outline to the boundary of ``mask`` (H, W) bool; returns (pose, iters, costs).
 
-    ``costs`` are the mean truncated |signed distance| (px) of the outline points after each accepted update
-    (the first is the initial pose's).
+    ``costs`` are the LM costs (see :func:`_contour_step`) of the initial pose and after each accepted update.
     """
     n = cfg.silhouette_iters if iters is None else iters
     if np.count_nonzero(mask) < 6 or n == 0:
@@ -225,16 +259,16 @@ def refine_silhouette(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, mask: 
     sd = SignedDistance.of(mask, int(np.ceil(cfg.trunc_px)) + 2)
     rng = np.random.default_rng(cfg.seed)
     K = np.asarray(K, float)
-    # Levenberg-Marquardt: a step is kept only if the chamfer cost (re-measured with fresh
-    # correspondences) does not grow; depth along the ray is weakly observed for small silhouettes and
-    # plain Gauss-Newton drifts along it at equal cost.
+    # Levenberg-Marquardt: a step is kept only if the cost (re-measured with fresh outline points) does not
+    # grow. Depth along the ray is weakly observed for small silhouettes; the prior keeps it near the
+    # detector's estimate instead of drifting at equal cost.
     T, costs, done, lam = T_init, [], 0, cfg.damping
-    step, cost = _contour_step(geom, T, K, sd, mask.shape, cfg, rng, lam)
+    step, cost = _contour_step(geom, T, T_init, K, sd, mask.shape, cfg, rng, lam)
     for _ in range(n):
         if step is None:
             break
         T_new = apply_twist(step, T)
-        step_new, cost_new = _contour_step(geom, T_new, K, sd, mask.shape, cfg, rng, lam)
+        step_new, cost_new = _contour_step(geom, T_new, T_init, K, sd, mask.shape, cfg, rng, lam)
         done += 1
         if step_new is not None and cost_new <= cost:
             costs.append(cost)
@@ -246,7 +280,7 @@ def refine_silhouette(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, mask: 
             lam *= 10.0
             if lam > 1e3:
                 break
-            step, cost = _contour_step(geom, T, K, sd, mask.shape, cfg, rng, lam)
+            step, cost = _contour_step(geom, T, T_init, K, sd, mask.shape, cfg, rng, lam)
     costs.append(cost)
     return T, done, costs
 
@@ -273,12 +307,13 @@ def refine_depth_icp(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, depth_m
     n = cfg.depth_iters if iters is None else iters
     if len(Q) < 6 or n == 0:
         return T_init, 0, []
-    max_d = cfg.icp_max_corr * geom.diameter_m
     T, costs, done = T_init, [], 0
     for _ in range(n):
         q_obj = T.inverse().apply(Q)
-        dist, j = geom.tree.query(q_obj, distance_upper_bound=max_d)
-        ok = np.isfinite(dist)
+        dist, j = geom.tree.query(q_obj, distance_upper_bound=cfg.icp_max_corr_start * geom.diameter_m)
+        ok = dist < cfg.icp_max_corr * geom.diameter_m
+        if ok.mean() < 0.5:  # far from converged: widen the gate (coarse) until most points pair up
+            ok = np.isfinite(dist)
         if ok.sum() < 6:
             break
         p_c = T.apply(geom.samples[j[ok]])
@@ -290,7 +325,7 @@ def refine_depth_icp(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, depth_m
         r = np.einsum("ij,ij->i", n_c, p_c - q)
         J = np.concatenate([np.cross(p_c, n_c), n_c], axis=1)
         costs.append(float(np.mean(np.abs(r))))
-        step = _solve(J, r, _huber_weights(r, cfg.icp_huber_m), cfg.damping)
+        step = _solve(J, r, _huber_weights(r, cfg.icp_huber_m), ICP_DAMPING)
         if step is None:
             break
         T = apply_twist(step, T)

@@ -1,0 +1,151 @@
+"""The detector interface of the pose pipeline, the trained-network adapter and the ground-truth oracle.
+
+Any object with ``detect(image, K) -> list[Detection-like]`` is a :class:`Detector`: ``image`` is (H, W, 3)
+RGB uint8, ``K`` (3, 3); a detection has ``box_xyxy`` (4,) px, ``label`` (class index), ``score``, ``mask``
+(H, W) bool, ``R_cam_from_obj`` (3, 3), ``t_cam_from_obj_m`` (3,), and optionally ``obj_id`` (the BOP model)
+— the attributes of ``cadalign.models.maskrcnn.detector.Detection``.
+
+:class:`OracleDetector` is for tests and demos only: it returns the ground-truth instances of a BOP scene
+(visible masks, exact boxes) with their poses perturbed by seeded noise, so refinement and temporal fusion
+can be exercised and measured without a trained network. Its results are labelled ``oracle`` everywhere.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from cadalign.config import bounded
+from cadalign.data.bop import BopScene, mask_bbox
+from cadalign.data.torch_datasets import load_class_map
+from cadalign.geometry.rotations import axis_angle_to_matrix
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One detected instance (same fields as the network's ``Detection``, plus an optional model id)."""
+
+    box_xyxy: np.ndarray
+    label: int
+    score: float
+    mask: np.ndarray
+    R_cam_from_obj: np.ndarray
+    t_cam_from_obj_m: np.ndarray
+    obj_id: int | None = None
+
+
+class Detector(Protocol):
+    def detect(self, image: np.ndarray, K: np.ndarray) -> list[Any]: ...
+
+
+class TorchDetector:
+    """Adapter from a ``MaskRCNNPose`` (tensors in, ``Detection`` out) to the numpy :class:`Detector` protocol.
+
+    ``last_timings`` holds the model's own per-stage seconds when it reports them (``model.last_timings``).
+    """
+
+    def __init__(self, model: Any, score_thresh: float = 0.5, device: str = "cpu") -> None:
+        self.model, self.score_thresh, self.device = model, score_thresh, device
+        self.last_timings: dict[str, float] = {}
+
+    def detect(self, image: np.ndarray, K: np.ndarray) -> list[Any]:
+        import torch
+
+        img = torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))).float().div(255.0).to(self.device)
+        Kt = torch.as_tensor(np.asarray(K, dtype=np.float32), device=self.device)
+        with torch.inference_mode():
+            dets = self.model.detect(img, Kt, score_thresh=self.score_thresh)
+        self.last_timings = dict(getattr(self.model, "last_timings", {}) or {})
+        return list(dets)
+
+
+@dataclass(frozen=True)
+class OracleConfig:
+    noise_t_m: float = bounded(0.03, ge=0)
+    """RMS of the translation noise added to the true pose (m; isotropic Gaussian)."""
+    noise_r_deg: float = bounded(3.0, ge=0)
+    """RMS of the rotation noise (deg; rotation vector isotropic Gaussian)."""
+    min_visib_fract: float = bounded(0.1, ge=0, le=1)
+    """Instances less visible than this are not reported (BOP's default)."""
+    min_pixels: int = bounded(30, ge=1)
+    """Instances with fewer visible pixels are not reported."""
+    give_obj_id: bool = False
+    """Report the true model id (a network reports only the class; off = the pipeline must identify it)."""
+    seed: int = 0
+    """Seed of the pose noise (per frame: seed + frame id)."""
+
+
+class OracleDetector:
+    """Ground-truth detections of a BOP scene with noisy poses (tests and demos only; see module doc)."""
+
+    name = "oracle"
+
+    def __init__(self, scene_dir: Path, cfg: OracleConfig) -> None:
+        self.scene = BopScene(scene_dir)
+        self.cfg = cfg
+        self.classes = load_class_map(scene_dir)
+        self.im_id_of = frame_ids(scene_dir)
+        self.current: str | None = None
+
+    def for_frame(self, name: str) -> OracleDetector:
+        """Select the frame (by name) that the next :meth:`detect` call reports."""
+        self.current = name
+        return self
+
+    def detect(self, image: np.ndarray, K: np.ndarray) -> list[Detection]:
+        im_id = self.im_id_of.get(self.current or "")
+        if im_id is None:
+            log.debug("oracle: frame %s is not in the ground truth; no detections", self.current)
+            return []
+        cfg = self.cfg
+        frame = self.scene.frame(im_id)
+        rng = np.random.default_rng(cfg.seed + im_id)
+        out = []
+        for g, inst in enumerate(frame.instances):
+            info = frame.info[g] if g < len(frame.info) else {}
+            if info.get("visib_fract", 1.0) < cfg.min_visib_fract:
+                continue
+            m = self.scene.mask(im_id, g, visible=True)
+            if m.sum() < cfg.min_pixels:
+                continue
+            x, y, w, h = mask_bbox(m)
+            dR = axis_angle_to_matrix(rng.normal(scale=np.radians(cfg.noise_r_deg) / np.sqrt(3), size=3))
+            dt = rng.normal(scale=cfg.noise_t_m / np.sqrt(3), size=3)
+            T = inst.T_cam_from_obj
+            out.append(Detection(np.array([x, y, x + w, y + h], float), self.classes.class_of_obj[inst.obj_id], 1.0,
+                                 m, dR @ T.R, T.t + dt, inst.obj_id if cfg.give_obj_id else None))
+        return out
+
+
+def frame_ids(scene_dir: Path) -> dict[str, int]:
+    """Frame name -> BOP image id of a scene: ``frame_names.json`` (dataset builder) or ``NNNNNN.png``."""
+    from cadalign.io import read_json
+
+    scene_dir = Path(scene_dir)
+    names = scene_dir / "frame_names.json"
+    if names.is_file():
+        return {str(v): int(k) for k, v in read_json(names).items()}
+    return {f"{i:06d}.png": i for i in BopScene(scene_dir).ids}
+
+
+def resolve_scene_dir(path: Path) -> Path:
+    """A BOP scene folder from a simulation folder (``gt/sim/000000``), a built dataset or the scene itself."""
+    path = Path(path)
+    for cand in (path, path / "gt" / "sim" / "000000", path / "dataset" / "all" / "000000", path / "all" / "000000"):
+        if (cand / "scene_gt.json").is_file():
+            return cand
+    from cadalign.errors import InputError
+
+    raise InputError(f"{path} holds no BOP scene (looked for scene_gt.json in it, gt/sim/000000, "
+                     "dataset/all/000000); pass a 'cadalign sim' output folder or a BOP scene folder")
+
+
+def models_dir_of(scene_dir: Path) -> Path:
+    """The BOP ``models/`` folder that belongs to a scene folder (``../../models``)."""
+    return Path(scene_dir).parent.parent / "models"

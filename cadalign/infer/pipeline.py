@@ -1,0 +1,179 @@
+"""Per-frame pose inference: detector -> model identification -> refinement against the CAD -> temporal fusion.
+
+:class:`PosePipeline` is the in-memory core (one frame in, :class:`PoseRecord` s and stage timings out);
+:mod:`cadalign.infer.run` reads the video, writes ``poses.jsonl``, the overlay video, timings and, with
+ground truth, the evaluation.
+
+Model identification: a network reports a class, not which CAD model of that class it saw. When the
+detection carries no ``obj_id`` and the class has several models, the model whose rendered silhouette at
+the detected pose overlaps the predicted mask best (IoU) is taken.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cadalign.cad.model import CadModel
+from cadalign.config import bounded
+from cadalign.infer.detect import Detector
+from cadalign.infer.model_geom import ModelGeometry, render_silhouette
+from cadalign.infer.refine import PRESETS as REFINE_PRESETS
+from cadalign.infer.refine import RefineConfig, refine
+from cadalign.infer.temporal import Observation, TemporalConfig, TemporalFuser
+from cadalign.types import Rigid3
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class InferConfig:
+    refine: RefineConfig = field(default_factory=RefineConfig)
+    """Refinement against the CAD (``refine.method = "none"`` keeps the network's pose)."""
+    temporal: TemporalConfig = field(default_factory=TemporalConfig)
+    """Temporal fusion over the video (``temporal.mode = "none"`` keeps per-frame poses)."""
+    score_thresh: float = bounded(0.5, ge=0, le=1)
+    """Detections scoring below this are dropped."""
+    ignore_classes: tuple[str, ...] = ("background", "structure")
+    """Classes not reported (the structure is what the parts sit on); ignored when it would leave nothing."""
+    use_depth: bool = True
+    """Use a depth map for ICP when one is given for the frame."""
+    overlay: bool = True
+    """Write ``overlay.mp4`` (CAD wireframe at each pose)."""
+    overlay_fps: float = bounded(5.0, gt=0)
+    """Frame rate of the overlay video."""
+    samples_per_model: int = bounded(3000, ge=100)
+    """Surface samples per CAD model for ICP."""
+
+
+PRESETS: dict[str, InferConfig] = {
+    "none": InferConfig(refine=REFINE_PRESETS["none"], temporal=TemporalConfig(mode="none")),
+    "fast": InferConfig(refine=REFINE_PRESETS["fast"]),
+    "balanced": InferConfig(),
+    "accurate": InferConfig(refine=REFINE_PRESETS["accurate"]),
+}
+
+
+@dataclass(frozen=True)
+class PoseRecord:
+    """One reported instance of one frame (a line of ``poses.jsonl``)."""
+
+    frame: int
+    frame_name: str
+    obj_id: int | None
+    track_id: int
+    label: int
+    class_name: str
+    score: float
+    box_xyxy: np.ndarray
+    T_cam_from_obj: Rigid3
+    """The reported pose: refined and temporally fused."""
+    T_detector: Rigid3
+    """The detector's pose."""
+    T_refined: Rigid3
+    """After refinement, before temporal fusion."""
+    refine_iters: dict[str, int]
+    mask: np.ndarray | None = None
+
+    def to_json(self) -> dict:
+        from cadalign.data.coco import mask_to_rle
+
+        return {
+            "frame": self.frame, "frame_name": self.frame_name, "obj_id": self.obj_id, "track_id": self.track_id,
+            "class": self.class_name, "label": self.label, "score": round(float(self.score), 6),
+            "box_xyxy": [round(float(v), 3) for v in self.box_xyxy],
+            "T_cam_from_obj": self.T_cam_from_obj.matrix().tolist(),
+            "T_cam_from_obj_detector": self.T_detector.matrix().tolist(),
+            "T_cam_from_obj_refined": self.T_refined.matrix().tolist(),
+            "refine_iters": self.refine_iters,
+            "mask_rle": mask_to_rle(self.mask) if self.mask is not None else None,
+        }
+
+
+class PosePipeline:
+    """Detector -> identification -> refinement -> temporal fusion, one frame at a time (state: the tracks)."""
+
+    def __init__(self, detector: Detector, models: dict[int, CadModel], class_names: tuple[str, ...],
+                 cfg: InferConfig) -> None:
+        self.detector, self.models, self.class_names, self.cfg = detector, models, tuple(class_names), cfg
+        self._geoms: dict[int, ModelGeometry] = {}
+        kept = [n for n in self.class_names if n not in cfg.ignore_classes]
+        self.ignored = set(cfg.ignore_classes) if kept else set()
+        self.fuser = TemporalFuser(cfg.temporal)
+
+    def geometry(self, obj_id: int) -> ModelGeometry:
+        if obj_id not in self._geoms:
+            self._geoms[obj_id] = ModelGeometry.from_cad(self.models[obj_id], self.cfg.samples_per_model,
+                                                         self.cfg.refine.seed)
+        return self._geoms[obj_id]
+
+    def candidates(self, label: int) -> list[int]:
+        name = self.class_names[label] if 0 <= label < len(self.class_names) else ""
+        return [k for k, m in sorted(self.models.items()) if m.class_name == name]
+
+    def identify(self, det: object, T: Rigid3, K: np.ndarray) -> int | None:
+        """The CAD model of a detection: its ``obj_id``, the only model of its class, or the best silhouette IoU."""
+        oid = getattr(det, "obj_id", None)
+        if oid is not None and oid in self.models:
+            return int(oid)
+        cands = self.candidates(int(det.label))
+        if len(cands) <= 1:
+            return cands[0] if cands else None
+        mask = np.asarray(det.mask, bool)
+        rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+        if len(rows) == 0:
+            return cands[0]
+        h, w = rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1
+        x0, y0 = int(cols[0] - w // 2), int(rows[0] - h // 2)
+        win = mask[max(y0, 0):, max(x0, 0):][: 2 * h, : 2 * w]
+        shape = win.shape
+        best, best_iou = cands[0], -1.0
+        for k in cands:
+            sil = render_silhouette(self.geometry(k), T, K, shape, (max(x0, 0), max(y0, 0)))
+            union = np.count_nonzero(sil | win)
+            iou = np.count_nonzero(sil & win) / union if union else 0.0
+            if iou > best_iou:
+                best, best_iou = k, iou
+        return best
+
+    def process(self, frame: int, name: str, image: np.ndarray, K: np.ndarray, depth_m: np.ndarray | None = None,
+                T_world_from_cam: Rigid3 | None = None) -> tuple[list[PoseRecord], dict[str, float]]:
+        """Poses of one frame and the seconds spent per stage (``detector``, ``pose``, ``refinement``, ...)."""
+        K = np.asarray(K, dtype=np.float64)
+        t0 = time.perf_counter()
+        if hasattr(self.detector, "for_frame"):
+            self.detector.for_frame(name)
+        dets = self.detector.detect(image, K)
+        t1 = time.perf_counter()
+        times = {"detector": t1 - t0, "pose": 0.0, "refinement": 0.0, "temporal": 0.0}
+        times.update({f"detector.{k}": v for k, v in (getattr(self.detector, "last_timings", None) or {}).items()})
+        kept = []
+        for d in dets:
+            name_c = self.class_names[int(d.label)] if 0 <= int(d.label) < len(self.class_names) else "?"
+            if float(d.score) < self.cfg.score_thresh or name_c in self.ignored:
+                continue
+            ta = time.perf_counter()
+            T0 = Rigid3(np.asarray(d.R_cam_from_obj, float), np.asarray(d.t_cam_from_obj_m, float))
+            oid = self.identify(d, T0, K)
+            tb = time.perf_counter()
+            times["pose"] += tb - ta
+            if oid is None:
+                log.warning("frame %s: no CAD model of class %r; detection dropped", name, name_c)
+                continue
+            depth = depth_m if self.cfg.use_depth else None
+            res = refine(self.geometry(oid), T0, K, np.asarray(d.mask, bool), self.cfg.refine, depth)
+            times["refinement"] += time.perf_counter() - tb
+            kept.append((d, oid, name_c, T0, res))
+        ta = time.perf_counter()
+        obs = [Observation(int(d.label), res.T_cam_from_obj, oid, self.models[oid].symmetry,
+                           self.models[oid].diameter_m) for d, oid, _, _, res in kept]
+        fused = self.fuser.update(frame, obs, T_world_from_cam)
+        times["temporal"] = time.perf_counter() - ta
+        records = [PoseRecord(frame, name, oid, f.track_id, int(d.label), name_c, float(d.score),
+                              np.asarray(d.box_xyxy, float), f.T_cam_from_obj, T0, res.T_cam_from_obj,
+                              dict(res.iterations), np.asarray(d.mask, bool))
+                   for (d, oid, name_c, T0, res), f in zip(kept, fused, strict=True)]
+        return records, times

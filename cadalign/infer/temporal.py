@@ -1,0 +1,216 @@
+"""Temporal fusion of per-frame poses of static parts on video.
+
+Two modes, chosen per frame by whether the camera pose ``T_world_from_cam`` is known (``mode="auto"``):
+
+- ``world``: each observation is moved to the world frame; a track's estimate is a robust (Huber IRLS)
+  mean of its last ``window`` observations: translations averaged, rotations by the chordal mean
+  projected back to SO(3). The part is static, so this is the maximum-likelihood estimate under noise.
+- ``filter``: no camera poses: a constant-velocity filter on SE(3) in the camera frame (an alpha-beta
+  filter, the steady-state Kalman filter of a constant-velocity model) with the left twist
+  ``xi = (omega, v)`` per frame as velocity; observations beyond the gate are treated as outliers.
+
+Symmetric parts: every observation is first replaced by its symmetric equivalent ``T S`` closest in
+rotation to the track's current estimate (the continuous case in closed form: the rotation angle about
+the axis maximising ``trace``), so estimates never flip between equivalent solutions. A new track is
+canonicalised towards the identity rotation of the frame it lives in, a deterministic choice.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from cadalign.cad.symmetry import Symmetry, rotation_about_line
+from cadalign.config import bounded
+from cadalign.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle, orthonormalize, skew
+from cadalign.types import Rigid3
+
+
+@dataclass(frozen=True)
+class TemporalConfig:
+    mode: Literal["auto", "world", "filter", "none"] = "auto"
+    """``auto``: the world robust mean where the frame's camera pose is known, else the filter."""
+    window: int = bounded(30, ge=1)
+    """Observations per track in the world robust mean."""
+    huber_t_m: float = bounded(0.05, gt=0)
+    """Huber threshold of translation residuals (m) in the robust mean."""
+    huber_r_deg: float = bounded(5.0, gt=0)
+    """Huber threshold of rotation residuals (deg) in the robust mean."""
+    alpha: float = bounded(0.5, gt=0, le=1)
+    """Filter gain on the pose innovation (1 = trust each measurement)."""
+    beta: float = bounded(0.1, ge=0, le=1)
+    """Filter gain on the velocity."""
+    gate_m: float = bounded(0.3, gt=0)
+    """Association / outlier gate on translation (m), at least half the part's diameter is used."""
+    gate_deg: float = bounded(30.0, gt=0)
+    """Outlier gate of the filter on rotation (deg) after symmetry canonicalisation."""
+    max_missed: int = bounded(5, ge=0)
+    """A filter track whose observations are rejected this many frames in a row restarts from the next one."""
+
+
+PRESETS: dict[str, TemporalConfig] = {"none": TemporalConfig(mode="none"), "default": TemporalConfig()}
+
+
+def _angle(R: np.ndarray) -> float:
+    s = np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
+    return float(math.atan2(s, (np.trace(R) - 1.0) / 2.0))
+
+
+def canonicalize(T: Rigid3, symmetry: Symmetry | None, R_ref: np.ndarray) -> Rigid3:
+    """The symmetric equivalent ``T @ S`` whose rotation is closest (geodesic) to ``R_ref`` (3, 3)."""
+    if symmetry is None or symmetry.kind == "none":
+        return T
+    M0 = T.matrix()
+    best, best_ang = T, math.inf
+    for D in [np.eye(4), *symmetry.discrete]:
+        S = D
+        if symmetry.kind == "continuous":
+            a = np.asarray(symmetry.axis, float)
+            N = D[:3, :3] @ R_ref.T @ T.R  # maximise trace(N Rot(a, th)) = A cos th + B sin th + const
+            A = np.trace(N) - a @ N @ a
+            B = np.trace(N @ skew(a))
+            S = rotation_about_line(a, np.asarray(symmetry.offset_m, float), math.atan2(B, A)) @ D
+        cand = Rigid3.from_matrix(M0 @ S)
+        ang = _angle(R_ref.T @ cand.R)
+        if ang < best_ang - 1e-12:
+            best, best_ang = cand, ang
+    return best
+
+
+def robust_mean(poses: list[Rigid3], huber_t_m: float, huber_r_rad: float, iters: int = 5) -> Rigid3:
+    """Huber-IRLS mean of rigid poses: weighted translation mean and chordal rotation mean (SVD projection)."""
+    t = np.array([p.t for p in poses])
+    Rs = np.array([p.R for p in poses])
+    mu_t, mu_R = np.median(t, axis=0), orthonormalize(Rs.mean(axis=0))
+    for _ in range(iters):
+        dt = np.linalg.norm(t - mu_t, axis=1)
+        dr = np.array([_angle(mu_R.T @ R) for R in Rs])
+        wt = np.where(dt <= huber_t_m, 1.0, huber_t_m / np.maximum(dt, 1e-12))
+        wr = np.where(dr <= huber_r_rad, 1.0, huber_r_rad / np.maximum(dr, 1e-12))
+        mu_t = (wt[:, None] * t).sum(0) / wt.sum()
+        mu_R = orthonormalize((wr[:, None, None] * Rs).sum(0))
+    return Rigid3(mu_R, mu_t)
+
+
+def twist_between(T_from: Rigid3, T_to: Rigid3) -> np.ndarray:
+    """The left twist ``xi`` with ``apply_twist(xi, T_from) == T_to`` (rotation vector exact)."""
+    dR = T_to.R @ T_from.R.T
+    return np.concatenate([matrix_to_axis_angle(dR), T_to.t - dR @ T_from.t])
+
+
+def _apply_twist(xi: np.ndarray, T: Rigid3) -> Rigid3:
+    dR = axis_angle_to_matrix(np.asarray(xi[:3], float))
+    return Rigid3(dR @ T.R, dR @ T.t + np.asarray(xi[3:], float))
+
+
+@dataclass(frozen=True)
+class Observation:
+    """One refined detection of a frame."""
+
+    label: int
+    T_cam_from_obj: Rigid3
+    obj_id: int | None = None
+    symmetry: Symmetry = field(default_factory=Symmetry.none)
+    diameter_m: float = 0.0
+
+
+@dataclass(frozen=True)
+class FusedPose:
+    """The fused pose of one observation: its track and ``T_cam_from_obj`` (canonicalised, filtered)."""
+
+    track_id: int
+    T_cam_from_obj: Rigid3
+    mode: str
+    n_obs: int
+
+
+@dataclass
+class _Track:
+    track_id: int
+    label: int
+    obj_id: int | None
+    frame: int
+    T: Rigid3  # world-from-obj (world mode) or cam-from-obj (filter mode) estimate
+    world: bool
+    obs: list[Rigid3] = field(default_factory=list)
+    xi: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    missed: int = 0
+
+
+class TemporalFuser:
+    """Tracks static parts across frames and returns fused, symmetry-consistent poses (see module doc)."""
+
+    def __init__(self, cfg: TemporalConfig) -> None:
+        self.cfg = cfg
+        self.tracks: list[_Track] = []
+
+    def _predict(self, tr: _Track, frame: int) -> Rigid3:
+        return tr.T if tr.world else _apply_twist(tr.xi * (frame - tr.frame), tr.T)
+
+    def _associate(self, obs: list[Observation], frame: int, T_wc: Rigid3 | None) -> list[_Track | None]:
+        world = T_wc is not None
+        pairs = []
+        for i, o in enumerate(obs):
+            t_o = (T_wc @ o.T_cam_from_obj).t if world else o.T_cam_from_obj.t
+            gate = max(self.cfg.gate_m, 0.5 * o.diameter_m)
+            for k, tr in enumerate(self.tracks):
+                same = tr.obj_id == o.obj_id if o.obj_id is not None and tr.obj_id is not None else tr.label == o.label
+                if tr.world != world or not same:
+                    continue
+                d = float(np.linalg.norm(self._predict(tr, frame).t - t_o))
+                if d < gate:
+                    pairs.append((d, i, k))
+        out: list[_Track | None] = [None] * len(obs)
+        used: set[int] = set()
+        for _, i, k in sorted(pairs):
+            if out[i] is None and k not in used:
+                out[i] = self.tracks[k]
+                used.add(k)
+        return out
+
+    def update(self, frame: int, obs: list[Observation], T_world_from_cam: Rigid3 | None = None) -> list[FusedPose]:
+        """Fuse one frame's observations; returns one :class:`FusedPose` per observation, in order."""
+        cfg = self.cfg
+        if cfg.mode == "none":
+            return [FusedPose(-1, o.T_cam_from_obj, "none", 1) for o in obs]
+        # a frame without a camera pose falls back to the filter, even in ``world`` mode
+        T_wc = T_world_from_cam if cfg.mode in ("auto", "world") else None
+        out = []
+        for o, tr in zip(obs, self._associate(obs, frame, T_wc), strict=True):
+            meas = T_wc @ o.T_cam_from_obj if T_wc is not None else o.T_cam_from_obj
+            if tr is None:
+                tr = _Track(len(self.tracks), o.label, o.obj_id, frame, canonicalize(meas, o.symmetry, np.eye(3)),
+                            T_wc is not None)
+                self.tracks.append(tr)
+                tr.obs.append(tr.T)
+            elif tr.world:
+                tr.obs = [*tr.obs, canonicalize(meas, o.symmetry, tr.T.R)][-cfg.window:]
+                tr.T = robust_mean(tr.obs, cfg.huber_t_m, math.radians(cfg.huber_r_deg))
+                tr.frame = frame
+            else:
+                self._filter_update(tr, frame, canonicalize(meas, o.symmetry, self._predict(tr, frame).R), o)
+            T_cam = T_wc.inverse() @ tr.T if tr.world and T_wc is not None else tr.T
+            out.append(FusedPose(tr.track_id, T_cam, "world" if tr.world else "filter", len(tr.obs)))
+        return out
+
+    def _filter_update(self, tr: _Track, frame: int, meas: Rigid3, o: Observation) -> None:
+        cfg = self.cfg
+        dt = max(frame - tr.frame, 1)
+        pred = self._predict(tr, frame)
+        delta = twist_between(pred, meas)
+        outlier = (np.linalg.norm(meas.t - pred.t) > max(cfg.gate_m, 0.5 * o.diameter_m)
+                   or np.degrees(np.linalg.norm(delta[:3])) > cfg.gate_deg)
+        if outlier and tr.missed < cfg.max_missed:
+            tr.missed += 1
+            tr.T, tr.frame = pred, frame
+            return
+        if outlier:  # lost: restart from the measurement
+            tr.T, tr.xi, tr.missed, tr.frame, tr.obs = meas, np.zeros(6), 0, frame, [meas]
+            return
+        tr.T = _apply_twist(cfg.alpha * delta, pred)
+        tr.xi = tr.xi + cfg.beta * delta / dt
+        tr.missed, tr.frame = 0, frame
+        tr.obs = [*tr.obs, meas][-cfg.window:]

@@ -1,0 +1,103 @@
+"""Frames from a video file or a folder of images, skipping unreadable frames with a warning naming them.
+
+Frames are yielded as RGB uint8 arrays with a stable name: the file name for a folder, ``NNNNNN.png``
+(the 0-based frame index) for a video, so a video and the folder of its frames give the same names
+(``cadalign sim`` writes ``frames/NNNNNN.png`` beside ``video.mp4``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cadalign.errors import InputError
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
+MAX_BAD_VIDEO_READS = 25
+"""Consecutive failed reads after which a video counts as ended (a truncated file)."""
+
+
+@dataclass(frozen=True)
+class VideoFrame:
+    index: int
+    """0-based position in the input (counting skipped frames)."""
+    name: str
+    """File name (folder) or ``NNNNNN.png`` (video)."""
+    image: np.ndarray
+    """(H, W, 3) RGB uint8."""
+
+
+def list_frames(source: Path) -> list[Path]:
+    """The image files of a frame folder, sorted by name."""
+    files = sorted(p for p in Path(source).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    if not files:
+        raise InputError(f"{source} holds no images ({', '.join(IMAGE_SUFFIXES)}); pass a video or a frame folder")
+    return files
+
+
+def iter_frames(source: Path, *, stride: int = 1, max_frames: int | None = None) -> Iterator[VideoFrame]:
+    """Yield every ``stride``-th frame of a video file or an image folder (RGB uint8).
+
+    A frame that cannot be decoded is skipped with a warning naming it; the index still advances.
+
+    Raises:
+        InputError: the source is missing, not a video/folder, or cannot be opened at all.
+    """
+    source = Path(source)
+    if not source.exists():
+        raise InputError(f"video or frame folder not found: {source}")
+    if stride < 1:
+        raise InputError(f"stride must be >= 1, got {stride}")
+    gen = _folder(source) if source.is_dir() else _video(source)
+    n = 0
+    for frame in gen:
+        if frame.index % stride:
+            continue
+        if max_frames is not None and n >= max_frames:
+            return
+        n += 1
+        yield frame
+
+
+def _folder(source: Path) -> Iterator[VideoFrame]:
+    import cv2
+
+    for i, path in enumerate(list_frames(source)):
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if img is None or img.size == 0:
+            log.warning("skipping corrupt frame %s (could not decode it)", path)
+            continue
+        yield VideoFrame(i, path.name, np.ascontiguousarray(img[..., ::-1]))
+
+
+def _video(source: Path) -> Iterator[VideoFrame]:
+    import cv2
+
+    if source.suffix.lower() not in VIDEO_SUFFIXES:
+        raise InputError(f"{source} is neither a frame folder nor a video ({', '.join(VIDEO_SUFFIXES)})")
+    cap = cv2.VideoCapture(str(source))
+    if not cap.isOpened():
+        raise InputError(f"could not open video {source}: the file is corrupt or its codec is unsupported")
+    total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+    i, bad = 0, 0
+    try:
+        while True:
+            ok, img = cap.read()
+            if not ok or img is None:
+                if i >= total or bad >= MAX_BAD_VIDEO_READS:
+                    return
+                log.warning("skipping corrupt frame %d (%06d.png) of %s (could not decode it)", i, i, source)
+                i, bad = i + 1, bad + 1
+                continue
+            bad = 0
+            yield VideoFrame(i, f"{i:06d}.png", np.ascontiguousarray(img[..., ::-1]))
+            i += 1
+    finally:
+        cap.release()
