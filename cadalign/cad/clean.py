@@ -24,6 +24,9 @@ from cadalign.errors import InputError
 
 logger = logging.getLogger(__name__)
 
+MAX_COORD_M = 1e15
+"""Largest accepted |coordinate|, metres: far beyond any geo-referenced site, far below where areas overflow."""
+
 
 @dataclass(frozen=True, eq=False)
 class CleanReport:
@@ -137,6 +140,10 @@ def _validate(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.n
     f = f.astype(np.int64)
     if f.size and (f.min() < 0 or f.max() >= len(v)):
         raise InputError(f"face indices must lie in [0, {len(v)}), got [{f.min()}, {f.max()}]")
+    finite = v[np.isfinite(v)]
+    if finite.size and np.abs(finite).max() > MAX_COORD_M:
+        raise InputError(f"vertex coordinates reach {np.abs(finite).max():.3g} m, beyond any real object "
+                         f"(limit {MAX_COORD_M:g} m, where areas and distances overflow); check the file's unit/export")
     return v, f
 
 

@@ -163,9 +163,20 @@ def read_cad_parts(path: str | Path) -> CadParts:
             continue
         T = np.asarray(T, dtype=np.float64)
         f = np.asarray(mesh.faces, dtype=np.int64)
+        v = np.asarray(mesh.vertices, dtype=np.float64)
+        if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
+            raise InputError(f"CAD file '{path}' is corrupt: part {node!r} has vertices of shape {v.shape} and "
+                             f"faces of shape {f.shape} instead of (V, 3) and (F, 3); re-export it")
+        if f.min() < 0 or f.max() >= len(mesh.vertices):
+            raise InputError(f"CAD file '{path}' is corrupt: part {node!r} has faces referring to vertex "
+                             f"{int(f.max()) if f.max() >= len(mesh.vertices) else int(f.min())} of "
+                             f"{len(mesh.vertices)}; re-export it")
+        if not np.all(np.isfinite(T)):
+            raise InputError(f"CAD file '{path}' is corrupt: part {node!r} has a non-finite transform; re-export it")
         if np.linalg.det(T[:3, :3]) < 0:
             f = f[:, ::-1]
-        verts.append(np.asarray(mesh.vertices, dtype=np.float64) @ T[:3, :3].T + T[:3, 3])
+        with np.errstate(invalid="ignore", over="ignore"):  # NaN/huge vertices are refused or dropped later
+            verts.append(v @ T[:3, :3].T + T[:3, 3])
         faces.append(f + offset)
         labels.append(np.full(len(f), len(names), dtype=np.int32))
         colors.append(_node_colors(mesh))

@@ -14,6 +14,8 @@ Scene folder layout::
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -76,18 +78,31 @@ def gt_info_entry(full: np.ndarray, visib: np.ndarray, depth_valid: np.ndarray) 
     }
 
 
+MAX_DEPTH_SCALE = 1e30
+"""Largest accepted ``depth_scale``: 65535 units of it must still fit a float32 depth in metres."""
+
+
+def _check_depth_scale(depth_scale: float) -> float:
+    if not (_is_number(depth_scale) and 0 < depth_scale <= MAX_DEPTH_SCALE):
+        raise InputError(f"depth_scale must be a number in (0, {MAX_DEPTH_SCALE:g}] (mm per PNG unit), "
+                         f"got {depth_scale!r:.40}")
+    return float(depth_scale)
+
+
 def encode_depth(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
-    """Metres -> BOP uint16 PNG values; invalid (<= 0, non-finite, or beyond range) -> 0."""
+    """Metres -> BOP uint16 PNG values; invalid (<= 0, non-finite, or beyond range) -> 0, without warnings."""
+    scale = _check_depth_scale(depth_scale)
     d = np.asarray(depth_m, dtype=np.float64)
     valid = np.isfinite(d) & (d > 0)
-    vals = np.where(valid, np.round(d * M_TO_MM / depth_scale), 0)
+    with np.errstate(over="ignore", invalid="ignore"):  # beyond 65535 units is "no depth", like NaN
+        vals = np.where(valid, np.round(np.where(valid, d, 0.0) * M_TO_MM / scale), 0)
     vals = np.where(vals > 65535, 0, vals)
     return vals.astype(np.uint16)
 
 
 def decode_depth(png: np.ndarray, depth_scale: float) -> np.ndarray:
     """BOP uint16 PNG values -> metres (float32, 0 = invalid)."""
-    return (png.astype(np.float64) * depth_scale / M_TO_MM).astype(np.float32)
+    return (png.astype(np.float64) * _check_depth_scale(depth_scale) / M_TO_MM).astype(np.float32)
 
 
 def frame_name(im_id: int) -> str:
@@ -126,7 +141,13 @@ class BopFrame:
 
 
 def _is_number(v: object) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+    """A finite JSON number (not a bool; integers beyond float range are not)."""
+    if isinstance(v, bool) or not isinstance(v, numbers.Real):
+        return False
+    try:
+        return math.isfinite(float(v))
+    except OverflowError:
+        return False
 
 
 def _numbers(entry: dict, key: str, n: int, where: str) -> None:
@@ -138,8 +159,8 @@ def _numbers(entry: dict, key: str, n: int, where: str) -> None:
 
 def _rotation(entry: dict, key: str, where: str) -> None:
     _numbers(entry, key, 9, where)
-    R = np.reshape(entry[key], (3, 3))
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
+    R = np.reshape(np.asarray(entry[key], dtype=np.float64), (3, 3))
+    if np.abs(R).max() > 2 or not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
         raise InputError(f"{where}: '{key}' is not a rotation matrix (row-major 3x3, R R^T = I, det +1); "
                          "re-export the scene or fix the entry")
 
@@ -160,8 +181,9 @@ def _check_camera(c: dict, where: str) -> None:
     _numbers(c, "cam_K", 9, where)
     if not (c["cam_K"][0] > 0 and c["cam_K"][4] > 0):
         raise InputError(f"{where}: 'cam_K' must have positive focal lengths, got {c['cam_K']}")
-    if "depth_scale" in c and not (_is_number(c["depth_scale"]) and c["depth_scale"] > 0):
-        raise InputError(f"{where}: 'depth_scale' must be a positive number, got {c['depth_scale']!r:.40}")
+    if "depth_scale" in c and not (_is_number(c["depth_scale"]) and 0 < c["depth_scale"] <= MAX_DEPTH_SCALE):
+        raise InputError(f"{where}: 'depth_scale' must be a positive number (<= {MAX_DEPTH_SCALE:g}), got "
+                         f"{c['depth_scale']!r:.40}")
     for key in ("width", "height"):
         if key in c and not (isinstance(c[key], int) and not isinstance(c[key], bool) and c[key] > 0):
             raise InputError(f"{where}: '{key}' must be a positive integer, got {c[key]!r:.40}")

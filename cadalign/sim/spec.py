@@ -200,34 +200,38 @@ def _inside_solid(spec: ObjectSpec, p_world: np.ndarray) -> np.ndarray:
     return in_z & (np.sum((p[:, :2] / (size[:2] / 2)) ** 2, axis=1) < 1)
 
 
-def check_camera_clearance(spec: SceneSpec, source: str = "<scene>") -> None:
+def check_camera_clearance(spec: SceneSpec, source: str = "<scene>", max_frames: int = 2000) -> None:
     """Refuse trajectories that put the camera under the seabed or inside a solid procedural part.
 
-    Cheap and conservative: camera centres of every frame against the seabed plane (z = 0) and
-    the exact volumes of procedural boxes and cylinders; other parts (open frames, meshes) are
-    not checked.
+    Cheap and conservative: camera centres of every frame (at most ``max_frames`` evenly spaced
+    ones for very long clips) against the seabed plane (z = 0) and the exact volumes of procedural
+    boxes and cylinders; other parts (open frames, meshes) are not checked.
 
     Raises:
         ConfigError: naming the file, the first offending frame, its position and the fix.
     """
-    from cadalign.sim.trajectory import frame_poses
+    from cadalign.sim.trajectory import pose_at
 
+    traj = spec.trajectory
+    ks = np.unique(np.linspace(0, traj.frames - 1, min(traj.frames, max_frames)).round().astype(int))
     try:
-        eyes = np.array([T.t for T in frame_poses(spec.trajectory, spec.trajectory.frames, spec.seed)])
-    except ValueError as exc:  # look_at with coincident eye and target
+        with np.errstate(all="ignore"):  # absurd sizes overflow to a non-finite pose, refused just below
+            eyes = np.array([pose_at(traj, k / traj.fps, spec.seed).t for k in ks])
+    except ValueError as exc:  # look_at with coincident eye and target, or a non-finite pose
         raise ConfigError(
             f"{source}: [trajectory] gives no valid camera pose ({exc}); move 'center' or the path"
         ) from exc
     if spec.seabed is not None and np.any(eyes[:, 2] <= 0):
-        k = int(np.flatnonzero(eyes[:, 2] <= 0)[0])
-        raise ConfigError(f"{source}: the camera of frame {k} is under the seabed (z = {eyes[k, 2]:.3g} m); "
+        i = int(np.flatnonzero(eyes[:, 2] <= 0)[0])
+        raise ConfigError(f"{source}: the camera of frame {ks[i]} is under the seabed (z = {eyes[i, 2]:.3g} m); "
                           "raise trajectory.height_m above 0 (the seabed is at z = 0)")
     for o in spec.objects:
         inside = _inside_solid(o, eyes)
         if inside.any():
-            k = int(np.flatnonzero(inside)[0])
+            i = int(np.flatnonzero(inside)[0])
+            k = int(ks[i])
             raise ConfigError(
-                f"{source}: the camera of frame {k} at {np.round(eyes[k], 3).tolist()} m is inside object "
+                f"{source}: the camera of frame {k} at {np.round(eyes[i], 3).tolist()} m is inside object "
                 f"'{o.name}' ({o.source}); change the trajectory (radius_m, height_m, center) or the object's "
                 "position/size_m")
 
