@@ -9,24 +9,28 @@ from cadalign._version import __version__
 from cadalign.config import to_dict
 from cadalign.errors import ConfigError
 from cadalign.io import read_json, write_json
+from cadalign.train.checkpoint import LAST, check_extra_state
 
 RUN_CONFIG = "train_config.json"
 
 
-def write_run_record(out: Path, task: str, cfg: Any, extra: dict[str, Any], *, resume: bool) -> Path:
-    """Write ``out/train_config.json`` (task, resolved config, identity, version); refuse another config on resume.
+def write_run_record(out: Path, task: str, cfg: Any, identity: dict[str, Any], extra: dict[str, Any], *,
+                     resume: bool) -> Path:
+    """Write ``out/train_config.json`` (task, resolved config, identity, extras, version).
 
-    The loop's ``steps`` may change on resume (to train longer); anything else must match.
-
-    Raises:
-        ConfigError: ``resume`` and the folder was trained with another task or config.
+    A folder holding a checkpoint is refused unless ``resume`` (nothing is overwritten). On resume the folder's
+    record must have the same ``identity`` (class list, model config: else
+    :class:`TrainingError`) and the same config up to the loop's ``steps``/logging (else :class:`ConfigError`).
     """
     out = Path(out)
-    record = {"task": task, "config": to_dict(cfg), **extra, "version": __version__}
+    record = {"task": task, "config": to_dict(cfg), **identity, **extra, "version": __version__}
     path = out / RUN_CONFIG
+    if not resume and (out / "checkpoints" / LAST).is_file():
+        raise ConfigError(f"{out} already holds a training run; pass --resume to continue it or use a new --out")
     if resume and path.is_file():
         old = read_json(path)
-        a, b = _comparable(old), _comparable(record)
+        check_extra_state(old, identity, path)
+        a, b = _comparable(old, identity), _comparable(record, identity)
         if a != b:
             keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
             raise ConfigError(f"{out} was trained with another config (differs in: {', '.join(keys)}); "
@@ -35,7 +39,7 @@ def write_run_record(out: Path, task: str, cfg: Any, extra: dict[str, Any], *, r
     return path
 
 
-def _comparable(rec: dict[str, Any]) -> dict[str, Any]:
+def _comparable(rec: dict[str, Any], identity: dict[str, Any]) -> dict[str, Any]:
     flat: dict[str, Any] = {}
 
     def walk(prefix: str, v: Any) -> None:
@@ -45,8 +49,8 @@ def _comparable(rec: dict[str, Any]) -> dict[str, Any]:
         else:
             flat[prefix] = v
 
-    walk("", {k: v for k, v in rec.items() if k != "version"})
+    walk("", {k: v for k, v in rec.items() if k == "config"})
     for k in ("config.loop.steps", "config.loop.checkpoint_every", "config.loop.log_every", "config.loop.num_workers",
-              "config.val_every", "dataset"):
+              "config.val_every"):
         flat.pop(k, None)
-    return {k: v for k, v in flat.items() if not k.startswith("dataset.")}
+    return flat

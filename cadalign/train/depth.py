@@ -146,10 +146,10 @@ def train_depth(cfg: DepthTrainConfig, ds: Path, out: Path, *, split: str = "tra
     model = DispNet(model_cfg)
     identity = {"task": "depth", "classes": list(base.classes.names), "model": to_dict(model_cfg),
                 "scale": cfg.scale, "mask_input": cfg.mask_input}
-    write_run_record(out, "depth", cfg, {**identity, "depth_range_m": [1 / (model_cfg.alpha + model_cfg.beta),
-                                                                       1 / model_cfg.beta],
-                                         "dataset": {"scene": str(sel.scene_dir), "split": split,
-                                                     "ids": list(sel.ids), "source": sel.source}}, resume=resume)
+    write_run_record(out, "depth", cfg, identity,
+                     {"depth_range_m": [1 / (model_cfg.alpha + model_cfg.beta), 1 / model_cfg.beta],
+                      "dataset": {"scene": str(sel.scene_dir), "split": split, "ids": list(sel.ids),
+                                  "source": sel.source}}, resume=resume)
     log.info("depth: %d %s frames of %s, head range %.3f-%.3f m", len(sel.ids), split, sel.scene_dir,
              1 / (model_cfg.alpha + model_cfg.beta), 1 / model_cfg.beta)
     return train_loop(model, depth_step(cfg), data, cfg.loop, out,

@@ -128,9 +128,10 @@ def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train",
     torch.manual_seed(cfg.loop.seed)
     model = ResUNet(len(classes), cfg.model)
     identity = {"task": "seg", "classes": list(classes), "model": to_dict(cfg.model), "scale": cfg.scale}
-    write_run_record(out, "seg", cfg, {**identity, "class_weights": None if weights is None else weights.tolist(),
-                                       "dataset": {"scene": str(sel.scene_dir), "split": split,
-                                                   "ids": list(sel.ids), "source": sel.source}}, resume=resume)
+    write_run_record(out, "seg", cfg, identity, {"class_weights": None if weights is None else weights.tolist(),
+                                                 "dataset": {"scene": str(sel.scene_dir), "split": split,
+                                                             "ids": list(sel.ids), "source": sel.source}},
+                     resume=resume)
     log.info("seg: %d %s frames of %s, classes %s, weights %s", len(sel.ids), split, sel.scene_dir, classes,
              None if weights is None else np.round(weights, 2).tolist())
     val_fn = None

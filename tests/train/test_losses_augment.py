@@ -1,0 +1,128 @@
+"""Losses (exact values, empty masks) and augmentations (targets follow the image, depth rescaled by crops)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cadalign.train.augment import AugmentConfig, augment_dense, colour_jitter
+from cadalign.train.depth import DepthTrainConfig, depth_loss, pool_depth
+from cadalign.train.losses import (
+    IGNORE,
+    cross_entropy,
+    gradient_loss,
+    masked_l1,
+    masked_mse,
+    median_frequency_weights,
+    scale_invariant_log,
+    soft_dice,
+)
+
+
+def test_masked_losses_by_hand():
+    pred = torch.tensor([[[[1.0, 2.0], [4.0, 9.0]]]])
+    gt = torch.tensor([[[[2.0, 2.0], [2.0, 0.0]]]])
+    valid = gt > 0
+    assert float(masked_mse(pred, gt, valid)) == pytest.approx((1 + 0 + 4) / 3)
+    assert float(masked_l1(pred, gt, valid)) == pytest.approx((1 + 0 + 2) / 3)
+    d = np.log([0.5, 1.0, 2.0])
+    assert float(scale_invariant_log(pred, gt, valid, lam=0.0)) == pytest.approx(math.sqrt((d**2).mean()), abs=1e-5)
+    # fully scale invariant: a global factor costs nothing
+    assert float(scale_invariant_log(gt * 3 + (gt == 0), gt, valid, lam=1.0)) == pytest.approx(0.0, abs=2e-3)
+
+
+def test_gradient_loss_ignores_offsets_in_log_space_and_counts_valid_pairs():
+    gt = torch.rand(1, 1, 6, 7) + 1
+    assert float(gradient_loss(gt * 2.5, gt, gt > 0)) == pytest.approx(0.0, abs=1e-5)
+    pred = gt.clone()
+    pred[..., 3, 3] *= 2
+    assert float(gradient_loss(pred, gt, gt > 0)) > 0
+
+
+@pytest.mark.parametrize("fn", [masked_mse, masked_l1, scale_invariant_log, gradient_loss])
+def test_depth_losses_empty_mask_zero_with_grad(fn):
+    pred = torch.rand(2, 1, 4, 5, requires_grad=True)
+    loss = fn(pred, torch.zeros(2, 1, 4, 5), torch.zeros(2, 1, 4, 5, dtype=torch.bool))
+    loss.backward()
+    assert float(loss.detach()) == 0.0 and torch.isfinite(pred.grad).all() and float(pred.grad.abs().sum()) == 0.0
+
+
+def test_seg_losses_empty_and_perfect():
+    logits = torch.randn(1, 3, 4, 4, requires_grad=True)
+    none = torch.full((1, 4, 4), IGNORE)
+    for loss in (cross_entropy(logits, none), soft_dice(logits, none)):
+        loss.backward()
+        assert float(loss.detach()) == 0.0 and torch.isfinite(logits.grad).all()
+    label = torch.randint(0, 3, (1, 4, 4))
+    perfect = torch.nn.functional.one_hot(label, 3).permute(0, 3, 1, 2).float() * 50
+    assert float(cross_entropy(perfect, label)) == pytest.approx(0.0, abs=1e-6)
+    assert float(soft_dice(perfect, label)) == pytest.approx(0.0, abs=1e-6)
+    assert float(soft_dice(-perfect, label)) > 0.9
+
+
+def test_median_frequency_weights_by_hand():
+    w = median_frequency_weights(np.array([900, 80, 20, 0]), np.array([1000, 1000, 500, 0]))
+    # frequencies 0.9, 0.08, 0.04 -> median 0.08
+    assert w.tolist() == pytest.approx([0.08 / 0.9, 1.0, 2.0, 0.0])
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 2**16), st.floats(0.0, 1.0), st.sampled_from(["mse", "l1", "silog"]))
+def test_depth_loss_finite_for_any_mask(seed, frac, kind):
+    g = torch.Generator().manual_seed(seed)
+    gt = torch.rand(2, 1, 8, 6, generator=g) * 10
+    valid = torch.rand(2, 1, 8, 6, generator=g) < frac
+    gt = torch.where(valid, gt + 0.01, torch.zeros_like(gt))
+    pred = (torch.rand(2, 1, 8, 6, generator=g) * 10 + 0.1).requires_grad_()
+    loss = depth_loss(pred, gt, valid, DepthTrainConfig(loss=kind, grad_weight=0.5))
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(pred.grad).all()
+
+
+def test_pool_depth_averages_valid_pixels_only():
+    d = torch.tensor([[[[2.0, 4.0], [0.0, 6.0]]]])
+    pooled, ok = pool_depth(d, d > 0, (1, 1))
+    assert float(pooled) == pytest.approx(4.0) and bool(ok)
+    pooled, ok = pool_depth(d, torch.zeros_like(d, dtype=torch.bool), (1, 1))
+    assert float(pooled) == 0.0 and not bool(ok)
+
+
+def _batch() -> dict:
+    x = torch.linspace(0, 1, 16).repeat(12, 1)  # brightness encodes the column
+    image = torch.stack([x, x.flip(0), torch.zeros_like(x)])[None].repeat(3, 1, 1, 1)
+    label = (x > 0.5).long()[None].repeat(3, 1, 1)
+    depth = torch.full((3, 1, 12, 16), 2.0)
+    depth[:, :, :, :3] = 0
+    return {"image": image, "label": label, "depth": depth, "valid": depth > 0, "im_id": torch.arange(3)}
+
+
+def test_flip_and_crop_move_targets_with_the_image():
+    cfg = AugmentConfig(hflip=1.0, crop_prob=1.0, crop_min=0.6, brightness=0, contrast=0, saturation=0, hue=0,
+                        turbidity=0, noise=0)
+    out = augment_dense(_batch(), torch.Generator().manual_seed(1), cfg)
+    for i in range(3):
+        # the label is still "column brightness > 0.5" of the augmented image (flipped: the right half became left)
+        img_col = out["image"][i, 0]
+        lab = out["label"][i]
+        assert ((img_col > 0.55) <= (lab == 1)).all() and ((img_col < 0.45) <= (lab == 0)).all()
+        assert bool((lab[:, 0] == 1).all())  # flipped: the bright side is now on the left
+        s = set(out["depth"][i][out["valid"][i]].unique().tolist())
+        assert len(s) == 1 and 2.0 * 0.6 - 1e-6 <= s.pop() <= 2.0 + 1e-6  # depth scaled by the crop side
+        assert bool((out["valid"][i] == (out["depth"][i] > 0)).all())
+    off = augment_dense(_batch(), torch.Generator(), AugmentConfig(enabled=False))
+    assert torch.equal(_batch()["label"], off["label"]) and torch.equal(_batch()["image"], off["image"])
+
+
+def test_augment_is_deterministic_per_generator_and_colour_in_range():
+    a = augment_dense(_batch(), torch.Generator().manual_seed(5), AugmentConfig())
+    b = augment_dense(_batch(), torch.Generator().manual_seed(5), AugmentConfig())
+    c = augment_dense(_batch(), torch.Generator().manual_seed(6), AugmentConfig())
+    assert all(torch.equal(a[k], b[k]) for k in ("image", "label", "depth"))
+    assert not torch.equal(a["image"], c["image"])
+    jit = colour_jitter(torch.rand(4, 3, 8, 8), torch.Generator().manual_seed(0), AugmentConfig(turbidity=0.9))
+    assert float(jit.min()) >= 0 and float(jit.max()) <= 1
