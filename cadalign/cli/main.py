@@ -6,6 +6,8 @@ import typer
 
 from cadalign import __version__
 from cadalign.cli import align, bench, build_dataset, common, demo, emulate, pending, sfm, sim
+from cadalign.cli import eval as eval_cli
+from cadalign.cli import train as train_cli
 
 app = typer.Typer(
     name="cadalign",
@@ -38,8 +40,10 @@ app.command("align")(align.command)
 app.command("build-dataset")(build_dataset.command)
 app.command("demo")(demo.command)
 app.add_typer(bench.app, name="bench")
+app.add_typer(train_cli.app, name="train")
+app.add_typer(eval_cli.app, name="eval")
 app.add_typer(emulate.app, name="emulate")
-pending.register(app, skip={"sim", "sfm", "align", "build-dataset", "demo", "bench", "emulate"})
+pending.register(app, skip={"sim", "sfm", "align", "build-dataset", "demo", "bench", "emulate", "train"})
 
 
 def main() -> None:
