@@ -152,23 +152,29 @@ def cast_from(engine: BVHEngine | TorchEngine, T_world_from_sensor: Rigid3, dirs
 
 
 def scan(mesh: LayeredMesh, T_world_from_sensor: Rigid3, cfg: LidarConfig,
-         engine: BVHEngine | TorchEngine | None = None) -> LidarScan:
-    """One LiDAR scan of ``mesh`` from ``T_world_from_sensor`` (pass ``engine`` to reuse a built one)."""
+         engine: BVHEngine | TorchEngine | None = None,
+         pattern: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None) -> LidarScan:
+    """One LiDAR scan of ``mesh`` from ``T_world_from_sensor``.
+
+    Pass ``engine`` (built over ``mesh``) and ``pattern`` (:func:`scan_directions` of ``cfg``) to reuse them
+    over many scans: the beam pattern of a sensor is fixed, only its pose changes.
+    """
     engine = engine or make_engine(cfg.engine, mesh.vertices_m, mesh.faces, device=cfg.device)
-    d, ring, az, el = scan_directions(cfg)
-    hits = cast_from(engine, T_world_from_sensor, d)
+    d, ring, az, el = pattern if pattern is not None else scan_directions(cfg)
+    d_world = d @ T_world_from_sensor.R.T
+    hits = engine.cast_unit(T_world_from_sensor.t, d_world)
     rng = np.random.default_rng([cfg.seed, 2])
     r = hits.range_m
     keep = hits.hit & (r >= cfg.min_range_m) & (r <= cfg.max_range_m)
     if cfg.dropout > 0:
         keep &= rng.random(len(r)) >= cfg.dropout
     idx = np.flatnonzero(keep)
-    r_meas = r[idx] + (rng.standard_normal(len(idx)) * cfg.range_noise_m if cfg.range_noise_m > 0 else 0.0)
-    r_meas = np.maximum(r_meas, 0.0)
-    d_world = d[idx] @ T_world_from_sensor.R.T
+    r_meas = r[idx]
+    if cfg.range_noise_m > 0:
+        r_meas = np.maximum(r_meas + rng.standard_normal(len(idx)) * cfg.range_noise_m, 0.0)
     f = hits.face[idx]
     return LidarScan(
-        T_world_from_sensor.t + d_world * r_meas[:, None], r_meas, mesh.hit_rgb(f, hits.bary[idx]),
+        T_world_from_sensor.t + d_world[idx] * r_meas[:, None], r_meas, mesh.hit_rgb(f, hits.bary[idx]),
         mesh.class_id[f], mesh.part_id[f], mesh.pane_id[f], ring[idx], az[idx], el[idx], len(d),
     )
 
