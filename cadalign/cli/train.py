@@ -88,3 +88,30 @@ def depth(
         with progress_bar("train depth") as progress:
             result = train_depth(cfg, ds, out, split=split, resume=resume, device=device, progress=progress)
     _report(result, out)
+
+
+@app.command("pose")
+def pose(
+    ds: Path = typer.Argument(..., help=DS_HELP),
+    out: Path = typer.Option(..., "--out", help="Run folder: checkpoints/, metrics.json, loss.png, eval_test.json."),
+    preset: str = typer.Option("fast", "--preset", help="fast (320x240, ResNet-18) | balanced | accurate."),
+    pose_param: str | None = typer.Option(None, "--pose", help="Pose parameterisation: thesis | improved."),
+    config: Path | None = typer.Option(None, "--config", help="TOML/YAML overrides of the preset (see training/)."),
+    resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoints/last.pt."),
+    steps: int | None = typer.Option(None, "--steps", min=1, help="Override the preset's optimiser steps."),
+    seed: int | None = typer.Option(None, "--seed", help="Override the seed."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace a run made with another config."),
+    device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
+) -> None:
+    """Train Mask R-CNN with the 6-DoF pose head; scores the held-out (test) frames at the end."""
+    from cadalign.config import resolve
+    from cadalign.train.pose import PRESETS, PoseTrainConfig, run
+
+    with user_errors():
+        extra = overrides(steps, seed)
+        if pose_param is not None:
+            extra["model"] = {"pose": pose_param}
+        cfg = resolve(PoseTrainConfig, PRESETS, preset, config, extra)
+        with progress_bar(f"train pose ({cfg.model.pose})") as progress:
+            result = run(cfg, ds, out, resume=resume, overwrite=overwrite, device=device, progress=progress)
+    _report(result, out)

@@ -3,8 +3,8 @@
 ``run(cfg, dataset, out_dir)`` trains with the shared loop (:mod:`cadalign.train.loop`) and then scores
 the held-out frames (``eval_test.json``: detection precision/recall/F1 at IoU 0.5, mask IoU, translation and
 rotation errors of the matched detections, per class). The dataset is a ``cadalign build-dataset`` folder
-(``all/000000``, ``models/``, ``splits.json``) or one BOP scene folder (e.g. the simulator's
-``gt/sim/000000``, models in ``../../models``, split by time blocks here).
+(``splits.json``, ``models/``) or one BOP scene folder (e.g. the simulator's ``gt/sim/000000``, models in
+``../../models``), with the same frame selection as the dense trainers (:func:`cadalign.train.data.select`).
 
 Images, masks, boxes and K are resized to the network input once per frame and cached in memory (a build
 dataset is at most a few hundred frames). No flips: mirroring changes the handedness of the pose.
@@ -28,12 +28,12 @@ from torch.utils.data import Dataset
 from cadalign.cad.symmetry import Symmetry
 from cadalign.config import bounded, to_dict
 from cadalign.data.bop import mask_bbox
-from cadalign.data.splits import time_block_splits
 from cadalign.data.torch_datasets import DetectionPoseDataset, detection_collate
 from cadalign.errors import InputError
 from cadalign.io import prepare_stage_dir, read_json, write_json
 from cadalign.models.maskrcnn.detector import MODEL_KIND, MaskRCNNConfig, MaskRCNNPose
 from cadalign.train.augment import AugmentConfig, colour_jitter
+from cadalign.train.data import select
 from cadalign.train.loop import LoopConfig, TrainResult, train_loop
 from cadalign.train.pose_losses import ObjectGeometry, PoseLoss, PoseLossConfig
 
@@ -86,23 +86,22 @@ class PoseDataset:
 
 
 def locate_dataset(path: Path) -> PoseDataset:
-    """Resolve a build-dataset folder or a BOP scene folder (see the module docstring)."""
-    path = Path(path)
-    if (path / "all" / "000000" / "scene_gt.json").is_file():
-        scene, models = path / "all" / "000000", path / "models"
-        splits = read_json(path / "splits.json") if (path / "splits.json").is_file() else None
-    elif (path / "scene_gt.json").is_file():
-        scene, models, splits = path, path.parent.parent / "models", None
-    else:
-        raise InputError(f"{path} is neither a dataset folder (all/000000/, models/, splits.json) nor a BOP scene "
-                         "(scene_gt.json); pass the 'dataset' folder of 'cadalign build-dataset' or a BOP scene")
+    """The scene, models folder and split ids of a dataset root or a BOP scene (see :func:`cadalign.train.data.select`).
+
+    Models are ``ROOT/models`` for a dataset root and ``SCENE/../../models`` for a bare scene (BOP layout).
+    """
+    train = select(path, "train")
+    splits = {"train": list(train.ids)}
+    for name in ("val", "test"):
+        try:
+            splits[name] = list(select(path, name).ids)
+        except InputError:  # an empty held-out split: nothing to score
+            splits[name] = []
+    root = Path(path) if (Path(path) / "splits.json").is_file() else train.scene_dir.parent.parent
+    models = root / "models"
     if not (models / "models_info.json").is_file():
         raise InputError(f"{models}/models_info.json is missing: the dataset has no CAD models for the pose loss")
-    if splits is None:
-        from cadalign.data.bop import BopScene
-
-        splits = time_block_splits(BopScene(scene).ids, (0.8, 0.0, 0.2), block=8, gap=1)
-    return PoseDataset(scene, models, {k: [int(i) for i in v] for k, v in splits.items()})
+    return PoseDataset(train.scene_dir, models, splits)
 
 
 def symmetry_from_bop(entry: dict) -> Symmetry:
@@ -203,7 +202,7 @@ def extra_state(cfg: PoseTrainConfig, classes: tuple[str, ...]) -> dict:
 
 
 def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = False, overwrite: bool = False,
-        progress: Callable[[int, int, dict[str, float]], None] | None = None) -> TrainResult:
+        device: str = "cpu", progress: Callable[[int, int, dict[str, float]], None] | None = None) -> TrainResult:
     """Train on the dataset's train split, write ``train_config.json`` and score the test split.
 
     Raises:
@@ -230,7 +229,7 @@ def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = Fa
     torch.manual_seed(cfg.loop.seed)
     model = MaskRCNNPose(cfg.model, classes)
     result = train_loop(model, make_step_fn(loss), data, cfg.loop, Path(out_dir), collate_fn=detection_collate,
-                        augment=make_augment(cfg.augment), resume=resume, progress=progress,
+                        augment=make_augment(cfg.augment), resume=resume, device=device, progress=progress,
                         extra_state=extra_state(cfg, classes))
     test_ids = ds.splits.get("test") or []
     if test_ids and not result.interrupted:

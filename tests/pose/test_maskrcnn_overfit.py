@@ -1,0 +1,39 @@
+"""Acceptance: the whole detector (RPN, box, mask and pose heads) overfits a 4-image batch (slow, ~2 min)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from cadalign.data.torch_datasets import detection_collate
+from cadalign.models.maskrcnn import MaskRCNNConfig, MaskRCNNPose
+from cadalign.train.loop import LoopConfig, train_loop
+from cadalign.train.pose import ResizedDetectionDataset, load_object_geometry, locate_dataset, make_step_fn
+from cadalign.train.pose_eval import evaluate
+from cadalign.train.pose_losses import PoseLoss, PoseLossConfig
+
+CFG = MaskRCNNConfig(width=16, fpn_channels=32, input_hw=(120, 160), anchor_sizes=(8.0, 16, 32, 64, 128),
+                     rpn_pre_nms_train=300, rpn_post_nms_train=100, rpn_pre_nms_test=300, rpn_post_nms_test=100,
+                     roi_batch_per_image=64, box_rep=128, mask_channels=32, pose_channels=32, pose_rep=128)
+
+
+@pytest.mark.slow
+def test_detector_overfits_four_images(pose_bop: Path, tmp_path: Path):
+    # measured (seed 0, 1 thread): loss 5.2 -> 0.060 in 400 steps (mask BCE 0.045 is most of it), F1 1.0,
+    # mask IoU 0.948, translation error 2.4 cm, rotation error 0.19 deg on the 12 instances of the 4 frames
+    ds = locate_dataset(pose_bop)
+    data = ResizedDetectionDataset(ds.scene_dir, sorted(ds.splits["train"])[:4], CFG.input_hw)
+    torch.manual_seed(0)
+    model = MaskRCNNPose(CFG, data.base.classes.names)
+    loss = PoseLoss(load_object_geometry(ds.models_dir, 200), PoseLossConfig())
+    loop = LoopConfig(steps=400, batch_size=4, lr=2e-3, log_every=10, checkpoint_every=10**6)
+    train_loop(model, make_step_fn(loss), data, loop, tmp_path, collate_fn=detection_collate)
+    rows = json.loads((tmp_path / "metrics.json").read_text())["rows"]
+    assert rows[0]["loss"] > 1.0 and rows[-1]["loss_avg"] < 0.1
+    model.eval()
+    s = evaluate(model, data, 0.5)["summary"]
+    assert s["f1"] == 1.0 and s["mask_iou_mean"] > 0.9
+    assert s["t_err_m_mean"] < 0.1 and s["r_err_deg_mean"] < 3.0
