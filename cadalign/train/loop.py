@@ -8,7 +8,7 @@ the batches of an uninterrupted one. Augmentation gets a ``torch.Generator`` see
 
 Files in ``run_dir``: ``checkpoints/last.pt`` (+ ``step_XXXXXX.pt`` every ``checkpoint_every``; also on
 SIGINT/SIGTERM and at the end), ``metrics.json`` (``{"rows": [{"step", "loss", "loss_avg", <step_fn
-metrics>, "lr", "seconds", <val metrics>}...]}``) and ``loss.png``. Under ``torchrun`` (``RANK`` and
+metrics>, "lr", "seconds", "cpu_seconds", <val metrics>}...]}``) and ``loss.png``. Under ``torchrun`` (``RANK`` and
 ``WORLD_SIZE`` set) the model is wrapped in DistributedDataParallel (gloo on CPU), each rank takes its
 slice of the global batch, and only rank 0 writes files.
 """
@@ -221,11 +221,17 @@ class _Run:
         self.rows: list[dict[str, float]] = []
         self.window: list[float] = []
         self.seconds0 = 0.0
+        self.cpu0 = 0.0
         self.t0 = time.perf_counter()
+        self.c0 = time.process_time()
 
     def seconds(self) -> float:
-        """Training seconds over this run and the runs it resumed."""
+        """Wall-clock training seconds over this run and the runs it resumed."""
         return self.seconds0 + time.perf_counter() - self.t0
+
+    def cpu_seconds(self) -> float:
+        """CPU seconds of this process (all threads) over this run and the runs it resumed."""
+        return self.cpu0 + time.process_time() - self.c0
 
     @property
     def ckpt_dir(self) -> Path:
@@ -236,7 +242,7 @@ class _Run:
             "model": unwrap(self.model).state_dict(), "optimizer": self.opt.state_dict(),
             "scheduler": self.sched.state_dict(), "step": self.step, "sampler_position": self.step,
             "rng": rng_state(), "extra_state": self.extra or {}, "loop_config": to_dict(self.cfg),
-            "window": list(self.window), "seconds": self.seconds(),
+            "window": list(self.window), "seconds": self.seconds(), "cpu_seconds": self.cpu_seconds(),
         }
 
     def save(self, *, numbered: bool) -> None:
@@ -266,7 +272,8 @@ class _Run:
         self.step = int(ck["step"])
         self.window = list(ck.get("window", []))
         self.seconds0 = float(ck.get("seconds", 0.0))
-        self.t0 = time.perf_counter()
+        self.cpu0 = float(ck.get("cpu_seconds", 0.0))
+        self.t0, self.c0 = time.perf_counter(), time.process_time()
         set_rng_state(ck["rng"])
         mpath = self.run_dir / "metrics.json"
         if mpath.is_file():
@@ -396,7 +403,7 @@ def _after_step(run: _Run, loss_v: float, metrics: dict[str, float], val_fn: Cal
         (val_every > 0 and run.step % val_every == 0) or run.step == cfg.steps)
     if run.step % cfg.log_every == 0 or do_val or run.step == cfg.steps:
         row = {"step": run.step, "loss": loss_v, "loss_avg": float(np.mean(run.window)), **metrics,
-               "lr": run.opt.param_groups[0]["lr"], "seconds": run.seconds()}
+               "lr": run.opt.param_groups[0]["lr"], "seconds": run.seconds(), "cpu_seconds": run.cpu_seconds()}
         if do_val:
             inner = unwrap(run.model)
             inner.eval()
