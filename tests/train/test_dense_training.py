@@ -100,3 +100,14 @@ def test_preset_config_file_is_strict(tmp_path):
         from_dict(SegTrainConfig, {"model": {"base_channel": 4}}, source="x.toml")
     with pytest.raises(ConfigError, match="loss"):
         from_dict(DepthTrainConfig, {"loss": "huber"}, source="x.toml")
+
+
+@pytest.mark.parametrize("name", ["seg_tiny", "seg_small_classes", "depth_tiny", "depth_thesis", "depth_silog_mask"])
+def test_training_configs_load(repo_root, name):
+    from cadalign.config import resolve
+    from cadalign.train import depth, seg
+
+    mod, cls = (seg, SegTrainConfig) if name.startswith("seg") else (depth, DepthTrainConfig)
+    for preset in mod.PRESETS:
+        cfg = resolve(cls, mod.PRESETS, preset, repo_root / "training" / f"{name}.toml")
+        assert isinstance(cfg, cls)
