@@ -30,7 +30,7 @@ from cadalign.errors import InputError
 log = logging.getLogger(__name__)
 
 EngineName = Literal["bvh", "torch"]
-SUPER = 16
+SUPER = 32
 """Clusters per super-cluster: the torch engine culls with super-cluster boxes first, then cluster boxes."""
 
 
@@ -156,7 +156,7 @@ class TorchEngine:
     name = "torch"
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, *, device: str = "cpu",
-                 dtype: Literal["float64", "float32"] = "float64", cluster_size: int = 32,
+                 dtype: Literal["float64", "float32"] = "float64", cluster_size: int = 8,
                  budget: int = 4_000_000, det_tol: float = 1e-12, bary_tol: float = 1e-9) -> None:
         import torch
 
