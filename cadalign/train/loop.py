@@ -34,6 +34,7 @@ from torch.utils.data import DataLoader, Dataset, default_collate
 from cadalign.config import bounded, to_dict
 from cadalign.errors import ConfigError, TrainingError
 from cadalign.io import read_json, write_json
+from cadalign.train.batches import StepBatchSampler, check_finite_batch, sample_names, stream_indices
 from cadalign.train.checkpoint import (
     LAST,
     check_extra_state,
@@ -45,6 +46,8 @@ from cadalign.train.checkpoint import (
 )
 
 log = logging.getLogger(__name__)
+
+__all__ = ["LoopConfig", "StepFn", "TrainResult", "check_finite_batch", "stream_indices", "train_loop"]
 
 
 @dataclass(frozen=True)
@@ -97,35 +100,6 @@ class TrainResult:
     """True when stopped by KeyboardInterrupt/SIGTERM (a checkpoint was written)."""
 
 
-def stream_indices(n: int, seed: int, start: int, count: int) -> list[int]:
-    """Dataset indices at stream positions ``[start, start+count)`` of the seeded infinite sample stream."""
-    out: list[int] = []
-    perms: dict[int, torch.Tensor] = {}
-    for pos in range(start, start + count):
-        epoch = pos // n
-        if epoch not in perms:
-            g = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
-            perms[epoch] = torch.randperm(n, generator=g)
-        out.append(int(perms[epoch][pos % n]))
-    return out
-
-
-class _BatchSampler:
-    """Index lists of this rank's share of global batches ``start_step .. steps-1``."""
-
-    def __init__(self, n: int, cfg: LoopConfig, start_step: int, rank: int, world: int) -> None:
-        self.n, self.cfg, self.start, self.rank, self.world = n, cfg, start_step, rank, world
-        self.per_rank = cfg.batch_size // world
-
-    def __iter__(self) -> Iterator[list[int]]:
-        for step in range(self.start, self.cfg.steps):
-            idx = stream_indices(self.n, self.cfg.seed, step * self.cfg.batch_size, self.cfg.batch_size)
-            yield idx[self.rank * self.per_rank : (self.rank + 1) * self.per_rank]
-
-    def __len__(self) -> int:
-        return max(self.cfg.steps - self.start, 0)
-
-
 def _lr_lambda(cfg: LoopConfig) -> Callable[[int], float]:
     warm = int(round(cfg.warmup * cfg.steps))
 
@@ -136,35 +110,6 @@ def _lr_lambda(cfg: LoopConfig) -> Callable[[int], float]:
         return 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(t, 1.0)))
 
     return f
-
-
-def _sample_names(batch: dict, rows: list[int] | None = None) -> str:
-    for key in ("im_id", "name"):
-        if key in batch:
-            v = batch[key]
-            vals = v.tolist() if isinstance(v, torch.Tensor) else list(v)
-            if rows is not None:
-                vals = [vals[i] for i in rows if i < len(vals)]
-            return f"{key}={vals}"
-    return "(the batch has no 'im_id' or 'name')"
-
-
-def check_finite_batch(batch: dict, step: int) -> None:
-    """Raise :class:`TrainingError` naming the sample(s) and key of any non-finite float input."""
-    for key, v in batch.items():
-        items = v if isinstance(v, (list, tuple)) else [v]
-        bad: list[int] = []
-        for j, t in enumerate(items):
-            if isinstance(t, torch.Tensor) and t.is_floating_point() and not bool(torch.isfinite(t).all()):
-                if t is v and t.ndim > 0:  # a stacked tensor: find the rows
-                    bad = [i for i in range(t.shape[0]) if not bool(torch.isfinite(t[i]).all())]
-                else:
-                    bad.append(j)
-        if bad:
-            raise TrainingError(
-                f"non-finite values (NaN/inf) in input '{key}' of sample {_sample_names(batch, bad)} at step {step}; "
-                "fix or remove that sample from the dataset"
-            )
 
 
 def _to_device(x: Any, device: torch.device) -> Any:
@@ -336,7 +281,8 @@ def train_loop(model: nn.Module, step_fn: StepFn, dataset: Dataset, cfg: LoopCon
     if run.step >= cfg.steps:
         log.info("%s: already trained %d/%d steps", run_dir, run.step, cfg.steps)
         return TrainResult(Path(run_dir), run.step, math.nan, time.perf_counter() - t0, False)
-    loader = DataLoader(dataset, batch_sampler=_BatchSampler(len(dataset), cfg, run.step, rank, world),
+    sampler = StepBatchSampler(len(dataset), cfg.steps, cfg.batch_size, cfg.seed, run.step, rank, world)
+    loader = DataLoader(dataset, batch_sampler=sampler,
                         collate_fn=collate_fn or default_collate, num_workers=cfg.num_workers,
                         # its own generator: drawing the worker base seed must not advance the global RNG
                         generator=torch.Generator().manual_seed(cfg.seed + run.step))
@@ -373,14 +319,14 @@ def _one_step(run: _Run, step_fn: StepFn, batch: dict, dev: torch.device,
     with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=use_amp):
         loss, metrics = step_fn(run.model, batch)
     if not bool(torch.isfinite(loss.detach()).all()):
-        raise TrainingError(f"non-finite loss ({float(loss.detach())}) on sample {_sample_names(batch)} at step "
+        raise TrainingError(f"non-finite loss ({float(loss.detach())}) on sample {sample_names(batch)} at step "
                             f"{run.step}; check those samples and lower the learning rate; no checkpoint was written")
     run.opt.zero_grad(set_to_none=True)
     loss.float().backward()
     params = [p for p in run.model.parameters() if p.grad is not None]
     norm = torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip if cfg.grad_clip > 0 else float("inf"))
     if not bool(torch.isfinite(norm)):
-        raise TrainingError(f"non-finite gradient on sample {_sample_names(batch)} at step {run.step}; "
+        raise TrainingError(f"non-finite gradient on sample {sample_names(batch)} at step {run.step}; "
                             "lower the learning rate or enable grad_clip; no checkpoint was written")
     run.opt.step()
     run.sched.step()
