@@ -149,3 +149,25 @@ def test_refuses_existing_run_other_identity_and_other_settings(tmp_path):
     with pytest.raises(ConfigError, match="lr"):
         train_loop(_model(), _step, _Toy(), LoopConfig(**{**small.__dict__, "lr": 0.5}), tmp_path, resume=True,
                    extra_state={"classes": ["bg", "valve"]})
+
+
+def test_sigterm_checkpoints_and_stops(tmp_path):
+    import os
+    import signal
+
+    def term_at_4(step: int, total: int, metrics: dict) -> None:
+        if step == 4:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    old = signal.getsignal(signal.SIGTERM)
+    res = train_loop(_model(), _step, _Toy(), CFG, tmp_path, progress=term_at_4)
+    assert res.interrupted and res.steps_done == 4
+    assert load_checkpoint(tmp_path / "checkpoints" / "last.pt")["step"] == 4
+    assert signal.getsignal(signal.SIGTERM) is old  # the handler is restored
+
+
+def test_amp_bf16_on_cpu_trains(tmp_path):
+    cfg = LoopConfig(steps=30, batch_size=4, lr=2e-2, log_every=10, amp=True)
+    train_loop(_model(), _step, _Toy(), cfg, tmp_path)
+    rows = read_json(tmp_path / "metrics.json")["rows"]
+    assert all(math.isfinite(r["loss"]) for r in rows) and rows[-1]["loss_avg"] < rows[0]["loss_avg"]
