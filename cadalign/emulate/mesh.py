@@ -86,10 +86,11 @@ class LayeredMesh:
         """(N, 3) uint8 colour of hits on ``face`` (N,) at barycentrics ``bary`` (N, 2); face < 0 -> black."""
         face = np.asarray(face, dtype=np.int64)
         hit = face >= 0
-        out = np.zeros((len(face), 3), dtype=np.uint8)
         if self.vertex_rgb is None:
-            out[hit] = self.face_rgb[face[hit]]
+            out = self.face_rgb[np.maximum(face, 0)]
+            out[~hit] = 0
             return out
+        out = np.zeros((len(face), 3), dtype=np.uint8)
         uv = np.asarray(bary, dtype=np.float64)[hit]
         w = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
         cols = self.vertex_rgb[self.faces[face[hit]]].astype(np.float64)  # (M, 3 corners, 3 channels)

@@ -109,11 +109,13 @@ class BVHEngine:
         rays[:, :3] = origins if local else origins - self._centre
         rays[:, 3:] = unit_dirs
         ans = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=self._nthreads)
-        t = ans["t_hit"].numpy().astype(np.float64)
-        hit = np.isfinite(t)
-        face = np.where(hit, ans["primitive_ids"].numpy().astype(np.int64), -1)
-        bary = np.where(hit[:, None], ans["primitive_uvs"].numpy().astype(np.float64), 0.0)
-        return RayHits(np.where(hit, t, np.inf), face, bary)
+        t = ans["t_hit"].numpy().astype(np.float64)  # inf for a miss
+        miss = ~np.isfinite(t)
+        face = ans["primitive_ids"].numpy().astype(np.int64)
+        face[miss] = -1
+        bary = ans["primitive_uvs"].numpy().astype(np.float64)
+        bary[miss] = 0.0
+        return RayHits(t, face, bary)
 
 
 def _slab(o, inv, lo, hi):

@@ -149,7 +149,7 @@ def _write_sonar(mesh: LayeredMesh, cfg: sonar.SonarConfig, T: Rigid3, out: Path
 
 
 def _write_view(mesh: LayeredMesh, cfg: views.ViewConfig, T: Rigid3, out: Path, source: Path) -> dict:
-    v = views.render(mesh, cfg.camera(), T, max_range_m=cfg.max_range_m, engine_name=cfg.engine)
+    v = views.render(mesh, cfg.camera(), T, max_range_m=cfg.max_range_m, engine_name=cfg.engine, device=cfg.device)
     _write_view_files(v, out, "")
     return {"hit_fraction": float((v.face >= 0).mean())}
 

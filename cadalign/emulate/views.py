@@ -72,9 +72,13 @@ class ViewFrame:
 
 
 def render(mesh: LayeredMesh, camera: Camera, T_world_from_cam: Rigid3, *, max_range_m: float = np.inf,
-           engine: BVHEngine | TorchEngine | None = None, engine_name: str = "bvh") -> ViewFrame:
-    """Render ``mesh`` from ``T_world_from_cam`` with pinhole ``camera`` (see the module docstring)."""
-    engine = engine or make_engine(engine_name, mesh.vertices_m, mesh.faces)  # type: ignore[arg-type]
+           engine: BVHEngine | TorchEngine | None = None, engine_name: str = "bvh",
+           device: str = "cpu") -> ViewFrame:
+    """Render ``mesh`` from ``T_world_from_cam`` with pinhole ``camera`` (see the module docstring).
+
+    Pass a built ``engine`` to reuse it over many views; otherwise one called ``engine_name`` is built.
+    """
+    engine = engine or make_engine(engine_name, mesh.vertices_m, mesh.faces, device=device)  # type: ignore[arg-type]
     H, W = camera.height, camera.width
     rays = pixel_rays(camera.K, W, H).reshape(-1, 3)
     norm = np.linalg.norm(rays, axis=1)
