@@ -214,7 +214,8 @@ class TorchEngine:
         """(ray, cluster) pairs whose padded boxes the rays enter at t >= 0, via boxes of ``SUPER`` clusters."""
         torch = self._torch
         # a zero direction component becomes a tiny one: the slab is then (-huge, huge) or empty, no NaN
-        tiny = torch.where(d >= 0, torch.full_like(d, 1e-300), torch.full_like(d, -1e-300))
+        eps = torch.finfo(d.dtype).tiny
+        tiny = torch.where(d >= 0, torch.full_like(d, eps), torch.full_like(d, -eps))
         inv = 1.0 / torch.where(d == 0, tiny, d)
         rays, supers = _slab(o[:, None], inv[:, None], self._slo[None], self._shi[None]).nonzero(as_tuple=True)
         idx = supers[:, None] * self._S + torch.arange(self._S, device=self._dev)[None]  # (P1, S)
