@@ -6,12 +6,14 @@ from pathlib import Path
 
 import typer
 
+from cadalign.cli import eval_pose
 from cadalign.cli.common import console, user_errors
 
 app = typer.Typer(help="Evaluate trained networks on a dataset split (metrics JSON and figures).",
                   no_args_is_help=True)
 
 DS_HELP = "Dataset root with splits.json or a BOP scene folder (same as for training)."
+app.command("pose")(eval_pose.command)
 
 
 @app.command("seg")

@@ -7,6 +7,7 @@ import typer
 from cadalign import __version__
 from cadalign.cli import align, bench, build_dataset, common, demo, emulate, pending, sfm, sim
 from cadalign.cli import eval as eval_cli
+from cadalign.cli import infer as infer_cli
 from cadalign.cli import train as train_cli
 
 app = typer.Typer(
@@ -43,7 +44,8 @@ app.add_typer(bench.app, name="bench")
 app.add_typer(train_cli.app, name="train")
 app.add_typer(eval_cli.app, name="eval")
 app.add_typer(emulate.app, name="emulate")
-pending.register(app, skip={"sim", "sfm", "align", "build-dataset", "demo", "bench", "emulate", "train"})
+app.command("infer")(infer_cli.command)
+pending.register(app, skip={"sim", "sfm", "align", "build-dataset", "demo", "bench", "emulate", "train", "infer"})
 
 
 def main() -> None:

@@ -73,7 +73,7 @@ class OracleConfig:
     """RMS of the rotation noise (deg; rotation vector isotropic Gaussian)."""
     min_visib_fract: float = bounded(0.1, ge=0, le=1)
     """Instances less visible than this are not reported (BOP's default)."""
-    min_pixels: int = bounded(30, ge=1)
+    min_pixels: int = bounded(1, ge=1)
     """Instances with fewer visible pixels are not reported."""
     give_obj_id: bool = False
     """Report the true model id (a network reports only the class; off = the pipeline must identify it)."""

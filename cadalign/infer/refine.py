@@ -55,9 +55,9 @@ class RefineConfig:
     icp_huber_m: float = bounded(0.005, gt=0)
     """Huber threshold of the point-to-plane residuals, metres."""
     prior_t_m: float = bounded(0.05, gt=0)
-    """Silhouette: standard deviation of the prior on the detector's translation (m)."""
+    """Standard deviation of the prior on the detector's translation (m), for unobserved directions."""
     prior_r_deg: float = bounded(10.0, gt=0)
-    """Silhouette: standard deviation of the prior on the detector's rotation (deg)."""
+    """Standard deviation of the prior on the detector's rotation (deg)."""
     icp_max_corr_start: float = bounded(0.5, gt=0)
     """ICP's wide gate (fraction of the diameter), while under half the points pair within ``icp_max_corr``."""
     damping: float = bounded(1e-2, ge=0)
@@ -114,6 +114,16 @@ def _proj_jacobian(K: np.ndarray, X: np.ndarray) -> np.ndarray:
 
 def _small(step: np.ndarray, cfg: RefineConfig, geom: ModelGeometry) -> bool:
     return bool(np.linalg.norm(step[:3]) < cfg.min_step and np.linalg.norm(step[3:]) < cfg.min_step * geom.diameter_m)
+
+
+def _clamp(step: np.ndarray, diameter_m: float) -> np.ndarray:
+    """Limit one update to 0.2 rad and a quarter diameter (a guard against a near-singular system)."""
+    out = step.copy()
+    for sl, lim in ((slice(0, 3), 0.2), (slice(3, 6), 0.25 * diameter_m)):
+        n = np.linalg.norm(out[sl])
+        if n > lim:
+            out[sl] *= lim / n
+    return out
 
 
 def _huber_weights(r: np.ndarray, k: float) -> np.ndarray:
@@ -204,16 +214,18 @@ def _outline_points(geom: ModelGeometry, T: Rigid3, K: np.ndarray, shape: tuple[
     return P
 
 
-def _prior(T: Rigid3, T_init: Rigid3, cfg: RefineConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Rows (r (6,), J (6, 6)) of the Gaussian prior on the deviation from the detector's pose, in px units.
+def _prior(T: Rigid3, T_init: Rigid3, cfg: RefineConfig, unit: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rows (r (6,), J (6, 6)) of the Gaussian prior on the deviation from the detector's pose.
 
     The deviation is (rotation vector of ``R R_init^T``, ``t - t_init``); a twist step (omega, v) changes it by
-    (omega, omega x t + v). Scaled by ``huber_px / sigma`` so one sigma costs as much as one Huber-size pixel.
+    (omega, omega x t + v). Scaled by ``unit / sigma`` so one sigma costs as much as one residual of size
+    ``unit`` (the Huber threshold): negligible against the data where the data constrain the pose, decisive in
+    the directions they do not (depth of a small silhouette, the axis of a cylinder in ICP).
     """
     from cadalign.geometry.rotations import matrix_to_axis_angle, skew
 
     dev = np.concatenate([matrix_to_axis_angle(T.R @ T_init.R.T), T.t - T_init.t])
-    S = np.diag([cfg.huber_px / np.radians(cfg.prior_r_deg)] * 3 + [cfg.huber_px / cfg.prior_t_m] * 3)
+    S = np.diag([unit / np.radians(cfg.prior_r_deg)] * 3 + [unit / cfg.prior_t_m] * 3)
     J = np.eye(6)
     J[3:, :3] = -skew(T.t)
     return S @ dev, S @ J
@@ -238,7 +250,7 @@ def _contour_step(geom: ModelGeometry, T: Rigid3, T_init: Rigid3, K: np.ndarray,
         return None, float("nan")
     k, a = cfg.huber_px, np.minimum(np.abs(r[ok]), cfg.trunc_px)
     loss = np.where(a <= k, 0.5 * a * a, k * (a - 0.5 * k))
-    rp, Jp = _prior(T, T_init, cfg)
+    rp, Jp = _prior(T, T_init, cfg, cfg.huber_px)
     cost = float((loss.sum() + 0.5 * rp @ rp) / max(ok.sum(), 1))
     J = np.einsum("nk,nkj->nj", g[keep], _proj_jacobian(K, Xc[keep]))
     Jall = np.concatenate([J, Jp])
@@ -325,9 +337,12 @@ def refine_depth_icp(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, depth_m
         r = np.einsum("ij,ij->i", n_c, p_c - q)
         J = np.concatenate([np.cross(p_c, n_c), n_c], axis=1)
         costs.append(float(np.mean(np.abs(r))))
-        step = _solve(J, r, _huber_weights(r, cfg.icp_huber_m), ICP_DAMPING)
+        rp, Jp = _prior(T, T_init, cfg, cfg.icp_huber_m)
+        step = _solve(np.concatenate([J, Jp]), np.concatenate([r, rp]),
+                      np.concatenate([_huber_weights(r, cfg.icp_huber_m), np.ones(6)]), ICP_DAMPING)
         if step is None:
             break
+        step = _clamp(step, geom.diameter_m)
         T = apply_twist(step, T)
         done += 1
         if _small(step, cfg, geom):

@@ -5,6 +5,7 @@ Outputs in ``out_dir``::
     poses.jsonl     one JSON object per reported instance and frame (see PoseRecord.to_json); empty when the
                     video shows no parts
     overlay.mp4     the frames with each part's CAD wireframe drawn at its reported pose
+    frames.json     the names of the frames processed (readable ones), in order
     timings.json    seconds per frame per stage (detector / pose / refinement / temporal / overlay), frames/s
     eval.json, eval.md   with ground truth: detection P/R/F1, Table 4.5, BOP recalls, errors by distance,
                     for the detector's, the refined and the fused poses
@@ -157,10 +158,11 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
                 names.append(vf.name)
         if writer is not None:
             writer.close()
+    write_json(out_dir / "frames.json", names)
     write_json(out_dir / "timings.json", _timing_summary(times, len(names), len(all_records), detector_info))
     log.info("infer: %d frames, %d poses -> %s", len(names), len(all_records), poses_path)
     if gt_scene is not None:
-        evaluate_run(all_records, names, gt_scene, class_names, out_dir)
+        evaluate_run(all_records, names, gt_scene, out_dir)
     return poses_path
 
 
@@ -182,26 +184,51 @@ def _timing_summary(times: dict[str, list[float]], n_frames: int, n_poses: int, 
             "note": "pipeline = detector + pose (model identification) + refinement + temporal; overlay apart"}
 
 
-def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, class_names: tuple[str, ...],
-                 out_dir: Path) -> dict:
-    """Evaluate the detector's, the refined and the fused poses against a BOP scene; writes eval.json/eval.md."""
+def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, out_dir: Path | None) -> dict:
+    """Evaluate the detector's, the refined and the fused poses against a BOP scene (eval.json/eval.md)."""
     from cadalign.data.torch_datasets import load_class_map
     from cadalign.eval.pose_eval import PoseEvalConfig, PosePrediction, evaluate_scene, load_bop_models, table_markdown
 
     cmap = load_class_map(gt_scene)
     ids = frame_ids(gt_scene)
-    remap = {i: cmap.names.index(n) for i, n in enumerate(class_names) if n in cmap.names}
+    label_of = {n: i for i, n in enumerate(cmap.names)}  # by class name: the detector's list may differ
     models = load_bop_models(models_dir_of(gt_scene))
     im_ids = [ids[n] for n in names if n in ids]
+    if not im_ids:
+        raise InputError(f"none of the {len(names)} frames is in the ground truth {gt_scene} (names like "
+                         f"{names[:2]}); pass the simulation the video came from")
     reports, md = {}, []
     for which, attr in (("detector", "T_detector"), ("refined", "T_refined"), ("fused", "T_cam_from_obj")):
-        preds = [PosePrediction(ids[r.frame_name], remap.get(r.label, -1), r.score, r.box_xyxy, getattr(r, attr),
-                                r.obj_id, r.mask) for r in records if r.frame_name in ids]
+        preds = [PosePrediction(ids[r.frame_name], label_of.get(r.class_name, -1), r.score, r.box_xyxy,
+                                getattr(r, attr), r.obj_id, r.mask) for r in records if r.frame_name in ids]
         rep = evaluate_scene(preds, gt_scene, models, cmap.names, cmap.class_of_obj, PoseEvalConfig(), im_ids)
         if which != "fused":
             rep.pop("matches")
         reports[which] = rep
         md.append(f"## {which} poses\n\n" + table_markdown(rep))
-    write_json(out_dir / "eval.json", reports)
-    write_text(out_dir / "eval.md", "\n".join(md))
+    if out_dir is not None:
+        write_json(out_dir / "eval.json", reports)
+        write_text(out_dir / "eval.md", "\n".join(md))
     return reports
+
+
+def read_poses(path: Path) -> list[PoseRecord]:
+    """The records of a ``poses.jsonl`` (masks decoded when stored)."""
+    from cadalign.data.coco import rle_to_mask
+
+    out = []
+    for i, line in enumerate(Path(path).read_text(encoding="utf-8").splitlines()):
+        if not line.strip():
+            continue
+        try:
+            d = json.loads(line)
+            out.append(PoseRecord(
+                int(d["frame"]), str(d["frame_name"]), d.get("obj_id"), int(d.get("track_id", -1)), int(d["label"]),
+                str(d["class"]), float(d["score"]), np.asarray(d["box_xyxy"], float),
+                Rigid3.from_matrix(np.asarray(d["T_cam_from_obj"])),
+                Rigid3.from_matrix(np.asarray(d.get("T_cam_from_obj_detector", d["T_cam_from_obj"]))),
+                Rigid3.from_matrix(np.asarray(d.get("T_cam_from_obj_refined", d["T_cam_from_obj"]))),
+                dict(d.get("refine_iters") or {}), rle_to_mask(d["mask_rle"]) if d.get("mask_rle") else None))
+        except (KeyError, ValueError, TypeError) as exc:
+            raise InputError(f"{path}, line {i + 1}: not a cadalign pose record ({exc})") from exc
+    return out

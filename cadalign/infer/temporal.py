@@ -41,8 +41,8 @@ class TemporalConfig:
     """Huber threshold of rotation residuals (deg) in the robust mean."""
     alpha: float = bounded(0.5, gt=0, le=1)
     """Filter gain on the pose innovation (1 = trust each measurement)."""
-    beta: float = bounded(0.1, ge=0, le=1)
-    """Filter gain on the velocity."""
+    beta: float = bounded(0.167, ge=0, le=1)
+    """Filter gain on the velocity (``alpha^2 / (2 - alpha)``: the critically damped pair)."""
     gate_m: float = bounded(0.3, gt=0)
     """Association / outlier gate on translation (m), at least half the part's diameter is used."""
     gate_deg: float = bounded(30.0, gt=0)

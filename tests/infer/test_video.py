@@ -1,0 +1,62 @@
+"""Reading frames: folders and video files; a corrupt frame is skipped with a warning naming it."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cadalign.errors import InputError
+from cadalign.infer.video import iter_frames
+from cadalign.io import write_image
+
+
+def _frames(folder: Path, n: int) -> list[Path]:
+    paths = []
+    for i in range(n):
+        img = np.full((24, 32, 3), 40 * i, np.uint8)
+        img[..., 0] = 200  # red channel marks the RGB order
+        paths.append(write_image(folder / f"{i:06d}.png", img))
+    return paths
+
+
+def test_folder_with_a_corrupt_frame(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    paths = _frames(tmp_path, 3)
+    paths[1].write_bytes(b"\x89PNG not really")
+    with caplog.at_level(logging.WARNING, logger="cadalign.infer.video"):
+        frames = list(iter_frames(tmp_path))
+    assert [f.name for f in frames] == ["000000.png", "000002.png"]
+    assert [f.index for f in frames] == [0, 2]
+    assert frames[0].image.shape == (24, 32, 3) and frames[0].image[0, 0, 0] == 200
+    assert any("000001.png" in r.getMessage() and "corrupt" in r.getMessage() for r in caplog.records)
+
+
+def test_video_file_names_frames_like_the_folder(tmp_path: Path) -> None:
+    import imageio.v2 as imageio
+
+    path = tmp_path / "v.mp4"
+    with imageio.get_writer(path, format="FFMPEG", fps=5, codec="libx264", macro_block_size=16,
+                            ffmpeg_log_level="error") as w:
+        for i in range(4):
+            w.append_data(np.full((32, 48, 3), 60 * i, np.uint8))
+    frames = list(iter_frames(path))
+    assert [f.name for f in frames] == [f"{i:06d}.png" for i in range(4)]
+    assert abs(int(frames[2].image.mean()) - 120) <= 3
+    assert [f.name for f in iter_frames(path, stride=2, max_frames=1)] == ["000000.png"]
+
+
+def test_bad_sources_raise_input_error(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="not found"):
+        list(iter_frames(tmp_path / "missing.mp4"))
+    with pytest.raises(InputError, match="holds no images"):
+        list(iter_frames(tmp_path))
+    bad = tmp_path / "notes.txt"
+    bad.write_text("x")
+    with pytest.raises(InputError, match="neither a frame folder nor a video"):
+        list(iter_frames(bad))
+    broken = tmp_path / "broken.mp4"
+    broken.write_bytes(b"garbage")
+    with pytest.raises(InputError, match="could not open video"):
+        list(iter_frames(broken))
