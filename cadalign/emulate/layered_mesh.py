@@ -106,6 +106,9 @@ def mesh_from_image(inp: ImageInput, cfg: LayeredMeshConfig) -> LayeredMesh:
         panes = extract_panes(pane_mask.astype(bool), pts, valid, cfg.pane)
         inside = np.isin(panes.labels, [p.label for p in panes.panes]).ravel()
         tris = tris[inside[tris].sum(1) < 2]  # the pane replaces the grid faces inside it
+    if len(tris) == 0:
+        raise InputError(f"image source {depth.shape[1]}x{depth.shape[0]}: no triangle survives (no two neighbouring "
+                         "pixels with valid depth within rel_jump); check the depth map and its unit (metres)")
     used, remap = np.unique(tris, return_inverse=True)
     faces = remap.reshape(-1, 3)
     rgb_f = rgb.reshape(-1, 3)

@@ -69,6 +69,8 @@ def test_world_pose_stride_and_invalid_inputs() -> None:
     assert mesh.n_faces == 2 * (H // 2 - 1) * (W // 2 - 1) - 1  # pixel (0, 0) is a corner: 1 triangle lost
     with pytest.raises(InputError, match="class_id"):
         mesh_from_image(_image(depth, class_id=np.zeros((2, 2))), LayeredMeshConfig())
+    with pytest.raises(InputError, match="no triangle survives"):
+        mesh_from_image(_image(np.zeros((H, W))), LayeredMeshConfig())
     with pytest.raises(InputError, match=r"\(H, W, 3\)"):
         mesh_from_image(ImageInput(np.zeros((H, W)), depth, K), LayeredMeshConfig())
 
