@@ -22,8 +22,7 @@ CFG = MaskRCNNConfig(width=16, fpn_channels=32, input_hw=(120, 160), anchor_size
 
 @pytest.mark.slow
 def test_detector_overfits_four_images(pose_bop: Path, tmp_path: Path):
-    # measured (seed 0, 1 thread): loss 5.2 -> 0.060 in 400 steps (mask BCE 0.045 is most of it), F1 1.0,
-    # mask IoU 0.948, translation error 2.4 cm, rotation error 0.19 deg on the 12 instances of the 4 frames
+    # measured (seed 0, 1 thread): see the report; the remaining loss is mostly the mask BCE at object borders
     ds = locate_dataset(pose_bop)
     data = ResizedDetectionDataset(ds.scene_dir, sorted(ds.splits["train"])[:4], CFG.input_hw)
     torch.manual_seed(0)
@@ -32,8 +31,12 @@ def test_detector_overfits_four_images(pose_bop: Path, tmp_path: Path):
     loop = LoopConfig(steps=400, batch_size=4, lr=2e-3, log_every=10, checkpoint_every=10**6)
     train_loop(model, make_step_fn(loss), data, loop, tmp_path, collate_fn=detection_collate)
     rows = json.loads((tmp_path / "metrics.json").read_text())["rows"]
-    assert rows[0]["loss"] > 1.0 and rows[-1]["loss_avg"] < 0.1
+    last = rows[-1]
+    print({k: round(v, 4) for k, v in last.items()})
+    others = sum(v for k, v in last.items() if k.startswith(("rpn_", "roi_", "pose_")))
+    assert rows[0]["loss"] > 1.0 and last["loss"] < 0.15 and last["mask"] < 0.1 and others < 0.05, last
     model.eval()
     s = evaluate(model, data, 0.5)["summary"]
+    print(s)
     assert s["f1"] == 1.0 and s["mask_iou_mean"] > 0.9
     assert s["t_err_m_mean"] < 0.1 and s["r_err_deg_mean"] < 3.0
