@@ -17,8 +17,34 @@ POSE_HELP = ("Sensor pose in the world: 'x,y,z' or 'x,y,z,roll,pitch,yaw' (m, de
              "a 4x4 T_world_from_sensor. Default: a scene's first trajectory pose / the image's camera.")
 
 
+MODEL_DEPTH_HELP = "Image sources: a 'cadalign train depth' run (or .pt) whose depth replaces the ground truth."
+MODEL_SEG_HELP = "Image sources: a 'cadalign train seg' run (or .pt) whose classes replace the ground truth."
+
+
+def _predictors(model_depth: Path | None, model_seg: Path | None, device: str) -> dict:
+    """``run`` keyword arguments using trained networks for an image source's depth / classes."""
+    if model_depth is None and model_seg is None:
+        return {}
+    seg_fn = None
+    if model_seg is not None:
+        from cadalign.infer.dense import load_dense_model, seg_probabilities
+
+        dm = load_dense_model(model_seg, task="seg", device=device)
+
+        def seg_fn(rgb):  # noqa: ANN001, ANN202
+            return seg_probabilities(dm, rgb)[0].numpy()
+
+    depth_fn = None
+    if model_depth is not None:
+        from cadalign.fuse.predictors import depth_predictor
+
+        depth_fn = depth_predictor(model_depth, seg=seg_fn, device=device)
+    models = {k: str(v) for k, v in (("depth", model_depth), ("seg", model_seg)) if v is not None}
+    return {"depth_fn": depth_fn, "seg_fn": seg_fn, "models": models}
+
+
 def _emulate(sensor: str, source: Path, out: Path, preset: str | None, config: Path | None, pose: str | None,
-             look_at: str | None, engine: str | None, overwrite: bool) -> Path:
+             look_at: str | None, engine: str | None, overwrite: bool, models: dict | None = None) -> Path:
     import numpy as np
 
     from cadalign.config import resolve
@@ -39,7 +65,7 @@ def _emulate(sensor: str, source: Path, out: Path, preset: str | None, config: P
         T_cam = look_at_fn(eye, target)
         T = T_cam if sensor in ("view", "mesh") else sensor_pose_from_camera(T_cam)
     assert T is None or isinstance(T, Rigid3)
-    return run(sensor, cfg, source, out, pose=T, overwrite=overwrite)  # type: ignore[arg-type]
+    return run(sensor, cfg, source, out, pose=T, overwrite=overwrite, **(models or {}))  # type: ignore[arg-type]
 
 
 def _options(sensor: str, default_preset: str, what: str):
@@ -51,10 +77,14 @@ def _options(sensor: str, default_preset: str, what: str):
         preset: str = typer.Option(default_preset, "--preset", help="Sensor preset (see the config module)."),
         config: Path | None = typer.Option(None, "--config", help="TOML/YAML with overrides of the preset."),
         engine: str | None = typer.Option(None, "--engine", help="Ray caster: bvh (Open3D) or torch (exact)."),
+        model_depth: Path | None = typer.Option(None, "--model-depth", help=MODEL_DEPTH_HELP),
+        model_seg: Path | None = typer.Option(None, "--model-seg", help=MODEL_SEG_HELP),
+        device: str = typer.Option("cpu", "--device", help="Torch device of the networks."),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
     ) -> None:
         with user_errors():
-            path = _emulate(sensor, source, out, preset, config, pose, look_at, engine, overwrite)
+            models = _predictors(model_depth, model_seg, device)
+            path = _emulate(sensor, source, out, preset, config, pose, look_at, engine, overwrite, models)
         console.print(f"[green]{sensor} written to {path}[/]")
 
     return command
@@ -88,9 +118,13 @@ def mesh(
     out: Path = typer.Option(..., "--out", help="Output folder (layered_mesh.ply, preview_rgb.png, ...)."),
     preset: str = typer.Option("default", "--preset", help="default | coarse | strict."),
     config: Path | None = typer.Option(None, "--config", help="TOML/YAML with overrides of the preset."),
+    model_depth: Path | None = typer.Option(None, "--model-depth", help=MODEL_DEPTH_HELP),
+    model_seg: Path | None = typer.Option(None, "--model-seg", help=MODEL_SEG_HELP),
+    device: str = typer.Option("cpu", "--device", help="Torch device of the networks."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
 ) -> None:
     """Layered mesh from one image: grid triangles cut at depth jumps, class/part/pane layers, planar panes."""
     with user_errors():
-        path = _emulate("mesh", source, out, preset, config, None, None, None, overwrite)
+        models = _predictors(model_depth, model_seg, device)
+        path = _emulate("mesh", source, out, preset, config, None, None, None, overwrite, models)
     console.print(f"[green]layered mesh written to {path}[/]")

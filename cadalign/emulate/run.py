@@ -30,7 +30,7 @@ import numpy as np
 from cadalign.config import to_dict
 from cadalign.emulate import figures, layered_mesh, lidar, sonar, views
 from cadalign.emulate.mesh import LayeredMesh
-from cadalign.emulate.sources import SCENE_SUFFIXES, load_source, read_image_input, write_ply
+from cadalign.emulate.sources import SCENE_SUFFIXES, DepthFn, SegFn, load_source, read_image_input, write_ply
 from cadalign.errors import InputError
 from cadalign.io import prepare_stage_dir, read_json, write_image, write_json
 from cadalign.types import Rigid3
@@ -98,8 +98,13 @@ def default_pose(source: Path, sensor: Sensor) -> Rigid3:
 
 
 def run(sensor: Sensor, cfg: Any, source: Path, out_dir: Path, *, pose: Rigid3 | None = None,
-        overwrite: bool = False) -> Path:
-    """Emulate ``sensor`` in ``source`` and write its files to ``out_dir`` (see the module docstring)."""
+        overwrite: bool = False, depth_fn: DepthFn | None = None, seg_fn: SegFn | None = None,
+        models: dict[str, str] | None = None) -> Path:
+    """Emulate ``sensor`` in ``source`` and write its files to ``out_dir`` (see the module docstring).
+
+    For an image source, ``depth_fn`` / ``seg_fn`` replace the ground-truth depth / classes by network
+    predictions; ``models`` names them (e.g. the run folders) in the recorded config.
+    """
     if sensor not in CONFIGS:
         raise InputError(f"unknown sensor {sensor!r}; allowed: {', '.join(CONFIGS)}")
     source, out_dir = Path(source), Path(out_dir)
@@ -112,13 +117,13 @@ def run(sensor: Sensor, cfg: Any, source: Path, out_dir: Path, *, pose: Rigid3 |
     stat = source.stat()
     record = {"sensor": sensor, "config": to_dict(cfg), "source": str(source.resolve()),
               "source_size": stat.st_size, "source_mtime_ns": stat.st_mtime_ns,
-              "T_world_from_sensor": None if T is None else T.matrix().tolist()}
+              "T_world_from_sensor": None if T is None else T.matrix().tolist(), "models": models or {}}
     done = prepare_stage_dir(out_dir, f"emulate_{sensor}", record, overwrite=overwrite)
     if done and (out_dir / SUMMARY).is_file():
         log.info("%s: finished %s emulation found, reusing it", out_dir, sensor)
         return out_dir
     t0 = time.perf_counter()
-    mesh = load_source(source, image_config=cfg if sensor == "mesh" else None)
+    mesh = load_source(source, image_config=cfg if sensor == "mesh" else None, depth_fn=depth_fn, seg_fn=seg_fn)
     t1 = time.perf_counter()
     summary = {"sensor": sensor, "faces": mesh.n_faces, "load_s": t1 - t0}
     summary |= _WRITERS[sensor](mesh, cfg, T, out_dir, source)
@@ -169,7 +174,7 @@ def _write_view_files(v: views.ViewFrame, out: Path, prefix: str) -> None:
 def _write_mesh(mesh: LayeredMesh, cfg: layered_mesh.LayeredMeshConfig, T: Rigid3 | None, out: Path,
                 source: Path) -> dict:
     write_ply(mesh, out / "layered_mesh.ply")
-    inp = read_image_input(source)
+    inp = read_image_input(source)  # for its camera only
     T_cam = Rigid3() if inp.T_world_from_cam is None else Rigid3.from_matrix(inp.T_world_from_cam)
     H, W = np.shape(inp.depth_m)
     from cadalign.types import Camera

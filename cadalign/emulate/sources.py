@@ -14,7 +14,9 @@ PLY writing for :class:`LayeredMesh` lives here too, so written meshes load back
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,6 +25,7 @@ import numpy as np
 from cadalign.emulate.mesh import LayeredMesh, concatenate
 from cadalign.errors import InputError
 from cadalign.io import atomic_path
+from cadalign.types import Camera
 
 log = logging.getLogger(__name__)
 SCENE_SUFFIXES = (".toml", ".yaml", ".yml")
@@ -186,8 +189,36 @@ def read_image_input(path: Path) -> ImageInput:
     return ImageInput(bop.rgb(im_id), bop.depth_m(im_id), frame.camera.K, T_world_from_cam=T, **extra)
 
 
-def load_source(path: Path, *, image_config: object | None = None) -> LayeredMesh:
-    """The layered mesh of any SOURCE (see the module docstring); world frame when a pose is known."""
+DepthFn = Callable[[np.ndarray, Camera], np.ndarray]
+"""``(rgb (H, W, 3) uint8, camera) -> (H, W)`` metric z-depth, e.g. :func:`cadalign.fuse.predictors.depth_predictor`."""
+SegFn = Callable[[np.ndarray], np.ndarray]
+"""``rgb -> (C, H, W)`` class probabilities, e.g. :func:`cadalign.fuse.predictors.seg_predictor`."""
+
+
+def with_predictions(inp: ImageInput, depth_fn: DepthFn | None = None, seg_fn: SegFn | None = None) -> ImageInput:
+    """The image input with its depth and/or class map replaced by network predictions (GT kept otherwise).
+
+    This is how a layered mesh is built from a single image in the field, where no ground truth exists.
+    """
+    rgb = np.asarray(inp.rgb)
+    H, W = rgb.shape[:2]
+    depth, cls = inp.depth_m, inp.class_id
+    if depth_fn is not None:
+        depth = np.asarray(depth_fn(rgb, Camera(inp.K, W, H)), dtype=np.float64)
+    if seg_fn is not None:
+        prob = np.asarray(seg_fn(rgb))
+        if prob.ndim != 3 or prob.shape[1:] != (H, W):
+            raise InputError(f"the segmentation predictor returned {prob.shape}; expected (C, {H}, {W})")
+        cls = prob.argmax(0).astype(np.int32)
+    return dataclasses.replace(inp, depth_m=depth, class_id=cls)
+
+
+def load_source(path: Path, *, image_config: object | None = None, depth_fn: DepthFn | None = None,
+                seg_fn: SegFn | None = None) -> LayeredMesh:
+    """The layered mesh of any SOURCE (see the module docstring); world frame when a pose is known.
+
+    ``depth_fn`` / ``seg_fn`` replace an image source's depth / classes by predictions (:func:`with_predictions`).
+    """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix in SCENE_SUFFIXES:
@@ -197,6 +228,7 @@ def load_source(path: Path, *, image_config: object | None = None) -> LayeredMes
     if suffix in IMAGE_SUFFIXES:
         from cadalign.emulate.layered_mesh import PRESETS, mesh_from_image
 
-        return mesh_from_image(read_image_input(path), image_config or PRESETS["default"])
+        inp = with_predictions(read_image_input(path), depth_fn, seg_fn)
+        return mesh_from_image(inp, image_config or PRESETS["default"])
     raise InputError(f"unsupported SOURCE {path}: use a scene spec ({', '.join(SCENE_SUFFIXES)}), a mesh .ply, "
                      f"or an image ({', '.join(IMAGE_SUFFIXES)})")

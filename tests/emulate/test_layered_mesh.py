@@ -105,3 +105,29 @@ def test_ply_round_trip_keeps_every_layer(tmp_path) -> None:
         np.testing.assert_array_equal(getattr(back, name), getattr(mesh, name))
     with pytest.raises(InputError, match="not found"):
         ply_mesh(tmp_path / "missing.ply")
+
+
+def test_predicted_depth_and_classes_replace_the_ground_truth() -> None:
+    from cadalign.emulate.sources import with_predictions
+
+    inp = _image(np.full((H, W), 2.0), class_id=np.zeros((H, W), np.int32))
+    seen = {}
+
+    def depth_fn(rgb, camera):
+        seen["camera"] = camera
+        return np.full(rgb.shape[:2], 3.0)
+
+    def seg_fn(rgb):
+        p = np.zeros((3,) + rgb.shape[:2])
+        p[2, :, : W // 2] = 1.0
+        p[1, :, W // 2:] = 1.0
+        return p
+
+    out = with_predictions(inp, depth_fn, seg_fn)
+    assert seen["camera"].width == W and np.array_equal(seen["camera"].K, K)
+    mesh = mesh_from_image(out, LayeredMeshConfig())
+    assert np.allclose(mesh.vertices_m[:, 2], 3.0) and set(np.unique(mesh.class_id)) == {1, 2}
+    same = with_predictions(inp)  # nothing to replace
+    assert same.depth_m is inp.depth_m and same.class_id is inp.class_id
+    with pytest.raises(InputError, match="segmentation predictor returned"):
+        with_predictions(inp, seg_fn=lambda rgb: np.zeros((H, W)))
