@@ -35,7 +35,7 @@ from cadalign.config import to_dict
 from cadalign.data import bop
 from cadalign.io import fingerprint, prepare_stage_dir, read_json, write_image, write_json
 from cadalign.render.bop_writer import PosedObject, frame_done, merge_scene_files, write_bop_frame
-from cadalign.render.camera_refine import CameraRefineConfig, rays_of, refine_cameras
+from cadalign.render.camera_refine import CameraRefineConfig, RefinedCamera, rays_of, refine_cameras
 from cadalign.render.raycast import RaycastRenderer, RenderMesh
 from cadalign.types import Camera, Rigid3, Sim3
 
@@ -98,20 +98,23 @@ def render_frames(structure: Structure, cameras: dict[str, dict], cad_from_sfm: 
 
     names = sorted(cameras)
     meshes = structure.render_meshes()
-    model_dir = sfm_dir / "sparse" / "0"
-    rec = pycolmap.Reconstruction(str(model_dir))
-    by_name = {im.name: im for im in rec.images.values()}
-    refined = {}
+    rec = pycolmap.Reconstruction(str(sfm_dir / "sparse" / "0"))
+    refined: dict[str, RefinedCamera] = {}
     if refine is not None:
         verts = np.concatenate([m.vertices_m for m in meshes])
         offsets = np.cumsum([0] + [len(m.vertices_m) for m in meshes[:-1]])
         faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)])
-        refined = refine_cameras(rec, cad_from_sfm, verts, faces, refine)
+        result = refine_cameras(rec, cad_from_sfm, verts, faces, refine)
+        refined, rec = result.frames, result.model
+        write_json(scene_dir.parent.parent / "camera_refine.json", result.summary)
+    by_name = {im.name: im for im in rec.images.values()}
     renderers: dict[int, RaycastRenderer] = {}
     ids = list(range(len(names)))
     quality: dict[int, dict] = {}
     for k in progress(ids, "render", len(ids)) if progress else ids:
-        camera, T_world_from_cam = metric_pose(cameras[names[k]], cad_from_sfm)
+        _, T_world_from_cam = metric_pose(cameras[names[k]], cad_from_sfm)
+        cam = by_name[names[k]].camera
+        camera = Camera(np.asarray(cam.calibration_matrix(), dtype=np.float64), int(cam.width), int(cam.height))
         r = refined.get(names[k])
         if r is not None:
             T_world_from_cam = r.T_world_from_cam
@@ -121,7 +124,6 @@ def render_frames(structure: Structure, cameras: dict[str, dict], cad_from_sfm: 
             quality[k] = {"verified": refine is None}
         if frame_done(scene_dir, k):
             continue
-        cam = by_name[names[k]].camera
         if cam.camera_id not in renderers:
             renderers[cam.camera_id] = RaycastRenderer(meshes, camera, rays_cam=rays_of(cam))
         gt = renderers[cam.camera_id].render(T_world_from_cam)
