@@ -228,6 +228,8 @@ def _coerce_scalar(value: Any, tp: Any, source: str, key: str) -> Any:
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise _type_error(source, key, value, "an integer")
+        if not -(2**63) <= value < 2**63:  # YAML/JSON integers are unbounded; numpy's are not
+            raise ConfigError(f"{source}: '{key}' = {value} is out of the 64-bit integer range")
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):

@@ -82,10 +82,10 @@ class WaterSpec:
 
 @dataclass(frozen=True)
 class LightSpec:
-    offset_m: tuple[float, float, float] = (0.0, -0.3, 0.0)
-    """Lamp position in the camera frame (x right, y down, z forward), metres."""
-    direction: tuple[float, float, float] = (0.0, 0.0, 1.0)
-    """Lamp axis in the camera frame."""
+    offset_m: tuple[float, float, float] = bounded((0.0, -0.3, 0.0), ge=-100.0, le=100.0)
+    """Lamp position in the camera frame (x right, y down, z forward), metres (within 100 m of the camera)."""
+    direction: tuple[float, float, float] = bounded((0.0, 0.0, 1.0), ge=-1e6, le=1e6)
+    """Lamp axis in the camera frame (non-zero; any length, each component within +-1e6)."""
     intensity: float = bounded(40.0, ge=0.0)
     """Radiant intensity on the axis (irradiance at 1 m, before attenuation)."""
     cone_deg: float = bounded(60.0, gt=0.0, le=90.0)

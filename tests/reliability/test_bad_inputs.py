@@ -82,6 +82,17 @@ def test_video_truncated_to_its_header(tmp_path: Path) -> None:
     assert "could not open video" in msg or "no frame could be decoded" in msg
 
 
+def test_video_with_intact_header_and_garbage_frames(tmp_path: Path) -> None:
+    path = _write_video(tmp_path / "dive.avi", [_texture(k) for k in range(4)])
+    data = path.read_bytes()
+    start = data.find(b"00dc") + 8  # the first frame's payload
+    junk = np.random.default_rng(0).integers(0, 256, len(data) - start, dtype=np.uint8).tobytes()
+    path.write_bytes(data[:start] + junk)
+    msg = expect_error("sfm frames", "video with an intact header but garbage frame data", InputError,
+                       lambda: _extract(path, tmp_path), "dive.avi")
+    assert "no frame could be decoded" in msg or "could not open video" in msg
+
+
 def test_corrupt_image_in_folder(tmp_path: Path) -> None:
     for k in range(3):
         write_image(tmp_path / "in" / f"{k:06d}.png", _texture(k))

@@ -4,7 +4,8 @@ The scene loader (a real scene TOML), the CAD loader (a real UUV Simulator COLLA
 exports of it) and the BOP reader (scene_gt.json, scene_camera.json and a depth PNG of a tiny
 simulated scene) must either load the damaged file or raise a :class:`~cadalign.errors.CadalignError`,
 never a KeyError, TypeError, IndexError, UnicodeDecodeError ..., and emit no RuntimeWarning. Runs are
-derandomized (the same examples every time) and small; raise ``CADALIGN_FUZZ_EXAMPLES`` for a longer hunt.
+derandomized (the same examples every time) and small; raise ``CADALIGN_FUZZ_EXAMPLES`` for a longer hunt
+and set ``CADALIGN_FUZZ_RANDOM=1`` for fresh random examples.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import json
 import os
 import shutil
 import tempfile
+import tomllib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -30,7 +32,7 @@ from cadalign.sim.spec import load_scene
 
 pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")  # a damaged file must not emit NaN/overflow noise
 N = int(os.environ.get("CADALIGN_FUZZ_EXAMPLES", "40"))
-FUZZ = settings(max_examples=N, deadline=None, derandomize=True, database=None,
+FUZZ = settings(max_examples=N, deadline=None, derandomize="CADALIGN_FUZZ_RANDOM" not in os.environ, database=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 REPO = Path(__file__).resolve().parents[2]
 SMALL_DAE = "rov_bop_panel/meshes/SmallValve.dae"
@@ -102,6 +104,16 @@ SCENE_BYTES = (REPO / "datasets" / "scenes" / "default.toml").read_bytes()
 def test_scene_loader_survives_corruption(data: bytes) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "default.toml"
+        path.write_bytes(data)
+        _survives(lambda: load_scene(path))
+
+
+@FUZZ
+@given(data=mutated_json(tomllib.loads(SCENE_BYTES.decode())))
+def test_scene_loader_survives_odd_values(data: bytes) -> None:
+    """The same scene as JSON (the loader reads TOML, YAML and JSON) with one value swapped or removed."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "default.json"
         path.write_bytes(data)
         _survives(lambda: load_scene(path))
 
