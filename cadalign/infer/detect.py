@@ -38,6 +38,8 @@ class Detection:
     R_cam_from_obj: np.ndarray
     t_cam_from_obj_m: np.ndarray
     obj_id: int | None = None
+    gt_idx: int | None = None
+    """Oracle only: the ground-truth instance index in the frame (for measurements)."""
 
 
 class Detector(Protocol):
@@ -119,7 +121,7 @@ class OracleDetector:
             dt = rng.normal(scale=cfg.noise_t_m / np.sqrt(3), size=3)
             T = inst.T_cam_from_obj
             out.append(Detection(np.array([x, y, x + w, y + h], float), self.classes.class_of_obj[inst.obj_id], 1.0,
-                                 m, dR @ T.R, T.t + dt, inst.obj_id if cfg.give_obj_id else None))
+                                 m, dR @ T.R, T.t + dt, inst.obj_id if cfg.give_obj_id else None, g))
         return out
 
 

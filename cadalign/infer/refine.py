@@ -10,8 +10,10 @@ grown silhouette is penalised, unlike a one-sided chamfer); residuals are Huber-
 (b) :func:`refine_depth_icp`: point-to-plane ICP of surface samples of the CAD to the back-projected depth
 inside the (eroded) mask, Huber-weighted, correspondences found in the model frame (one k-d tree per model).
 
-Both update ``T_cam_from_obj <- exp(xi) T_cam_from_obj`` with a twist ``xi = (omega, v)`` in the camera
-frame. A point moves as ``X' = X + omega x X + v``; its projection's Jacobian is ``du/dX [-[X]_x, I]``.
+Both update the pose by ``(omega, v)`` (:func:`apply_twist`): a turn about the object's origin in camera axes
+and a shift. A point moves as ``X' = X + omega x (X - t) + v``; its projection's Jacobian is
+``du/dX [-[X - t]_x, I]``. A Gaussian prior on the deviation from the detector's pose fixes directions the
+data do not observe.
 """
 
 from __future__ import annotations
@@ -40,6 +42,10 @@ class RefineConfig:
     """Gauss-Newton iterations of the contour alignment."""
     depth_iters: int = bounded(10, ge=0)
     """Point-to-plane ICP iterations."""
+    min_mask_px: int = bounded(400, ge=1)
+    """Silhouette refinement is skipped for smaller masks: their outline says too little about the pose."""
+    min_depth_points: int = bounded(50, ge=6)
+    """ICP is skipped with fewer valid depth points inside the mask."""
     max_contour_points: int = bounded(400, ge=10)
     """Model contour points per iteration (evenly thinned)."""
     huber_px: float = bounded(2.0, gt=0)
@@ -56,7 +62,7 @@ class RefineConfig:
     """Huber threshold of the point-to-plane residuals, metres."""
     prior_t_m: float = bounded(0.05, gt=0)
     """Standard deviation of the prior on the detector's translation (m), for unobserved directions."""
-    prior_r_deg: float = bounded(10.0, gt=0)
+    prior_r_deg: float = bounded(5.0, gt=0)
     """Standard deviation of the prior on the detector's rotation (deg)."""
     icp_max_corr_start: float = bounded(0.5, gt=0)
     """ICP's wide gate (fraction of the diameter), while under half the points pair within ``icp_max_corr``."""
@@ -90,14 +96,22 @@ class RefineResult:
 
 
 def apply_twist(xi: np.ndarray, T: Rigid3) -> Rigid3:
-    """``exp(xi) T`` with ``xi = (omega, v)`` (rad, m), rotation by Rodrigues, left-multiplied in the camera frame."""
+    """The pose turned by ``omega`` about the object's origin (camera axes) and moved by ``v``: ``xi = (omega, v)``.
+
+    ``R' = exp(omega) R``, ``t' = t + v``. Turning about the object rather than the camera keeps rotation and
+    translation decoupled for a part many metres away (a camera-centred twist couples them by the distance).
+    """
     dR = axis_angle_to_matrix(np.asarray(xi[:3], float))
-    return Rigid3(dR @ T.R, dR @ T.t + np.asarray(xi[3:], float))
+    return Rigid3(dR @ T.R, T.t + np.asarray(xi[3:], float))
 
 
-def _proj_jacobian(K: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """(N, 2, 6) Jacobian of the projection of camera points X (N, 3) wrt the twist (omega, v)."""
+def _proj_jacobian(K: np.ndarray, X: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(N, 2, 6) Jacobian of the projection of camera points X (N, 3) wrt ``(omega, v)`` of :func:`apply_twist`.
+
+    A point moves as ``X' = X + omega x (X - t) + v`` with ``t`` the object's origin in the camera frame.
+    """
     x, y, z = X[:, 0], X[:, 1], X[:, 2]
+    a, b, c = (X - t).T
     iz = 1.0 / z
     du = np.zeros((len(X), 2, 3))
     du[:, 0, 0] = K[0, 0] * iz
@@ -105,9 +119,9 @@ def _proj_jacobian(K: np.ndarray, X: np.ndarray) -> np.ndarray:
     du[:, 1, 1] = K[1, 1] * iz
     du[:, 1, 2] = -K[1, 1] * y * iz * iz
     dX = np.zeros((len(X), 3, 6))
-    dX[:, 0, 1], dX[:, 0, 2] = z, -y  # -[X]_x
-    dX[:, 1, 0], dX[:, 1, 2] = -z, x
-    dX[:, 2, 0], dX[:, 2, 1] = y, -x
+    dX[:, 0, 1], dX[:, 0, 2] = c, -b  # -[X - t]_x
+    dX[:, 1, 0], dX[:, 1, 2] = -c, a
+    dX[:, 2, 0], dX[:, 2, 1] = b, -a
     dX[:, :, 3:] = np.eye(3)
     return du @ dX
 
@@ -217,18 +231,16 @@ def _outline_points(geom: ModelGeometry, T: Rigid3, K: np.ndarray, shape: tuple[
 def _prior(T: Rigid3, T_init: Rigid3, cfg: RefineConfig, unit: float) -> tuple[np.ndarray, np.ndarray]:
     """Rows (r (6,), J (6, 6)) of the Gaussian prior on the deviation from the detector's pose.
 
-    The deviation is (rotation vector of ``R R_init^T``, ``t - t_init``); a twist step (omega, v) changes it by
-    (omega, omega x t + v). Scaled by ``unit / sigma`` so one sigma costs as much as one residual of size
-    ``unit`` (the Huber threshold): negligible against the data where the data constrain the pose, decisive in
-    the directions they do not (depth of a small silhouette, the axis of a cylinder in ICP).
+    The deviation is (rotation vector of ``R R_init^T``, ``t - t_init``); a step (omega, v) of
+    :func:`apply_twist` changes it by (omega, v) to first order. Scaled by ``unit / sigma``: one sigma costs as
+    much as one residual of size ``unit`` (the Huber threshold), negligible where the data constrain the pose,
+    decisive where they do not (depth of a small silhouette, the axis of a cylinder in ICP).
     """
-    from cadalign.geometry.rotations import matrix_to_axis_angle, skew
+    from cadalign.geometry.rotations import matrix_to_axis_angle
 
     dev = np.concatenate([matrix_to_axis_angle(T.R @ T_init.R.T), T.t - T_init.t])
     S = np.diag([unit / np.radians(cfg.prior_r_deg)] * 3 + [unit / cfg.prior_t_m] * 3)
-    J = np.eye(6)
-    J[3:, :3] = -skew(T.t)
-    return S @ dev, S @ J
+    return S @ dev, S
 
 
 def _contour_step(geom: ModelGeometry, T: Rigid3, T_init: Rigid3, K: np.ndarray, sd: SignedDistance,
@@ -252,7 +264,7 @@ def _contour_step(geom: ModelGeometry, T: Rigid3, T_init: Rigid3, K: np.ndarray,
     loss = np.where(a <= k, 0.5 * a * a, k * (a - 0.5 * k))
     rp, Jp = _prior(T, T_init, cfg, cfg.huber_px)
     cost = float((loss.sum() + 0.5 * rp @ rp) / max(ok.sum(), 1))
-    J = np.einsum("nk,nkj->nj", g[keep], _proj_jacobian(K, Xc[keep]))
+    J = np.einsum("nk,nkj->nj", g[keep], _proj_jacobian(K, Xc[keep], T.t))
     Jall = np.concatenate([J, Jp])
     rall = np.concatenate([r[keep], rp])
     w = np.concatenate([_huber_weights(r[keep], cfg.huber_px), np.ones(6)])
@@ -266,7 +278,7 @@ def refine_silhouette(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, mask: 
     ``costs`` are the LM costs (see :func:`_contour_step`) of the initial pose and after each accepted update.
     """
     n = cfg.silhouette_iters if iters is None else iters
-    if np.count_nonzero(mask) < 6 or n == 0:
+    if np.count_nonzero(mask) < max(cfg.min_mask_px, 6) or n == 0:
         return T_init, 0, []
     sd = SignedDistance.of(mask, int(np.ceil(cfg.trunc_px)) + 2)
     rng = np.random.default_rng(cfg.seed)
@@ -317,7 +329,7 @@ def refine_depth_icp(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, depth_m
     rng = np.random.default_rng(cfg.seed)
     Q = masked_depth_points(depth_m, mask, np.asarray(K, float), cfg.max_depth_points, rng)
     n = cfg.depth_iters if iters is None else iters
-    if len(Q) < 6 or n == 0:
+    if len(Q) < cfg.min_depth_points or n == 0:
         return T_init, 0, []
     T, costs, done = T_init, [], 0
     for _ in range(n):
@@ -335,7 +347,7 @@ def refine_depth_icp(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, depth_m
         if len(q) < 6:
             break
         r = np.einsum("ij,ij->i", n_c, p_c - q)
-        J = np.concatenate([np.cross(p_c, n_c), n_c], axis=1)
+        J = np.concatenate([np.cross(p_c - T.t, n_c), n_c], axis=1)
         costs.append(float(np.mean(np.abs(r))))
         rp, Jp = _prior(T, T_init, cfg, cfg.icp_huber_m)
         step = _solve(np.concatenate([J, Jp]), np.concatenate([r, rp]),
