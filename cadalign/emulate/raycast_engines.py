@@ -9,10 +9,12 @@ Both engines work relative to the mesh's bounding-box centre (like :mod:`cadalig
 worlds far from the origin (UTM coordinates) keep their precision: Open3D casts in float32 on the shifted
 coordinates, the torch engine in float64 by default.
 
-The torch engine is a brute-force Möller–Trumbore made practical by one level of culling: faces are sorted
-along a Morton curve into clusters of ``cluster_size`` faces, each ray is slab-tested against every
-cluster's (slightly padded) bounding box, and only the (ray, cluster) pairs that pass are tested exactly.
-The culling is conservative, so the result is the exact nearest hit. Parallel and grazing rays
+The torch engine is a brute-force Möller–Trumbore made practical by batched culling: faces are sorted
+along a Morton curve into clusters of ``cluster_size`` faces, the clusters' (slightly padded) bounding boxes
+are grouped ``BRANCH`` at a time into boxes of boxes up to at most ``TOP_MAX`` top boxes, every ray is
+slab-tested down this implicit tree level by level (all rays of a chunk at once: no per-ray traversal, so
+it runs as a few large tensor operations on a GPU), and only the (ray, cluster) pairs that survive are
+tested exactly. The culling is conservative, so the result is the exact nearest hit. Parallel and grazing rays
 (``|det|`` below a relative tolerance) miss; hits on a shared edge or vertex are accepted by both faces
 (barycentric tolerance) and the tie goes to the lower face index, so no ray slips between two triangles.
 """
@@ -30,8 +32,12 @@ from cadalign.errors import InputError
 log = logging.getLogger(__name__)
 
 EngineName = Literal["bvh", "torch"]
-SUPER = 32
-"""Clusters per super-cluster: the torch engine culls with super-cluster boxes first, then cluster boxes."""
+BRANCH = 4
+"""Children per box of the torch engine's culling hierarchy (boxes of boxes ... of clusters of faces)."""
+TOP_MAX = 16
+"""Most boxes at the top of the hierarchy (every ray is tested against all of them)."""
+FAR = 1e30
+"""Where boxes holding only padding are put: a point no ray passes."""
 
 
 @dataclass(frozen=True)
@@ -118,6 +124,11 @@ class BVHEngine:
         return RayHits(t, face, bary)
 
 
+def torch_as(a: np.ndarray, engine: TorchEngine):  # noqa: ANN201
+    """``a`` as a tensor of the engine's dtype on its device."""
+    return engine._torch.as_tensor(a, dtype=engine._dtype, device=engine._dev)
+
+
 def _slab(o, inv, lo, hi):
     """Boolean slab test of rays (origins ``o``, inverse directions ``inv``) against boxes ``[lo, hi]``."""
     t0, t1 = (lo - o) * inv, (hi - o) * inv
@@ -169,24 +180,35 @@ class TorchEngine:
         self._budget, self._det_tol, self._bary_tol = int(budget), float(det_tol), float(bary_tol)
         tri = v[f]  # (F, 3, 3)
         order = _morton_order(tri.mean(1))
-        G, S = int(cluster_size), SUPER
-        n_pad = (-len(f)) % (G * S)
+        G, B = int(cluster_size), BRANCH
+        n_clusters = -(-len(f) // G)
+        levels = max(0, int(np.ceil(np.log(max(n_clusters / TOP_MAX, 1.0)) / np.log(B))))
+        n_top = -(-n_clusters // B**levels)
+        n_pad = n_top * B**levels * G - len(f)
         order = np.concatenate([order, np.full(n_pad, order[-1])])  # pad with repeats of the last face
         tri = tri[order]
         lo = tri.min(1).reshape(-1, G, 3).min(1)
         hi = tri.max(1).reshape(-1, G, 3).max(1)
         pad = 1e-9 * max(1.0, float(np.abs(v).max())) + 1e-7 * np.maximum(hi - lo, 0).max(1, keepdims=True)
         lo, hi = lo - pad, hi + pad
-        self._G, self._S = G, S
+        self._G, self._B = G, B
         self._face_ids = torch.as_tensor(order, device=self._dev)
-        self._lo = torch.as_tensor(lo, dtype=self._dtype, device=self._dev)
-        self._hi = torch.as_tensor(hi, dtype=self._dtype, device=self._dev)
-        self._slo = torch.as_tensor(lo.reshape(-1, S, 3).min(1), dtype=self._dtype, device=self._dev)
-        self._shi = torch.as_tensor(hi.reshape(-1, S, 3).max(1), dtype=self._dtype, device=self._dev)
+        self._boxes = self._hierarchy(lo, hi, np.arange(len(lo)) < n_clusters, levels)
         t = torch.as_tensor(tri, dtype=self._dtype, device=self._dev)
         e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
         scale = (torch.linalg.norm(e1, dim=1) * torch.linalg.norm(e2, dim=1))[:, None]
         self._packed = torch.cat([t[:, 0], e1, e2, scale], 1)  # (F', 10): one gather per test batch
+
+    def _hierarchy(self, lo: np.ndarray, hi: np.ndarray, valid: np.ndarray, levels: int) -> list:
+        """(lo, hi) tensors per level, top first, down to the clusters; boxes of padding only sit at FAR."""
+        boxes = []
+        for level in range(levels + 1):
+            boxes.insert(0, tuple(torch_as(np.where(valid[:, None], a, FAR), self) for a in (lo, hi)))
+            if level < levels:  # parents bound their real children only
+                lo = np.where(valid[:, None], lo, np.inf).reshape(-1, self._B, 3).min(1)
+                hi = np.where(valid[:, None], hi, -np.inf).reshape(-1, self._B, 3).max(1)
+                valid = valid.reshape(-1, self._B).any(1)
+        return boxes
 
     def cast(self, origins: np.ndarray, directions: np.ndarray) -> RayHits:
         """Nearest hits of rays ``origins + t * directions / |directions|`` (world frame, metres)."""
@@ -200,7 +222,7 @@ class TorchEngine:
         o_all = np.broadcast_to(o_all, np.shape(unit_dirs))
         n = len(unit_dirs)
         rng, face, bary = np.full(n, np.inf), np.full(n, -1, np.int64), np.zeros((n, 2))
-        chunk = max(64, self._budget // max(1, len(self._slo)))
+        chunk = max(64, self._budget // (len(self._boxes[0][0]) * self._B))
         for s in range(0, n, chunk):
             o = torch.as_tensor(np.array(o_all[s:s + chunk]), dtype=self._dtype, device=self._dev)
             d = torch.as_tensor(np.array(unit_dirs[s:s + chunk]), dtype=self._dtype, device=self._dev)
@@ -211,17 +233,20 @@ class TorchEngine:
         return RayHits(rng, face, bary)
 
     def _slab_pairs(self, o, d):  # -> (ray index (P,), cluster index (P,))
-        """(ray, cluster) pairs whose padded boxes the rays enter at t >= 0, via boxes of ``SUPER`` clusters."""
+        """(ray, cluster) pairs whose padded boxes the rays enter at t >= 0, descending the box hierarchy."""
         torch = self._torch
         # a zero direction component becomes a tiny one: the slab is then (-huge, huge) or empty, no NaN
         eps = torch.finfo(d.dtype).tiny
         tiny = torch.where(d >= 0, torch.full_like(d, eps), torch.full_like(d, -eps))
         inv = 1.0 / torch.where(d == 0, tiny, d)
-        rays, supers = _slab(o[:, None], inv[:, None], self._slo[None], self._shi[None]).nonzero(as_tuple=True)
-        idx = supers[:, None] * self._S + torch.arange(self._S, device=self._dev)[None]  # (P1, S)
-        ok = _slab(o[rays][:, None], inv[rays][:, None], self._lo[idx], self._hi[idx])
-        p, k = ok.nonzero(as_tuple=True)
-        return rays[p], idx[p, k]
+        lo, hi = self._boxes[0]
+        rays, nodes = _slab(o[:, None], inv[:, None], lo[None], hi[None]).nonzero(as_tuple=True)
+        children = torch.arange(self._B, device=self._dev)[None]
+        for lo, hi in self._boxes[1:]:
+            idx = nodes[:, None] * self._B + children  # (P, B)
+            p, k = _slab(o[rays][:, None], inv[rays][:, None], lo[idx], hi[idx]).nonzero(as_tuple=True)
+            rays, nodes = rays[p], idx[p, k]
+        return rays, nodes
 
     def _cast_chunk(self, o, d):
         torch = self._torch
