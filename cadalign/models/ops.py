@@ -54,36 +54,52 @@ def clip_boxes(boxes: Tensor, height: int, width: int) -> Tensor:
     return torch.stack([x[..., 0], y[..., 0], x[..., 1], y[..., 1]], -1)
 
 
-def nms(boxes: Tensor, scores: Tensor, iou_threshold: float, *, use_accel: bool = True) -> Tensor:
+def nms(boxes: Tensor, scores: Tensor, iou_threshold: float, *, max_keep: int | None = None,
+        use_accel: bool = True) -> Tensor:
     """Greedy non-maximum suppression; indices ``(K,)`` of kept boxes, by decreasing score.
 
     A box is dropped when its IoU with an already kept, higher-scoring box is *strictly greater* than
-    ``iou_threshold`` (torchvision's rule). Ties in score keep the lower index first (stable sort).
+    ``iou_threshold`` (torchvision's rule). Ties in score keep the lower index first (stable sort). IoU rows
+    are computed only for kept boxes, and the loop stops after ``max_keep`` boxes (the result is then the
+    first ``max_keep`` of the full answer), so proposals cost O(kept x N), not O(N^2).
 
     Args:
         boxes: (N, 4) xyxy.
         scores: (N,).
         iou_threshold: IoU above which the lower-scoring box is suppressed.
+        max_keep: stop after this many kept boxes (None: all).
     """
     if boxes.shape[0] == 0:
         return torch.zeros(0, dtype=torch.int64, device=boxes.device)
     tv = _tv_ops() if use_accel else None
     if tv is not None:  # pragma: no cover
-        return tv.nms(boxes, scores, iou_threshold)
+        return tv.nms(boxes, scores, iou_threshold)[:max_keep]
     order = torch.sort(scores, descending=True, stable=True).indices
-    over = (box_iou(boxes[order], boxes[order]) > iou_threshold).cpu().numpy()
-    n = len(order)
+    b = boxes[order].detach().cpu().double().numpy()
+    area = np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None)
+    n = len(b)
     removed = np.zeros(n, dtype=bool)
-    keep = []
+    keep: list[int] = []
+    limit = n if max_keep is None else max_keep
     for i in range(n):
         if removed[i]:
             continue
         keep.append(i)
-        removed[i + 1 :] |= over[i, i + 1 :]
+        if len(keep) >= limit:
+            break
+        r = b[i + 1 :]
+        iw = np.clip(np.minimum(b[i, 2], r[:, 2]) - np.maximum(b[i, 0], r[:, 0]), 0, None)
+        ih = np.clip(np.minimum(b[i, 3], r[:, 3]) - np.maximum(b[i, 1], r[:, 1]), 0, None)
+        inter = iw * ih
+        union = area[i] + area[i + 1 :] - inter
+        with np.errstate(divide="ignore", invalid="ignore"):
+            iou = np.where(union > 0, inter / union, 0.0)
+        removed[i + 1 :] |= iou > iou_threshold
     return order[torch.as_tensor(keep, dtype=torch.int64, device=boxes.device)]
 
 
-def batched_nms(boxes: Tensor, scores: Tensor, idxs: Tensor, iou_threshold: float) -> Tensor:
+def batched_nms(boxes: Tensor, scores: Tensor, idxs: Tensor, iou_threshold: float, *,
+                max_keep: int | None = None) -> Tensor:
     """NMS applied independently per category ``idxs (N,)``; kept indices sorted by decreasing score.
 
     Boxes of different categories are moved apart by an offset larger than every coordinate (the
@@ -93,7 +109,7 @@ def batched_nms(boxes: Tensor, scores: Tensor, idxs: Tensor, iou_threshold: floa
         return torch.zeros(0, dtype=torch.int64, device=boxes.device)
     span = (boxes.max() - boxes.min()).abs() + 1
     shifted = boxes - boxes.min() + (idxs.to(boxes) * span)[:, None]
-    return nms(shifted, scores, iou_threshold)
+    return nms(shifted, scores, iou_threshold, max_keep=max_keep)
 
 
 def encode_boxes(reference: Tensor, proposals: Tensor, weights: Sequence[float] = (1.0, 1.0, 1.0, 1.0)) -> Tensor:

@@ -27,13 +27,13 @@ def _rot_err_deg(R_pred: np.ndarray, R_gt: np.ndarray, sym_R: list[np.ndarray]) 
     return float(min(errs))
 
 
-def _summ(rows: dict[str, list[float]], tp: int, fp: int, fn: int) -> dict[str, float]:
+def _summ(rows: dict[str, list[float]], tp: int, fp: int, fn: int) -> dict[str, float | None]:
     p = tp / (tp + fp) if tp + fp else 0.0
     r = tp / (tp + fn) if tp + fn else 0.0
     out = {"tp": tp, "fp": fp, "fn": fn, "precision": p, "recall": r, "f1": 2 * p * r / (p + r) if p + r else 0.0}
     for key, vals in rows.items():
-        out[f"{key}_mean"] = float(np.mean(vals)) if vals else float("nan")
-        out[f"{key}_median"] = float(np.median(vals)) if vals else float("nan")
+        out[f"{key}_mean"] = float(np.mean(vals)) if vals else None  # None (JSON null): no match to measure
+        out[f"{key}_median"] = float(np.median(vals)) if vals else None
     return out
 
 

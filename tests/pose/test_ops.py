@@ -137,6 +137,7 @@ def test_nms_matches_brute_force(n, seed, thr, n_cls):
     scores = rng.choice(np.linspace(0, 1, 7), n)  # repeated scores exercise the tie rule
     keep = nms(torch.tensor(boxes), torch.tensor(scores), thr).tolist()
     assert keep == _ref_nms(boxes, scores, thr)
+    assert nms(torch.tensor(boxes), torch.tensor(scores), thr, max_keep=3).tolist() == keep[:3]
     cls = rng.integers(0, n_cls, n)
     got = batched_nms(torch.tensor(boxes), torch.tensor(scores), torch.tensor(cls), thr).tolist()
     expect = []

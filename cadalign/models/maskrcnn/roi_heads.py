@@ -177,7 +177,7 @@ def postprocess(logits: Tensor, deltas: Tensor, boxes: list[Tensor], image_hw: t
         lab = torch.arange(1, n_cls, device=sc.device).repeat(n)
         ok = (sc > score_thresh) & ((bx[:, 2] - bx[:, 0]) >= 1e-2) & ((bx[:, 3] - bx[:, 1]) >= 1e-2)
         bx, sc, lab = bx[ok], sc[ok], lab[ok]
-        keep = batched_nms(bx, sc, lab, nms_thresh)[:max_dets]
+        keep = batched_nms(bx, sc, lab, nms_thresh, max_keep=max_dets)
         out.append((bx[keep], sc[keep], lab[keep]))
         start += n
     return out

@@ -114,7 +114,7 @@ class RPN(nn.Module):
             b, sc, lv = torch.cat(boxes), torch.cat(scores), torch.cat(levels)
             ok = ((b[:, 2] - b[:, 0]) >= self.s.min_size) & ((b[:, 3] - b[:, 1]) >= self.s.min_size)
             b, sc, lv = b[ok], sc[ok], lv[ok]
-            keep = batched_nms(b, sc, lv, self.s.nms_thresh)[:post]
+            keep = batched_nms(b, sc, lv, self.s.nms_thresh, max_keep=post)
             out.append(b[keep])
         return out
 
