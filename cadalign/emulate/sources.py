@@ -92,12 +92,15 @@ def _field(data: np.ndarray | None, keys: tuple[str, ...]) -> np.ndarray | None:
 
 
 def _face_layer(vdata, fdata, faces: np.ndarray, keys: tuple[str, ...]) -> np.ndarray:
-    """A per-face layer from face properties, else from vertex properties (the first corner's), else 0."""
+    """A per-face layer from face properties, else from vertex properties (majority of the corners), else 0."""
     f = _field(fdata, keys)
     if f is not None:
         return f.astype(np.int32)
     v = _field(vdata, keys)
-    return np.zeros(len(faces), np.int32) if v is None else v.astype(np.int32)[faces[:, 0]]
+    if v is None:
+        return np.zeros(len(faces), np.int32)
+    a, b, c = v.astype(np.int32)[faces].T
+    return np.where(b == c, b, a)
 
 
 def ply_mesh(path: Path) -> LayeredMesh:

@@ -131,3 +131,26 @@ def test_predicted_depth_and_classes_replace_the_ground_truth() -> None:
     assert same.depth_m is inp.depth_m and same.class_id is inp.class_id
     with pytest.raises(InputError, match="segmentation predictor returned"):
         with_predictions(inp, seg_fn=lambda rgb: np.zeros((H, W)))
+
+
+def test_fused_map_ply_with_vertex_colour_and_class(tmp_path) -> None:
+    """The layout of cadalign.fuse's mesh.ply: per-vertex colour and ushort class, no face properties."""
+    v = np.zeros(4, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"), ("green", "u1"),
+                           ("blue", "u1"), ("class", "<u2"), ("confidence", "<f4")])
+    v["x"], v["y"], v["z"] = [0, 1, 1, 0], [0, 0, 1, 1], 2.0
+    v["red"], v["class"] = [0, 100, 200, 50], [2, 2, 1, 1]
+    f = np.zeros(2, dtype=[("n", "u1"), ("v", "<i4", (3,))])
+    f["n"], f["v"] = 3, [[0, 1, 2], [0, 2, 3]]
+    props = "".join(f"property {t} {n}\n" for n, t in (("x", "double"), ("y", "double"), ("z", "double"),
+                    ("red", "uchar"), ("green", "uchar"), ("blue", "uchar"), ("class", "ushort"),
+                    ("confidence", "float")))
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex 4\n{props}element face 2\n"
+              "property list uchar int vertex_indices\nend_header\n")
+    (tmp_path / "map.ply").write_bytes(header.encode() + v.tobytes() + f.tobytes())
+    mesh = ply_mesh(tmp_path / "map.ply")
+    assert mesh.class_id.tolist() == [2, 1]  # majority of each face's corners
+    np.testing.assert_array_equal(mesh.vertex_rgb[:, 0], [0, 100, 200, 50])
+    view = render(mesh, Camera(K, W, H), Rigid3(np.eye(3), [0.5, 0.5, 0.0]))
+    # pixel (12, 20) sees (0.8, 0.5333) on face 0 = (1 - u - v) V0 + u V1 + v V2 with u = 0.2667, v = 0.5333
+    assert view.rgb[12, 20, 0] == round(0.8 * 100 - 0.5333 * 100 + 0.5333 * 200 - 0.0001)
+    assert view.class_id[12, 20] == 2 and view.class_id[16, 12] == 1
