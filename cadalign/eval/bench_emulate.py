@@ -52,10 +52,12 @@ def agreement(mesh, origins: np.ndarray, dirs: np.ndarray, tol_m: float = 1e-4) 
 
 
 def bench_emulate(scene_path: Path, out_dir: Path, *, rings: int = 256, azimuths: int = 4096,
-                  torch_rays: int = 50_000, agree_rays: int = 100_000, rounds: int = 5, poses: int = 4) -> dict:
+                  torch_rays: int = 20_000, agree_rays: int = 100_000, rounds: int = 10, poses: int = 4,
+                  torch_threads: int | None = None) -> dict:
     """Time and compare the engines on ``scene_path``; writes ``out_dir/bench_emulate.json`` and returns it.
 
     The timed scan has ``rings x azimuths`` rays (default 1,048,576) over +-45 degrees of elevation.
+    ``torch_threads`` sets torch's CPU threads for the torch engine's timing (restored afterwards).
     """
     import torch
 
@@ -81,7 +83,13 @@ def bench_emulate(scene_path: Path, out_dir: Path, *, rings: int = 256, azimuths
     te = TorchEngine(mesh.vertices_m, mesh.faces)
     start = len(d) // 3  # a block of columns that sees the structure and the seabed
     block = d[start:start + torch_rays]
-    torch_s = _best(lambda: te.cast_unit(T.t, block), 2)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(torch_threads or threads)
+    try:
+        torch_s = _best(lambda: te.cast_unit(T.t, block), 3)
+        used_threads = torch.get_num_threads()
+    finally:
+        torch.set_num_threads(threads)
     rng = np.random.default_rng(0)
     per = agree_rays // poses
     o_all = np.concatenate([np.tile(c.t, (per, 1)) for c in cams[:: max(1, len(cams) // poses)][:poses]])
@@ -91,7 +99,7 @@ def bench_emulate(scene_path: Path, out_dir: Path, *, rings: int = 256, azimuths
         "bvh_cast_s": cast_s, "bvh_cast_rays_per_s": len(d) / cast_s,
         "bvh_scan_s": scan_s, "bvh_scan_rays_per_s": len(d) / scan_s,
         "torch_rays": len(block), "torch_s": torch_s, "torch_rays_per_s": len(block) / torch_s,
-        "torch_threads": torch.get_num_threads(), "cpu_count": os.cpu_count(),
+        "torch_threads": used_threads, "cpu_count": os.cpu_count(),
         "load_avg_1min": os.getloadavg()[0], "agreement": agree,
     }
     write_json(Path(out_dir) / "bench_emulate.json", result)
@@ -100,7 +108,7 @@ def bench_emulate(scene_path: Path, out_dir: Path, *, rings: int = 256, azimuths
     return result
 
 
-if __name__ == "__main__":  # python -m cadalign.eval.bench_emulate [SCENE] [OUT]
+if __name__ == "__main__":  # OMP_NUM_THREADS=1 python -m cadalign.eval.bench_emulate [SCENE] [OUT]
     import json
     import sys
 
@@ -108,5 +116,5 @@ if __name__ == "__main__":  # python -m cadalign.eval.bench_emulate [SCENE] [OUT
 
     args = sys.argv[1:]
     res = bench_emulate(Path(args[0]) if args else default_scene_path(),
-                        Path(args[1]) if len(args) > 1 else Path("runs/bench/emulate"))
+                        Path(args[1]) if len(args) > 1 else Path("runs/bench/emulate"), torch_threads=2)
     print(json.dumps(res, indent=2))
