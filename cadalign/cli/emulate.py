@@ -14,7 +14,8 @@ app = typer.Typer(help="Emulate LiDAR, multibeam sonar or novel views by ray cas
 SOURCE_HELP = ("Scene spec (TOML/YAML), mesh PLY (e.g. a fused map; colour/class/part/pane properties used), or an "
                "image: SCENE/rgb/NNNNNN.png of a BOP scene or an .npz with rgb, depth_m, K.")
 POSE_HELP = ("Sensor pose in the world: 'x,y,z' or 'x,y,z,roll,pitch,yaw' (m, deg, extrinsic xyz) or a JSON with "
-             "a 4x4 T_world_from_sensor. Default: a scene's first trajectory pose / the image's camera.")
+             "a 4x4 T_world_from_sensor. Axes: LiDAR/sonar x forward, y left, z up; views x right, y down, "
+             "z forward (aim with --look-at). Default: a scene's first trajectory pose / the image's camera.")
 
 
 MODEL_DEPTH_HELP = "Image sources: a 'cadalign train depth' run (or .pt) whose depth replaces the ground truth."
