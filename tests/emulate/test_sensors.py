@@ -122,3 +122,13 @@ def test_view_matches_the_ground_truth_ray_caster(tiny_scene_path, tiny_mesh, ti
         both = (v.depth_m > 0) & (gt.depth_m > 0)
         assert both.mean() > 0.5 and np.abs(v.depth_m[both] - gt.depth_m[both]).max() < 1e-4
     assert v.rgb[v.face < 0].max(initial=0) == 0
+
+
+def test_return_strength_formula() -> None:
+    cfg = sonar.SonarConfig(class_reflectivity=(0.5, 2.0), incidence_exponent=2.0, attenuation_db_per_m=0.1,
+                            spreading_exponent=2.0)
+    r = np.array([10.0, 10.0, 0.5, 10.0])
+    cos = np.array([np.cos(np.radians(60)), -1.0, 1.0, 1.0])
+    got = sonar.return_strength(cfg, r, cos, np.array([1, 0, 0, 7]))
+    expected = np.array([2.0 * 0.25 * 10 ** -0.2 / 100, 0.5 * 10 ** -0.2 / 100, 0.5 * 10 ** -0.01, 10 ** -0.2 / 100])
+    np.testing.assert_allclose(got, expected, rtol=1e-12)  # spreading is relative to 1 m; unknown class -> 1
