@@ -12,6 +12,7 @@ is the one that is tested and always available.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 
@@ -23,7 +24,9 @@ BBOX_XFORM_CLIP = math.log(1000.0 / 16)
 """Largest log-scale a box delta may apply (torchvision's value), so exp() cannot overflow."""
 
 
+@functools.cache
 def _tv_ops():  # pragma: no cover - torchvision's compiled ops do not load in this environment
+    """torchvision.ops when its compiled kernels work, else None (probed once per process)."""
     try:
         import torchvision.ops as tv_ops
 

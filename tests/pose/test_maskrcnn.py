@@ -77,6 +77,7 @@ def test_eval_outputs_and_detect_interface():
     big = torch.nn.functional.interpolate(img[None], scale_factor=2, mode="nearest")[0]
     dets = model.detect(big, torch.diag(torch.tensor([2.0, 2.0, 1.0])) @ K, score_thresh=0.0)
     assert dets and all(isinstance(d, Detection) for d in dets)
+    assert set(model.last_timings) == {"detector", "mask", "pose"} and min(model.last_timings.values()) >= 0
     scores = [d.score for d in dets]
     assert scores == sorted(scores, reverse=True)
     for d in dets:

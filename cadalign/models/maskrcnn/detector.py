@@ -9,6 +9,7 @@ and returns :class:`Detection`s in the input image's pixels with poses in metres
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -152,6 +153,8 @@ class MaskRCNNPose(nn.Module):
         self.pose_head = PoseHead(c, 14, cfg.pose_channels, cfg.pose_rep, n, cfg.pose)
         self.register_buffer("mean", torch.tensor(_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(_STD).view(1, 3, 1, 1), persistent=False)
+        self.last_timings: dict[str, float] = {}
+        """Seconds per stage of the last ``inference``/``detect`` call: detector, mask, pose."""
 
     def _features(self, images: Tensor) -> list[Tensor]:
         if images.dim() != 4 or images.shape[1] != 3:
@@ -198,28 +201,34 @@ class MaskRCNNPose(nn.Module):
         return PoseRoIs(raw, pos.boxes, pos.labels, pick("obj_ids"), pick("R"), pick("t"), K, self.cfg.pose)
 
     @torch.no_grad()
-    def inference(self, images: Tensor, score_thresh: float = 0.05) -> list[dict]:
+    def inference(self, images: Tensor, score_thresh: float = 0.05, paste: bool = True) -> list[dict]:
         """Per image: ``boxes`` (D, 4) px, ``scores``, ``labels``, ``mask_probs`` (D, 28, 28) of the RoI,
-        ``masks`` (D, H, W) bool, ``pose_raw`` (D, dims) of the predicted class — at the size of ``images``."""
+        ``masks`` (D, H, W) bool (when ``paste``), ``pose_raw`` (D, dims) of the predicted class — at the size
+        of ``images``. Seconds per stage (detector, mask, pose) are left in ``self.last_timings``."""
+        t0 = time.perf_counter()
         feats = self._features(images)
         hw = (images.shape[-2], images.shape[-1])
         proposals, _ = self.rpn(feats, hw)
         logits, deltas = self.box_head(self.box_pool(feats[:4], rois_with_batch(proposals)))
         dets = postprocess(logits, deltas, proposals, hw, score_thresh, self.cfg.box_nms_thresh,
                            self.cfg.detections_per_image)
-        out = []
         boxes = [b for b, _, _ in dets]
         pooled = self.mask_pool(feats[:4], rois_with_batch(boxes))
         labels = torch.cat([lab for _, _, lab in dets]) if dets else torch.zeros(0, dtype=torch.int64)
         rows = torch.arange(len(labels))
+        t1 = time.perf_counter()
         probs = torch.sigmoid(self.mask_head(pooled))[rows, labels]
+        t2 = time.perf_counter()
         pose = self.pose_head(pooled, torch.cat(boxes), hw)[rows, labels]
-        start = 0
+        t3 = time.perf_counter()
+        out, start = [], 0
         for b, s, lab in dets:
             sl = slice(start, start + len(b))
-            out.append({"boxes": b, "scores": s, "labels": lab, "mask_probs": probs[sl],
-                        "masks": paste_masks(probs[sl], b, hw), "pose_raw": pose[sl]})
+            masks = paste_masks(probs[sl], b, hw) if paste else None
+            out.append({"boxes": b, "scores": s, "labels": lab, "mask_probs": probs[sl], "masks": masks,
+                        "pose_raw": pose[sl]})
             start += len(b)
+        self.last_timings = {"detector": t1 - t0, "mask": t2 - t1 + time.perf_counter() - t3, "pose": t3 - t2}
         return out
 
     @torch.no_grad()
@@ -236,6 +245,7 @@ class MaskRCNNPose(nn.Module):
         """
         if image.dim() != 3 or image.shape[0] != 3 or tuple(K.shape) != (3, 3):
             raise ValueError(f"detect expects image (3, H, W) and K (3, 3), got {tuple(image.shape)}, {tuple(K.shape)}")
+        t_start = time.perf_counter()
         was_training = self.training
         self.eval()
         dev = self.mean.device
@@ -246,11 +256,18 @@ class MaskRCNNPose(nn.Module):
             x = F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
         scale = torch.tensor([w / w0, h / h0, 1.0], dtype=torch.float32, device=dev)
         K_net = scale[:, None] * K.to(dev, torch.float32)
-        res = self.inference(x, score_thresh=score_thresh)[0]
+        t0 = time.perf_counter()
+        res = self.inference(x, score_thresh=score_thresh, paste=False)[0]
+        timings = dict(self.last_timings)
+        timings["detector"] += t0 - t_start  # the resize
         n = len(res["boxes"])
+        t1 = time.perf_counter()
         R, t = decode_pose(res["pose_raw"], self.cfg.pose, K_net.expand(n, 3, 3), res["boxes"])
+        t2 = time.perf_counter()
         boxes0 = res["boxes"] / torch.tensor([w / w0, h / h0, w / w0, h / h0], device=dev)
         masks = paste_masks(res["mask_probs"], boxes0, (h0, w0))
+        self.last_timings = {**timings, "pose": timings["pose"] + t2 - t1,
+                             "mask": timings["mask"] + time.perf_counter() - t2}
         self.train(was_training)
         return [
             Detection(boxes0[i].cpu().numpy().astype(np.float64), int(res["labels"][i]), float(res["scores"][i]),
