@@ -1,0 +1,40 @@
+"""Bad inputs through the CLI: a one-line ``error:`` naming the input, exit code 1, no traceback."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from sim_testdata import write_tiny_scene
+from typer.testing import CliRunner
+
+from cadalign.cli.main import app
+
+runner = CliRunner()
+
+
+def _fails_readably(args: list[str], *fragments: str) -> str:
+    res = runner.invoke(app, args)
+    out = " ".join(res.output.split())  # rich wraps long lines
+    assert res.exit_code == 1, res.output
+    assert "error:" in out and "Traceback" not in out
+    for frag in fragments:
+        assert frag in out, (frag, out)
+    return out
+
+
+def test_sfm_zero_length_video(tmp_path: Path) -> None:
+    (tmp_path / "dive.mp4").write_bytes(b"")
+    _fails_readably(["sfm", str(tmp_path / "dive.mp4"), "--out", str(tmp_path / "o"), "--preset", "fast"],
+                    "dive.mp4", "is empty (0 bytes)")
+
+
+def test_sfm_config_with_misspelled_key(tmp_path: Path) -> None:
+    (tmp_path / "sfm.toml").write_text("[matching]\noverlapp = 5\n")
+    _fails_readably(["sfm", str(tmp_path), "--out", str(tmp_path / "o"), "--config", str(tmp_path / "sfm.toml")],
+                    "sfm.toml", "unknown key 'matching.overlapp'", "did you mean 'matching.overlap'")
+
+
+def test_sim_camera_inside_an_object(tmp_path: Path) -> None:
+    scene = write_tiny_scene(tmp_path / "s.toml", effects=[], frames=2)
+    scene.write_text(scene.read_text().replace("radius_m = 3.2\nheight_m = 1.6", "radius_m = 0.2\nheight_m = 0.5"))
+    _fails_readably(["sim", str(scene), "--out", str(tmp_path / "o")], "inside object 'block'")
