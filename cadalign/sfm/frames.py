@@ -296,11 +296,11 @@ def extract_frames(
     _warn_exposure(source, decisions)
     kept = [d for d in decisions if d.kept]
     if len(kept) < 2:
-        raise InputError(
-            f"{source}: only {len(kept)} of {len(decisions)} frames are usable "
-            f"({_count_reasons(decisions)}{_exposure_names(decisions)}); lower frames.blur_ratio / "
-            "frames.min_motion or check the input"
-        )
+        exposure = _exposure_names(decisions)
+        hint = ("check the lamps and the camera exposure of the input" if exposure else
+                "lower frames.blur_ratio / frames.min_motion or check the input")
+        raise InputError(f"{source}: only {len(kept)} of {len(decisions)} frames are usable "
+                         f"({_count_reasons(decisions)}{exposure}); {hint}")
     log.info("frames: kept %d of %d (%s)", len(kept), len(decisions), _count_reasons(decisions) or "none rejected")
     return decisions
 

@@ -121,7 +121,8 @@ def test_all_black_frames_are_refused_with_their_names(tmp_path: Path) -> None:
     for k in range(3):
         write_image(tmp_path / "in" / f"{k:06d}.png", (_texture(k) // 40).astype(np.uint8))  # grey levels <= 6
     expect_error("sfm frames", "all frames black (lamps off)", InputError, lambda: _extract(tmp_path / "in", tmp_path),
-                 "only 0 of 3 frames are usable", "3 black", "black: 000000.png, 000001.png, 000002.png")
+                 "only 0 of 3 frames are usable", "3 black", "black: 000000.png, 000001.png, 000002.png",
+                 "check the lamps")
 
 
 def test_black_and_overexposed_frames_are_skipped_with_a_warning(tmp_path: Path, caplog) -> None:
