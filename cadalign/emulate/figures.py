@@ -46,7 +46,8 @@ def lidar_figure(scan: LidarScan, path: Path, class_names: tuple[str, ...] = (),
     import matplotlib.pyplot as plt
 
     spinning = bool(len(scan.ring)) and scan.ring.min() >= 0
-    fig, axes = plt.subplots(1, 2 if spinning else 1, figsize=(14 if spinning else 7, 6), squeeze=False)
+    n_panels = 3 if spinning else 2
+    fig, axes = plt.subplots(1, n_panels, figsize=(7 * n_panels, 6), squeeze=False)
     ax = axes[0, 0]
     cols = class_colours(scan.class_id) / 255.0
     order = np.argsort(scan.xyz_world[:, 2])  # draw high points last (on top)
@@ -59,18 +60,51 @@ def lidar_figure(scan: LidarScan, path: Path, class_names: tuple[str, ...] = (),
     for c in np.unique(scan.class_id):
         ax.scatter([], [], color=PALETTE[c % len(PALETTE)] / 255.0, label=_class_name(class_names, int(c)), s=20)
     ax.legend(loc="upper right", fontsize=8)
+    _oblique(axes[0, 1], scan, cols)
     if spinning:
         n_ring = int(scan.ring.max()) + 1
         n_az = max(1, int(round(2 * np.pi / _az_step(scan.azimuth_rad))))
         img = np.zeros((n_ring, n_az, 3), np.uint8)
         col = np.mod(np.rint(scan.azimuth_rad / (2 * np.pi) * n_az).astype(np.int64), n_az)
         img[n_ring - 1 - scan.ring, col] = class_colours(scan.class_id)
-        axes[0, 1].imshow(img, aspect="auto", interpolation="nearest", extent=(0, 360, 0, n_ring))
-        axes[0, 1].set_xlabel("azimuth (deg)")
-        axes[0, 1].set_ylabel("ring (low to high)")
-        axes[0, 1].set_title("range image: class per beam (black = no return)")
+        axes[0, 2].imshow(img, aspect="auto", interpolation="nearest", extent=(0, 360, 0, n_ring))
+        axes[0, 2].set_xlabel("azimuth (deg)")
+        axes[0, 2].set_ylabel("ring (low to high)")
+        axes[0, 2].set_title("range image: class per beam (black = no return)")
     fig.tight_layout()
     return _save(fig, path)
+
+
+def _oblique(ax, scan: LidarScan, cols: np.ndarray) -> None:  # noqa: ANN001
+    """The returns seen from behind and above the sensor, looking at the non-background returns."""
+    pts = scan.xyz_world
+    if len(pts) == 0:
+        return
+    fg = scan.class_id > 0
+    target = np.median(pts[fg] if fg.sum() >= 10 else pts, axis=0)
+    origin = np.asarray(scan.origin_world, dtype=np.float64)
+    back = origin - target
+    dist = max(float(np.linalg.norm(back)), 1.0)
+    eye = origin + 0.5 * back + np.array([0.0, 0.0, 0.4 * dist])
+    f = target - eye
+    f /= np.linalg.norm(f)
+    r = np.cross(f, [0.0, 0.0, 1.0])
+    r = r / np.linalg.norm(r) if np.linalg.norm(r) > 1e-9 else np.array([1.0, 0.0, 0.0])
+    d = np.cross(f, r)
+    cam = (pts - eye) @ np.stack([r, d, f], 1)
+    z = np.maximum(cam[:, 2], 1e-9)
+    x, y = cam[:, 0] / z, -cam[:, 1] / z
+    half_w, half_h = np.tan(np.radians(35.0)), np.tan(np.radians(26.0))  # a 70 x 52 degree camera
+    ok = (cam[:, 2] > 0.1) & (np.abs(x) < half_w) & (np.abs(y) < half_h)
+    order = np.flatnonzero(ok)[np.argsort(-cam[ok, 2])]  # far first, near drawn over them
+    ax.scatter(x[order], y[order], c=cols[order], s=1.0, linewidths=0)
+    ax.set_xlim(-half_w, half_w)
+    ax.set_ylim(-half_h, half_h)
+    ax.set_facecolor("black")
+    ax.set_aspect("equal")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.set_title("oblique view from behind and above the sensor")
 
 
 def _az_step(az: np.ndarray) -> float:

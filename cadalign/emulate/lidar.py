@@ -95,6 +95,7 @@ class LidarScan:
         azimuth_rad: (N,) azimuth of the beam in the sensor frame.
         elevation_rad: (N,) elevation of the beam in the sensor frame.
         n_rays: number of rays cast.
+        origin_world: (3,) the sensor position (ray origin), metres.
     """
 
     xyz_world: np.ndarray
@@ -107,6 +108,7 @@ class LidarScan:
     azimuth_rad: np.ndarray
     elevation_rad: np.ndarray
     n_rays: int
+    origin_world: np.ndarray
 
 
 def beam_elevations_deg(cfg: LidarConfig) -> np.ndarray:
@@ -176,6 +178,7 @@ def scan(mesh: LayeredMesh, T_world_from_sensor: Rigid3, cfg: LidarConfig,
     return LidarScan(
         T_world_from_sensor.t + d_world[idx] * r_meas[:, None], r_meas, mesh.hit_rgb(f, hits.bary[idx]),
         mesh.class_id[f], mesh.part_id[f], mesh.pane_id[f], ring[idx], az[idx], el[idx], len(d),
+        np.array(T_world_from_sensor.t),
     )
 
 
