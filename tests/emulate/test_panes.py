@@ -110,3 +110,24 @@ def test_random_planes_recover_the_normal_to_a_tenth_of_a_degree(theta, phi, off
     assert plane.normal @ (np.zeros(3) - plane.centroid) >= -1e-9 * (1 + abs(offset))  # faces the origin
     assert np.all(np.abs((verts - plane.centroid) @ plane.normal) < 1e-6 * (1 + abs(offset)))
     assert len(faces) == len(verts) - 2
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    tilt=st.floats(0.0, 45.0), azim=st.floats(0.0, 360.0), dist=st.floats(0.5, 20.0),  # every pixel sees it
+    r0=st.integers(0, 30), c0=st.integers(0, 40), h=st.integers(3, 17), w=st.integers(3, 23),
+)
+def test_algorithm1_on_random_planes_in_a_depth_image(tilt, azim, dist, r0, c0, h, w) -> None:
+    """Mask -> component -> perimeter -> 3D -> SVD fit: the plane's normal within 0.1 degree, facing the camera."""
+    t, a = np.radians(tilt), np.radians(azim)
+    n = -np.array([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)])  # towards the camera
+    rays = depth_to_points(K, np.ones((48, 64)))[0]
+    depth = -dist / (rays @ n)  # n . x = -dist
+    pts, valid = depth_to_points(K, depth)
+    mask = np.zeros((48, 64), bool)
+    mask[r0:r0 + h, c0:c0 + w] = True
+    res = extract_panes(mask, pts, valid, PaneConfig(min_pixels=9))
+    assert len(res.panes) == 1, res.rejected
+    p = res.panes[0]
+    assert np.degrees(np.arccos(np.clip(p.plane.normal @ n, -1, 1))) <= 0.1
+    assert abs(p.plane.offset - dist) < 1e-6 * dist
