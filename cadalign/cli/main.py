@@ -7,6 +7,7 @@ import typer
 from cadalign import __version__
 from cadalign.cli import align, bench, build_dataset, common, demo, emulate, pending, sfm, sim
 from cadalign.cli import eval as eval_cli
+from cadalign.cli import fuse as fuse_cli
 from cadalign.cli import infer as infer_cli
 from cadalign.cli import train as train_cli
 
@@ -45,7 +46,9 @@ app.add_typer(train_cli.app, name="train")
 app.add_typer(eval_cli.app, name="eval")
 app.add_typer(emulate.app, name="emulate")
 app.command("infer")(infer_cli.command)
-pending.register(app, skip={"sim", "sfm", "align", "build-dataset", "demo", "bench", "emulate", "train", "infer"})
+app.command("fuse")(fuse_cli.command)
+pending.register(app, skip={"sim", "sfm", "align", "build-dataset", "demo", "bench", "emulate", "train", "infer",
+                            "fuse"})
 
 
 def main() -> None:

@@ -1,0 +1,76 @@
+"""Configuration of the fusion stage: one frozen dataclass and the named presets.
+
+Load with :func:`cadalign.config.resolve` (preset, then file keys, then overrides)::
+
+    cfg = resolve(FuseConfig, PRESETS, "default", overrides={"voxel_m": 0.05})
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Literal
+
+from cadalign.config import bounded
+
+
+@dataclass(frozen=True)
+class FuseConfig:
+    """Semantic map fusion (TSDF or surfels) of posed depth + class probabilities."""
+
+    method: Literal["tsdf", "surfel"] = "tsdf"
+    """Map representation: Open3D voxel-block TSDF, or an ElasticFusion-like surfel map."""
+    voxel_m: float = bounded(0.02, gt=0)
+    """TSDF voxel size, and the spacing of new surfels, metres."""
+    trunc_voxels: float = bounded(4.0, ge=3.0)
+    """TSDF truncation distance in voxels (>= 3; also keep it >= 3 sigma of the depth error)."""
+    depth_min_m: float = bounded(0.1, ge=0)
+    """Depth below this is ignored, metres."""
+    depth_max_m: float = bounded(20.0, gt=0)
+    """Depth beyond this is ignored, metres (underwater visibility rarely exceeds it)."""
+    weight_cap: float = bounded(64.0, ge=1)
+    """TSDF weights (frames averaged) and surfel confidences are capped here, so the map keeps adapting."""
+    block_resolution: int = bounded(8, ge=2, le=16)
+    """Voxels per side of one TSDF block (8: 4 is faster but loses more marching-cubes cells at block borders)."""
+    block_count: int = bounded(50000, ge=16)
+    """Initial hash map capacity in blocks (8^3 blocks take ~18 kB each). Open3D grows it when full, but a
+    growth costs seconds (a rehash and copy of every block), so size it for the scene."""
+    mesh_weight_threshold: float = bounded(1.0, gt=0)
+    """Voxels observed less than this are left out of the mesh and point cloud."""
+    label_min_prob: float = bounded(1e-3, gt=0, lt=1)
+    """Input class probabilities are clamped to [label_min_prob, 1] before the Bayes update."""
+    label_log_floor: float = bounded(-20.0, lt=0)
+    """Fused class log-probabilities are floored here (finite, and the map can still change its mind)."""
+    label_confidence: float = bounded(0.95, gt=0, le=1)
+    """Probability given to the labelled class when labels come as class indices (ground truth)."""
+    label_band_voxels: float = bounded(2.0, gt=0)
+    """Voxels within +-band/2 of the observed surface (along the ray) get the label update; at most
+    ``trunc_voxels`` (the update is only ever applied where |sdf| < trunc/2)."""
+    label_pixel_stride: int = bounded(1, ge=1)
+    """Use every n-th pixel (in both directions) for the label update (speed knob; 1 = every pixel)."""
+    surfel_max_normal_deg: float = bounded(30.0, gt=0, le=90)
+    """A measurement merges into a surfel only if their normals differ by less than this."""
+    surfel_max_dist_voxels: float = bounded(2.0, gt=0)
+    """... and if it is closer than this along the ray, in voxels."""
+    surfel_min_confidence: float = bounded(2.0, gt=0)
+    """Surfels less confident than this are left out of the outputs (seen once, never confirmed)."""
+
+
+    def __post_init__(self) -> None:
+        if self.label_band_voxels > self.trunc_voxels:
+            raise ValueError(f"label_band_voxels ({self.label_band_voxels}) must be <= trunc_voxels "
+                             f"({self.trunc_voxels}): labels are only updated where |sdf| < trunc/2")
+        if self.depth_min_m >= self.depth_max_m:
+            raise ValueError(f"depth_min_m ({self.depth_min_m}) must be < depth_max_m ({self.depth_max_m})")
+
+
+PRESETS: dict[str, FuseConfig] = {
+    "default": FuseConfig(),
+    "fast": FuseConfig(voxel_m=0.04, label_pixel_stride=2),
+    "fine": FuseConfig(voxel_m=0.01, trunc_voxels=5.0),
+    "surfel": FuseConfig(method="surfel"),
+}
+
+
+def with_overrides(cfg: FuseConfig, **kwargs: object) -> FuseConfig:
+    """``cfg`` with the given (non-None) fields replaced."""
+    return replace(cfg, **{k: v for k, v in kwargs.items() if v is not None})

@@ -1,0 +1,248 @@
+"""Semantic TSDF on Open3D's tensor ``VoxelBlockGrid`` (CPU), with a per-voxel class layer.
+
+Geometry: Open3D integrates depth (metres, ``depth_scale=1``, a real ``depth_max``) and colour into the
+attributes ``tsdf``, ``weight``, ``color`` of voxel blocks allocated around the observed surface; after each
+frame the weights of the touched blocks are capped (a capped running average, so old frames fade and the map
+keeps adapting). The legacy ``ScalableTSDFVolume`` is not used: in open3d 0.20 it integrates nothing.
+
+Labels: a fourth attribute ``label`` holds class log-probabilities relative to the most likely class per
+voxel (zero-filled = uniform, see :mod:`cadalign.fuse.semantic`). The update is pixel-driven: each valid
+pixel casts samples along its ray at z-offsets inside ``+-label_band/2`` of its depth (a band no wider than
+the truncation), i.e. only voxels with ``|sdf| < trunc/2`` near the surface it saw, and each such voxel
+gets one Bayes update per frame (when several samples of one frame land in one voxel, one of them is used: a
+frame is one observation, not many).
+
+Voxel ``(i, j, k)`` samples the local point ``(i, j, k) * voxel_m`` (Open3D's convention); the local frame
+is ``world - origin``. Open3D rounds projected pixel coordinates to integers, so it is given ``K`` with the
+principal point shifted by -0.5 px to honour cadalign's pixel-centre convention.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import torch
+
+from cadalign.errors import InputError
+from cadalign.fuse.base import (
+    FuseFrame,
+    LabelledGeometry,
+    origin_from_frame,
+    probs_from_stored,
+    require_valid_depth,
+)
+from cadalign.fuse.config import FuseConfig
+from cadalign.fuse.semantic import bayes_update, clamped_log_probs
+from cadalign.types import Rigid3
+
+log = logging.getLogger(__name__)
+MIN_OPEN3D = (0, 17)
+ATTRS = ("tsdf", "weight", "color", "label")
+
+
+def require_open3d():  # -> module
+    """Import open3d, refusing versions without a working tensor ``VoxelBlockGrid``."""
+    import open3d as o3d
+
+    version = tuple(int(p) for p in o3d.__version__.split(".")[:2] if p.isdigit())
+    if version < MIN_OPEN3D or not hasattr(o3d.t.geometry, "VoxelBlockGrid"):
+        raise InputError(f"open3d {o3d.__version__} is too old for the TSDF map: it needs the tensor "
+                         f"VoxelBlockGrid of open3d >= {'.'.join(map(str, MIN_OPEN3D))}; upgrade open3d")
+    return o3d
+
+
+def _view(o3d_tensor) -> torch.Tensor:  # noqa: ANN001 - an open3d.core.Tensor
+    """A torch view sharing memory with a CPU Open3D tensor (valid until the hash map grows)."""
+    return torch.from_numpy(o3d_tensor.numpy())
+
+
+class SemanticTSDF:
+    """A semantic TSDF map (see the module docstring). Implements :class:`~cadalign.fuse.base.SemanticMap`."""
+
+    def __init__(self, cfg: FuseConfig, n_classes: int, origin: np.ndarray | None = None) -> None:
+        if n_classes < 1:
+            raise InputError(f"a semantic map needs at least one class, got {n_classes}")
+        require_open3d()
+        self.cfg = cfg
+        self.n_classes = int(n_classes)
+        self.origin = None if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
+        self.frames_integrated = 0
+        self.seconds = {"tsdf": 0.0, "labels": 0.0}
+        self.res = int(cfg.block_resolution)
+        self.vbg = self._new_grid(int(cfg.block_count))
+
+    def _new_grid(self, capacity: int):  # -> o3d.t.geometry.VoxelBlockGrid
+        o3d = require_open3d()
+        f32 = o3d.core.float32
+        return o3d.t.geometry.VoxelBlockGrid(
+            ATTRS, (f32,) * 4, ((1,), (1,), (3,), (self.n_classes,)), float(self.cfg.voxel_m), self.res,
+            capacity, o3d.core.Device("CPU:0"),
+        )
+
+    @property
+    def trunc_m(self) -> float:
+        return self.cfg.trunc_voxels * self.cfg.voxel_m
+
+    @property
+    def n_blocks(self) -> int:
+        return int(self.vbg.hashmap().size())
+
+    def _T_cam_from_local(self, frame: FuseFrame) -> np.ndarray:
+        return (frame.T_cam_from_world @ Rigid3(np.eye(3), self.origin)).matrix()
+
+    def integrate(self, frame: FuseFrame) -> None:
+        """Fuse one frame: TSDF + colour (Open3D), weight cap, then the label update near the surface."""
+        o3d = require_open3d()
+        cfg = self.cfg
+        mask = require_valid_depth(frame, cfg.depth_min_m, cfg.depth_max_m, f"frame {self.frames_integrated}")
+        if self.origin is None:
+            self.origin = origin_from_frame(frame, mask, cfg.voxel_m * self.res)
+        t0 = time.perf_counter()
+        depth = np.where(mask, frame.depth_m, 0).astype(np.float32)
+        K = frame.camera.K.copy()
+        K[0, 2] -= 0.5
+        K[1, 2] -= 0.5
+        Kt = o3d.core.Tensor(K)
+        E = o3d.core.Tensor(self._T_cam_from_local(frame))
+        dimg = o3d.t.geometry.Image(o3d.core.Tensor(depth))
+        rgb = frame.rgb if frame.rgb is not None else np.full((*depth.shape, 3), 128, np.uint8)
+        cimg = o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(rgb, dtype=np.float32) / 255.0))
+        dmax, mult = float(cfg.depth_max_m), float(cfg.trunc_voxels)
+        coords = self.vbg.compute_unique_block_coordinates(dimg, Kt, E, 1.0, dmax, mult)
+        hm = self.vbg.hashmap()
+        buf, new = hm.activate(coords)
+        if new.numpy().any():  # fresh blocks: start empty and uniform whatever the allocator left there
+            fresh = torch.from_numpy(buf.numpy()[new.numpy()].astype(np.int64))
+            for name in ATTRS:
+                _view(self.vbg.attribute(name))[fresh] = 0.0
+        self.vbg.integrate(coords, dimg, cimg, Kt, E, 1.0, dmax, mult)
+        touched = torch.from_numpy(hm.find(coords)[0].numpy().astype(np.int64))
+        weight = _view(self.vbg.attribute("weight"))
+        weight[touched] = weight[touched].clamp_(max=cfg.weight_cap)
+        t1 = time.perf_counter()
+        self._update_labels(frame, mask)
+        self.seconds["tsdf"] += t1 - t0
+        self.seconds["labels"] += time.perf_counter() - t1
+        self.frames_integrated += 1
+
+    def _surface_samples(self, frame: FuseFrame, mask: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """Voxel indices (M, 3) of samples with |sdf| < label_band/2 <= trunc/2, and the pixel index (M,) of each."""
+        s = self.cfg.label_pixel_stride
+        if s > 1:
+            sub = np.zeros_like(mask)
+            sub[::s, ::s] = mask[::s, ::s]
+            mask = sub
+        pix = np.flatnonzero(mask)
+        cam = frame.camera
+        u, v = pix % cam.width, pix // cam.width
+        z = np.asarray(frame.depth_m, dtype=np.float32).reshape(-1)[pix]
+        T = np.linalg.inv(self._T_cam_from_local(frame))
+        # ray directions (z = 1) in the local frame, scaled by voxels: sample = (z + offset) * dir + t
+        rays = np.stack([(u + 0.5 - cam.cx) / cam.fx, (v + 0.5 - cam.cy) / cam.fy, np.ones(len(u))], 1)
+        dirs = torch.from_numpy((rays @ (T[:3, :3].T / self.cfg.voxel_m)).astype(np.float32))
+        t = torch.from_numpy((T[:3, 3] / self.cfg.voxel_m).astype(np.float32))
+        band = self.cfg.label_band_voxels
+        n = max(1, int(np.ceil(band - 1e-6)))  # samples one voxel apart (or closer) across the band
+        offsets = ((np.arange(n) + 0.5) / n - 0.5) * (band * self.cfg.voxel_m)
+        zt = torch.from_numpy(z)
+        vox = torch.cat([torch.round(torch.addcmul(t, dirs, (zt + float(o))[:, None])) for o in offsets])
+        return vox.to(torch.int32), torch.from_numpy(pix).repeat(n)
+
+    def _flat_index(self, vox: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Flattened voxel index into the attribute buffers and a found-mask, for (M, 3) voxel indices."""
+        o3d = require_open3d()
+        res = self.res
+        block = torch.div(vox, res, rounding_mode="floor")
+        local = vox - block * res
+        buf, ok = self.vbg.hashmap().find(o3d.core.Tensor.from_numpy(block.numpy()))
+        buf_t = torch.from_numpy(buf.numpy().astype(np.int64))
+        flat = buf_t * res**3 + local[:, 0] + res * (local[:, 1] + res * local[:, 2])
+        return flat, torch.from_numpy(ok.numpy())
+
+    def _update_labels(self, frame: FuseFrame, mask: np.ndarray) -> None:
+        vox, pix = self._surface_samples(frame, mask)
+        flat, ok = self._flat_index(vox)
+        flat, pix = flat[ok], pix[ok]
+        probs = torch.from_numpy(np.asarray(frame.probs, dtype=np.float32).reshape(self.n_classes, -1))
+        obs = clamped_log_probs(probs[:, pix].T, self.cfg.label_min_prob)
+        label = _view(self.vbg.attribute("label")).view(-1, self.n_classes)
+        label[flat] = bayes_update(label[flat], obs, self.cfg.label_log_floor)
+
+    def stored_at(self, points_local: np.ndarray) -> np.ndarray:
+        """(N, C) stored relative log-probabilities of the voxel nearest to each local point (0 = uniform)."""
+        vox = torch.from_numpy(np.round(np.asarray(points_local) / self.cfg.voxel_m).astype(np.int32))
+        flat, ok = self._flat_index(vox)
+        out = torch.zeros((len(vox), self.n_classes), dtype=torch.float32)
+        label = _view(self.vbg.attribute("label")).view(-1, self.n_classes)
+        out[ok] = label[flat[ok]]
+        return out.numpy()
+
+    def probs_at(self, points_local: np.ndarray, chunk: int = 500_000) -> np.ndarray:
+        """(N, C) class probabilities at local points: the mean over the 8 voxels of the enclosing cell."""
+        pts = np.asarray(points_local, dtype=np.float64)
+        out = np.empty((len(pts), self.n_classes), dtype=np.float32)
+        corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.float64)
+        for a in range(0, len(pts), chunk):
+            base = np.floor(pts[a:a + chunk] / self.cfg.voxel_m)
+            q = ((base[:, None, :] + corners[None]) * self.cfg.voxel_m).reshape(-1, 3)
+            p = probs_from_stored(self.stored_at(q)).reshape(len(base), 8, self.n_classes).mean(axis=1)
+            out[a:a + chunk] = p / p.sum(axis=1, keepdims=True)
+        return out
+
+    def _labelled(self, geom, faces: np.ndarray | None) -> LabelledGeometry:  # noqa: ANN001 - o3d.t geometry
+        attrs = geom.vertex if faces is not None else geom.point
+        pos = attrs.positions.numpy().astype(np.float64)
+        normals = attrs.normals.numpy().astype(np.float32) if "normals" in attrs else np.zeros_like(pos, np.float32)
+        colors = attrs.colors.numpy() if "colors" in attrs else np.full_like(pos, 0.5)
+        probs = self.probs_at(pos)
+        origin = self.origin if self.origin is not None else np.zeros(3)
+        return LabelledGeometry(pos + origin, normals, np.clip(np.round(colors * 255), 0, 255).astype(np.uint8),
+                                probs.argmax(axis=1).astype(np.int64), probs, faces)
+
+    def _require_data(self) -> None:
+        if self.n_blocks == 0:
+            raise InputError("the map is empty: integrate at least one frame with valid depth first")
+
+    def _weight_threshold(self) -> float:
+        # Open3D keeps voxels with weight strictly above its threshold; ours means "at least"
+        return max(float(self.cfg.mesh_weight_threshold) - 0.5, 0.0)
+
+    def extract_mesh(self) -> LabelledGeometry:
+        """The zero level set as a labelled triangle mesh (world coordinates)."""
+        self._require_data()
+        mesh = self.vbg.extract_triangle_mesh(weight_threshold=self._weight_threshold())
+        if mesh.vertex.positions.shape[0] == 0:
+            raise InputError("the map holds no surface yet (no zero crossing with enough weight)")
+        return self._labelled(mesh, mesh.triangle.indices.numpy().astype(np.int64))
+
+    def extract_points(self) -> LabelledGeometry:
+        """Surface points (one per zero crossing) with normals, colours and labels (world coordinates)."""
+        self._require_data()
+        pcd = self.vbg.extract_point_cloud(weight_threshold=self._weight_threshold())
+        return self._labelled(pcd, None)
+
+    def state(self) -> dict[str, np.ndarray]:
+        """The active blocks as arrays (``keys`` (B, 3) int32 and one array per attribute) for saving."""
+        hm = self.vbg.hashmap()
+        buf = hm.active_buf_indices().numpy().astype(np.int64)
+        out = {"keys": hm.key_tensor().numpy()[buf].copy()}
+        for name in ATTRS:
+            out[name] = self.vbg.attribute(name).numpy()[buf].copy()
+        return out
+
+    def load_state(self, arrays: dict[str, np.ndarray]) -> None:
+        """Insert saved blocks (see :meth:`state`) into this (empty) map."""
+        o3d = require_open3d()
+        keys = np.ascontiguousarray(arrays["keys"], dtype=np.int32)
+        if len(keys) == 0:
+            return
+        buf, _ = self.vbg.hashmap().activate(o3d.core.Tensor.from_numpy(keys))
+        idx = torch.from_numpy(buf.numpy().astype(np.int64))
+        for name in ATTRS:
+            view = _view(self.vbg.attribute(name))
+            if tuple(arrays[name].shape[1:]) != tuple(view.shape[1:]):
+                raise InputError(f"saved attribute {name!r} has block shape {arrays[name].shape[1:]}, "
+                                 f"this map expects {tuple(view.shape[1:])} (different voxel blocks or classes)")
+            view[idx] = torch.from_numpy(np.ascontiguousarray(arrays[name], dtype=np.float32))
