@@ -59,7 +59,7 @@ class PoseTrainConfig:
 
 
 _FAST_MODEL = MaskRCNNConfig(
-    depth=18, width=32, fpn_channels=64, input_hw=(240, 320), anchor_sizes=(16.0, 32.0, 64.0, 128.0, 256.0),
+    depth=18, width=32, fpn_channels=64, input_hw=(240, 320), anchor_sizes=(8.0, 18.0, 40.0, 90.0, 200.0),
     rpn_pre_nms_train=1000, rpn_post_nms_train=500, rpn_pre_nms_test=500, rpn_post_nms_test=200,
     roi_batch_per_image=128, box_rep=256, mask_channels=64, pose_channels=64, pose_rep=256,
 )

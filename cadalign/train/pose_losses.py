@@ -8,8 +8,10 @@
   over CAD points ``p`` (metres), where ``R_pred`` is the predicted allocentric rotation turned egocentric
   along the *ground-truth* viewing ray (so the rotation loss does not depend on the translation estimate),
   plus L1 on the scale-invariant translation codes ``(dx, dy, dz)`` of
-  :func:`cadalign.models.maskrcnn.pose_head.encode_translation`. A continuous symmetry is sampled as
-  rotations about its axis (``continuous_samples``), so the minimum is within ``pi / n`` of the true one.
+  :func:`cadalign.models.maskrcnn.pose_head.encode_translation`, the ``dz`` term (metres of object extent)
+  divided by the object's diameter so that a 15 m frame does not outweigh a 0.1 m valve. A continuous
+  symmetry is sampled as rotations about its axis (``continuous_samples``), so the minimum is within
+  ``pi / n`` of the true one.
 """
 
 from __future__ import annotations
@@ -39,6 +41,10 @@ class PoseLossConfig:
     """Weight of the 6-value L1 loss (``thesis``)."""
     continuous_samples: int = bounded(36, ge=1)
     """Rotations sampled about a continuous symmetry axis."""
+    max_center_offset: float = bounded(1.5, gt=0)
+    """RoIs whose true projected object origin is more than this many RoI sizes from the RoI centre (``|dx|`` or
+    ``|dy|``) are left out of the pose loss (both parameterisations): the visible piece is too small a part of
+    the object (a truncated or heavily occluded structure) for the RoI features to place it."""
 
 
 @dataclass(frozen=True)
@@ -94,16 +100,20 @@ class PoseLoss:
         return dist.min(dim=1).values / self.diameter.to(dev)[rows]
 
     def __call__(self, rois: PoseRoIs) -> dict[str, Tensor]:
-        if rois.raw.shape[0] == 0:
+        code = encode_translation(rois.t, rois.K, rois.boxes)
+        keep = (code[:, :2].abs() <= self.cfg.max_center_offset).all(1)
+        raw, R_gt, t_gt, code, obj = rois.raw[keep], rois.R[keep], rois.t[keep], code[keep], rois.obj_ids[keep]
+        if raw.shape[0] == 0:
             zero = rois.raw.sum() * 0
             return {"pose_l1": zero} if rois.param == "thesis" else {"pose_rot": zero, "pose_trans": zero}
         if rois.param == "thesis":
-            euler = torch.as_tensor(matrix_to_euler(rois.R.detach().double().cpu().numpy(), "xyz"),
-                                    dtype=rois.raw.dtype, device=rois.raw.device)
-            target = torch.cat([euler, rois.t], 1)
-            return {"pose_l1": self.cfg.thesis_weight * (rois.raw - target).abs().mean()}
-        R_pred = allo_to_ego(rotation_6d_to_matrix(rois.raw[:, :6]), rois.t)
-        rot = self.point_matching(R_pred, rois.R, rois.obj_ids).mean()
-        code = encode_translation(rois.t, rois.K, rois.boxes)
-        trans = (rois.raw[:, 6:9] - code).abs().mean()
+            euler = torch.as_tensor(matrix_to_euler(R_gt.detach().double().cpu().numpy(), "xyz"),
+                                    dtype=raw.dtype, device=raw.device)
+            target = torch.cat([euler, t_gt], 1)
+            return {"pose_l1": self.cfg.thesis_weight * (raw - target).abs().mean()}
+        R_pred = allo_to_ego(rotation_6d_to_matrix(raw[:, :6]), t_gt)
+        rot = self.point_matching(R_pred, R_gt, obj).mean()
+        diam = self.diameter.to(raw.device)[self.rows(obj).to(raw.device)]
+        err = (raw[:, 6:9] - code).abs()
+        trans = (err[:, 0] + err[:, 1] + err[:, 2] / diam).mean() / 3
         return {"pose_rot": self.cfg.rotation_weight * rot, "pose_trans": self.cfg.translation_weight * trans}

@@ -160,3 +160,19 @@ def test_load_object_geometry_in_metres(pose_bop: Path):
         assert g.diameter_m == pytest.approx(info[str(oid)]["diameter"] / 1000)
         span = np.linalg.norm(g.points_m[:, None] - g.points_m[None], axis=-1).max()  # surface samples, metres
         assert 0.2 * g.diameter_m < span <= g.diameter_m * 1.0001
+
+
+def test_rois_with_the_object_origin_far_outside_are_left_out():
+    loss = PoseLoss({1: _geometry(Symmetry.none())}, PoseLossConfig(max_center_offset=1.5))
+    R = torch.eye(3).expand(2, 3, 3)
+    rois = _rois(R, R, torch.tensor([[0.0, 0.0, 2.0]] * 2), [1, 1])
+    rois.raw = rois.raw + 0.3  # a wrong prediction for both RoIs
+    both = loss(rois)
+    # the second RoI is a 10 px box 100 px left of the projected origin (dx = 10): only the first one counts
+    rois.boxes = torch.tensor([[250.0, 200, 350, 290], [210, 235, 220, 245]])
+    one = loss(rois)
+    assert float(one["pose_trans"]) > 0
+    rois.boxes = torch.tensor([[210.0, 235, 220, 245]] * 2)
+    none = loss(rois)
+    assert float(none["pose_rot"]) == 0 and float(none["pose_trans"]) == 0
+    assert float(both["pose_rot"]) > 0
