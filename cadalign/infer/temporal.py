@@ -44,7 +44,7 @@ class TemporalConfig:
     beta: float = bounded(0.167, ge=0, le=1)
     """Filter gain on the velocity (``alpha^2 / (2 - alpha)``: the critically damped pair)."""
     gate_m: float = bounded(0.3, gt=0)
-    """Association / outlier gate on translation (m), at least half the part's diameter is used."""
+    """Association / outlier gate on translation (m); parts smaller than twice it use half their diameter."""
     gate_deg: float = bounded(30.0, gt=0)
     """Outlier gate of the filter on rotation (deg) after symmetry canonicalisation."""
     max_missed: int = bounded(5, ge=0)
@@ -52,6 +52,12 @@ class TemporalConfig:
 
 
 PRESETS: dict[str, TemporalConfig] = {"none": TemporalConfig(mode="none"), "default": TemporalConfig()}
+
+
+def _gate(cfg: TemporalConfig, o: Observation) -> float:
+    """Translation gate (m): ``gate_m``, narrowed to half the diameter for small parts (neighbours, e.g. a
+    panel's valves 0.2 m apart, must not share a track)."""
+    return min(cfg.gate_m, 0.5 * o.diameter_m) if o.diameter_m > 0 else cfg.gate_m
 
 
 def _angle(R: np.ndarray) -> float:
@@ -155,7 +161,7 @@ class TemporalFuser:
         pairs = []
         for i, o in enumerate(obs):
             t_o = (T_wc @ o.T_cam_from_obj).t if world else o.T_cam_from_obj.t
-            gate = max(self.cfg.gate_m, 0.5 * o.diameter_m)
+            gate = _gate(self.cfg, o)
             for k, tr in enumerate(self.tracks):
                 same = tr.obj_id == o.obj_id if o.obj_id is not None and tr.obj_id is not None else tr.label == o.label
                 if tr.world != world or not same:
@@ -201,7 +207,7 @@ class TemporalFuser:
         dt = max(frame - tr.frame, 1)
         pred = self._predict(tr, frame)
         delta = twist_between(pred, meas)
-        outlier = (np.linalg.norm(meas.t - pred.t) > max(cfg.gate_m, 0.5 * o.diameter_m)
+        outlier = (np.linalg.norm(meas.t - pred.t) > _gate(cfg, o)
                    or np.degrees(np.linalg.norm(delta[:3])) > cfg.gate_deg)
         if outlier and tr.missed < cfg.max_missed:
             tr.missed += 1

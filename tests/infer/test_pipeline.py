@@ -45,8 +45,9 @@ def test_identification_picks_the_model_whose_silhouette_fits(scene: Path, tiny_
     K = det.scene.frame(2).camera.K
     T = Rigid3(valve.R_cam_from_obj, valve.t_cam_from_obj_m)
     assert sorted(pipe.candidates(2)) == [2, 9]
-    assert pipe.identify(valve, T, K) == 2
-    assert pipe.identify(replace(valve, obj_id=9), T, K) == 9  # a reported model id wins
+    assert pipe.identify(valve, T, K)[0] == 2  # by silhouette
+    assert pipe.identify(valve, T, K, det.scene.depth_m(2))[0] == 2  # by depth
+    assert pipe.identify(replace(valve, obj_id=9), T, K) == (9, T)  # a reported model id wins
 
 
 def test_exact_poses_score_perfectly_and_a_shift_is_measured(scene: Path) -> None:
