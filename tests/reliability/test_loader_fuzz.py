@@ -118,6 +118,32 @@ def test_scene_loader_survives_odd_values(data: bytes) -> None:
         _survives(lambda: load_scene(path))
 
 
+SFM_YAML = b"""# an SfM stage config as a user writes it
+frames:
+  sampling: fps
+  fps: 2.0
+  blur_ratio: 0.35
+  mask_rects: [[0, 0, 40, 12]]
+features:
+  max_num_features: 4096
+matching:
+  pairing: sequential
+  overlap: 8
+"""
+
+
+@FUZZ
+@given(data=corrupted(SFM_YAML))
+def test_stage_config_loader_survives_corruption(data: bytes) -> None:
+    from cadalign.config import resolve
+    from cadalign.sfm.config import PRESETS, SfMConfig
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "sfm.yaml"
+        path.write_bytes(data)
+        _survives(lambda: resolve(SfMConfig, PRESETS, "fast", path))
+
+
 def test_scene_intact_loads() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "default.toml"
@@ -208,3 +234,12 @@ def test_bop_reader_survives_odd_json_values(tiny_bop: Path, name: str) -> None:
 
 def test_bop_intact_scene_reads(tiny_bop: Path) -> None:
     _read_all(tiny_bop)
+
+
+def test_stage_config_intact_loads(tmp_path: Path) -> None:
+    from cadalign.config import resolve
+    from cadalign.sfm.config import PRESETS, SfMConfig
+
+    (tmp_path / "sfm.yaml").write_bytes(SFM_YAML)
+    cfg = resolve(SfMConfig, PRESETS, "fast", tmp_path / "sfm.yaml")
+    assert cfg.matching.overlap == 8 and cfg.frames.mask_rects == ((0, 0, 40, 12),)
