@@ -107,3 +107,40 @@ def augment_dense(batch: dict, g: torch.Generator, cfg: AugmentConfig) -> dict:
         out["valid"] = out["valid"] & (out["depth"] > 0)
     out["image"] = colour_jitter(out["image"], g, cfg)
     return out
+
+
+def random_patches(batch: dict, g: torch.Generator, size: tuple[int, int], focus_prob: float = 0.5) -> dict:
+    """Cut one ``size`` = (h, w) window per sample from every dense key (no resizing: the camera is unchanged).
+
+    With probability ``focus_prob`` the window is centred (clamped to the image) on a random pixel of a class
+    drawn uniformly among the non-background classes present in the sample's ``label``, so small classes
+    (valves, hot stabs) are seen in most batches; otherwise the window is uniform. Frames smaller than ``size``
+    are returned unchanged.
+    """
+    image = batch["image"]
+    b, _, h, w = image.shape
+    ph, pw = min(size[0], h), min(size[1], w)
+    if (ph, pw) == (h, w):
+        return batch
+    dev = image.device
+    out = dict(batch)
+    keys = [k for k in ("image", "label", "depth", "valid", "fg") if k in out]
+    crops: dict[str, list[torch.Tensor]] = {k: [] for k in keys}
+    for i in range(b):
+        y0 = int(torch.randint(0, h - ph + 1, (1,), generator=g, device=dev))
+        x0 = int(torch.randint(0, w - pw + 1, (1,), generator=g, device=dev))
+        focus = float(torch.rand(1, generator=g, device=dev)) < focus_prob
+        if focus and "label" in out:
+            lab = out["label"][i]
+            classes = [int(c) for c in torch.unique(lab) if 0 < int(c) < 255]
+            if classes:
+                c = classes[int(torch.randint(0, len(classes), (1,), generator=g, device=dev))]
+                ys, xs = torch.nonzero(lab == c, as_tuple=True)
+                j = int(torch.randint(0, len(ys), (1,), generator=g, device=dev))
+                y0 = min(max(int(ys[j]) - ph // 2, 0), h - ph)
+                x0 = min(max(int(xs[j]) - pw // 2, 0), w - pw)
+        for k in keys:
+            crops[k].append(out[k][i, ..., y0 : y0 + ph, x0 : x0 + pw])
+    for k in keys:
+        out[k] = torch.stack(crops[k])
+    return out

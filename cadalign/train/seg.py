@@ -19,7 +19,7 @@ from torch import nn
 
 from cadalign.config import bounded, to_dict
 from cadalign.models.resunet import ResUNet, ResUNetConfig
-from cadalign.train.augment import AugmentConfig, augment_dense
+from cadalign.train.augment import AugmentConfig, augment_dense, random_patches
 from cadalign.train.common import write_run_record
 from cadalign.train.data import ScaledDataset, class_pixel_counts, select
 from cadalign.train.loop import LoopConfig, TrainResult, train_loop
@@ -46,12 +46,16 @@ class SegTrainConfig:
     """Weight of the soft-Dice term added to the cross-entropy (0 = off)."""
     val_every: int = bounded(0, ge=0)
     """Steps between validation mIoU rows (0: only at the end); needs a non-empty val split."""
+    patch: tuple[int, int] | None = None
+    """Train on random (height, width) windows of the scaled frames (whole frames at inference); None = off."""
+    focus_prob: float = bounded(0.5, ge=0, le=1)
+    """Share of patches centred on a pixel of a random present non-background class (small classes)."""
 
 
 PRESETS: dict[str, SegTrainConfig] = {
-    "fast": SegTrainConfig(model=ResUNetConfig(base_channels=12), scale=0.5,
-                           loop=LoopConfig(steps=600, batch_size=4, lr=3e-3, checkpoint_every=100, log_every=10)),
-    "balanced": SegTrainConfig(model=ResUNetConfig(base_channels=32), scale=0.5,
+    "fast": SegTrainConfig(model=ResUNetConfig(base_channels=12), scale=1.0, patch=(240, 320),
+                           loop=LoopConfig(steps=800, batch_size=4, lr=3e-3, checkpoint_every=100, log_every=10)),
+    "balanced": SegTrainConfig(model=ResUNetConfig(base_channels=32), scale=1.0, patch=(240, 320),
                                loop=LoopConfig(steps=3000, batch_size=8, lr=2e-3, checkpoint_every=250, log_every=25)),
     "accurate": SegTrainConfig(model=ResUNetConfig(base_channels=48), scale=1.0, val_every=1000,
                                loop=LoopConfig(steps=10000, batch_size=8, lr=1e-3, checkpoint_every=500,
@@ -110,6 +114,10 @@ def val_miou(ds: ScaledDataset, classes: tuple[str, ...], device: str, batch: in
     return fn
 
 
+def _patches(batch: dict, g: torch.Generator, cfg: SegTrainConfig) -> dict:
+    return batch if cfg.patch is None else random_patches(batch, g, cfg.patch, cfg.focus_prob)
+
+
 def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train", val_split: str | None = "val",
               resume: bool = False, device: str = "cpu",
               progress: Callable[[int, int, dict[str, float]], None] | None = None) -> TrainResult:
@@ -143,5 +151,5 @@ def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train",
             log.info("no validation (%s)", exc)
     w = None if weights is None else torch.tensor(weights, dtype=torch.float32)
     return train_loop(model, seg_step(w, cfg.dice_weight), data, cfg.loop, out,
-                      augment=(lambda b, g: augment_dense(b, g, cfg.augment)), val_fn=val_fn,
+                      augment=(lambda b, g: augment_dense(_patches(b, g, cfg), g, cfg.augment)), val_fn=val_fn,
                       val_every=cfg.val_every, resume=resume, device=device, progress=progress, extra_state=identity)

@@ -42,7 +42,8 @@ def test_derived_split_of_a_bare_scene(tiny_dense):
 
 
 def test_seg_trains_and_predicts(tiny_dense, tmp_path):
-    cfg = SegTrainConfig(model=ResUNetConfig(base_channels=4, depth=3), loop=LOOP, augment=NO_AUG, scale=0.5)
+    cfg = SegTrainConfig(model=ResUNetConfig(base_channels=4, depth=3), loop=LOOP, augment=NO_AUG, scale=0.5,
+                         patch=(48, 64))
     res = train_seg(cfg, tiny_dense, tmp_path / "seg")
     losses = _losses(tmp_path / "seg")
     assert res.steps_done == 14 and np.mean(losses[-3:]) < 0.7 * np.mean(losses[:3])

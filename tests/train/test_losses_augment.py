@@ -126,3 +126,25 @@ def test_augment_is_deterministic_per_generator_and_colour_in_range():
     assert not torch.equal(a["image"], c["image"])
     jit = colour_jitter(torch.rand(4, 3, 8, 8), torch.Generator().manual_seed(0), AugmentConfig(turbidity=0.9))
     assert float(jit.min()) >= 0 and float(jit.max()) <= 1
+
+
+def test_random_patches_focus_on_small_classes_and_keep_targets_aligned():
+    from cadalign.train.augment import random_patches
+
+    h, w = 40, 60
+    yy, xx = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    image = torch.stack([yy / h, xx / w, torch.zeros(h, w)]).float()[None].repeat(4, 1, 1, 1)
+    label = torch.zeros(4, h, w, dtype=torch.long)
+    label[:, 37, 55] = 3  # one pixel of a rare class in a corner
+    depth = (yy * w + xx).float()[None, None].repeat(4, 1, 1, 1) + 1
+    batch = {"image": image, "label": label, "depth": depth, "valid": depth > 0, "im_id": torch.arange(4)}
+    out = random_patches(batch, torch.Generator().manual_seed(0), (16, 20), focus_prob=1.0)
+    assert out["image"].shape == (4, 3, 16, 20) and out["label"].shape == (4, 16, 20)
+    assert bool((out["label"] == 3).flatten(1).any(1).all())  # every patch holds the rare pixel
+    # all keys come from the same window: depth encodes the pixel index, the image its coordinates
+    idx = out["depth"][:, 0] - 1
+    assert torch.allclose(out["image"][:, 0] * h, torch.div(idx, w, rounding_mode="floor"))
+    assert torch.allclose(out["image"][:, 1] * w, idx % w)
+    uniform = random_patches(batch, torch.Generator().manual_seed(0), (16, 20), focus_prob=0.0)
+    assert not bool((uniform["label"] == 3).flatten(1).any(1).all())
+    assert random_patches(batch, torch.Generator(), (80, 80))["image"].shape == (4, 3, h, w)
