@@ -56,6 +56,70 @@ def _sim_section(out: Path, info: dict) -> str:
     )
 
 
+def _flat(d: dict | None, keys: tuple[str, ...] | None = None) -> dict[str, Any]:
+    """The scalar entries of ``d`` (optionally only ``keys``), for a one-row table."""
+    d = d or {}
+    return {k: v for k, v in d.items() if isinstance(v, int | float) and (keys is None or k in keys)}
+
+
+def _train_section(out: Path, name: str, info: dict) -> str:
+    m = info.get("metrics") or {}
+    title = {"train-seg": "Segmentation (ResUNet)", "train-depth": "Depth (DispNet-style)",
+             "train-pose": "Detector + 6-DoF pose head (Mask R-CNN)"}[name]
+    head = (f"<h2 id='{name}'>{title}</h2><p>{info.get('steps')} training steps on the "
+            f"{html.escape(str(info.get('dataset')))} dataset, final loss {_fmt(info.get('final_loss'))}; "
+            "metrics on the held-out time block.</p>")
+    if name == "train-seg":
+        rows = [{"class": c, "IoU": v} for c, v in (m.get("iou") or {}).items()]
+        body = table(rows) + table([_flat(m, ("miou", "miou_foreground", "pixel_accuracy"))])
+    elif name == "train-depth":
+        rows = [{"pixels": k, **_flat(v)} for k, v in (m.get("metrics") or {}).items() if isinstance(v, dict)]
+        body = table(rows)
+    else:
+        summ = (m.get("summary") if isinstance(m, dict) else None) or {}
+        body = table([_flat(summ)]) if summ else "<p class='pending'>no held-out score</p>"
+    imgs = "".join(img_tag(out / f, Path(f).stem) for f in info.get("figures", [])[:2])
+    return head + body + imgs
+
+
+def _infer_section(out: Path, info: dict) -> str:
+    rows = []
+    for which, rep in (info.get("eval") or {}).items():
+        o = rep.get("overall", {})
+        rows.append({"poses": which, "F1": rep.get("detection", {}).get("f1"),
+                     "t err mean (m)": (o.get("t_err_m") or {}).get("mean"),
+                     "R err mean (deg)": (o.get("r_err_deg") or {}).get("mean"),
+                     "AR MSSD": o.get("ar_mssd"), "AR MSPD": o.get("ar_mspd")})
+    t = info.get("timings") or {}
+    trows = [{"step": k, "ms per frame": v.get("mean_ms")} for k, v in (t.get("stages") or {}).items()]
+    return (f"<h2 id='infer'>Pose inference on {info.get('frames')} held-out frames</h2>" + table(rows)
+            + "<h3>Time per stage</h3>" + table(trows))
+
+
+def _fuse_section(out: Path, info: dict) -> str:
+    rows = []
+    for which in ("gt", "pred"):
+        rep = info.get(which)
+        if rep:
+            met = rep.get("metrics") or {}
+            rows.append({"inputs": "exact depth + labels" if which == "gt" else "predicted depth + labels",
+                         **_flat(met, ("completeness_within_2cm", "completeness_within_5cm", "chamfer_m",
+                                       "label_accuracy", "miou")),
+                         "frames/s": (rep.get("timing") or {}).get("frames_per_second")})
+    imgs = "".join(img_tag(out / info["dir"] / w / "views.png", f"map {w}") for w in ("gt", "pred") if info.get(w))
+    return "<h2 id='fuse'>Semantic TSDF map</h2>" + table(rows) + imgs
+
+
+def _emulate_section(out: Path, info: dict) -> str:
+    rows = [{"sensor": s, **_flat(info.get(s))} for s in ("lidar", "sonar") if info.get(s)]
+    return ("<h2 id='emulate'>Emulated sensors (ray cast of the CAD scene)</h2>" + table(rows)
+            + img_tag(out / info["dir"] / "lidar" / "lidar_class.png", "LiDAR scan by class")
+            + img_tag(out / info["dir"] / "sonar" / "sonar.png", "sonar image"))
+
+
+LEARNING_SECTIONS = {"train-seg": _train_section, "train-depth": _train_section, "train-pose": _train_section}
+
+
 def write_report(out: Path, summary: dict) -> Path:
     """Write ``out/report.html`` from a demo summary."""
     out = Path(out)
@@ -80,6 +144,20 @@ def write_report(out: Path, summary: dict) -> Path:
                      + img_tag(out / build["dir"] / "sfm" / "trajectory.png", "trajectory"))
     elif build.get("error"):
         parts.append(f"<h2 id='build'>Dataset</h2><pre class='pending'>{html.escape(build['error'])}</pre>")
+    for name, info in summary["stages"].items():
+        if name in ("sim", "build-dataset"):
+            continue
+        if info.get("status") != "done":
+            parts.append(f"<h2 id='{name}'>{html.escape(name)}</h2><pre class='pending'>"
+                         f"{html.escape(info.get('status', ''))}\n{html.escape(info.get('error', ''))}</pre>")
+        elif name in LEARNING_SECTIONS:
+            parts.append(LEARNING_SECTIONS[name](out, name, info))
+        elif name == "infer":
+            parts.append(_infer_section(out, info))
+        elif name == "fuse":
+            parts.append(_fuse_section(out, info))
+        elif name == "emulate":
+            parts.append(_emulate_section(out, info))
     parts.append(
         "<h2 id='summary'>Summary (JSON)</h2><pre>"
         + html.escape(json.dumps(summary, indent=1)[:20000])
