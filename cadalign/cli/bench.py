@@ -1,4 +1,8 @@
-"""``cadalign bench STAGE``: accuracy and speed of a stage, as ratios against a baseline measured in the same run."""
+"""``cadalign bench STAGE|all --out DIR``: accuracy-versus-time sweeps (bench.json, Pareto plots, bench.html).
+
+``bench sim`` without ``--sweep`` keeps its original meaning: the per-effect cost of the simulator against
+the bare render, measured in the same run (bench_sim.json/png).
+"""
 
 from __future__ import annotations
 
@@ -9,7 +13,101 @@ import typer
 from cadalign.cli.common import console, track, user_errors
 from cadalign.cli.sim import _resolution
 
-app = typer.Typer(help="Accuracy-versus-time benchmarks; each writes JSON and plots.", no_args_is_help=True)
+app = typer.Typer(help="Accuracy-versus-time benchmarks: sweeps a stage's knobs, writes bench.json, Pareto plots "
+                  "and bench.html (the setting within 5% of the best accuracy at the least time).",
+                  no_args_is_help=True)
+
+SIZE = typer.Option("small", "--size", help="tiny (seconds per stage), small (minutes), full (up to ~1 h on 2 cores).")
+REPEATS = typer.Option(None, "--repeats", min=1, help="Timed runs per setting (default: the size's); medians.")
+SEED = typer.Option(0, "--seed", help="Seed of the simulated data and every random choice.")
+OVERWRITE = typer.Option(False, "--overwrite", help="Start over in a folder made with another size/repeats/seed.")
+OUT = typer.Option(Path("runs/bench"), "--out", help="Benchmark folder (bench.json, pareto_*.png, bench.html, data/).")
+
+
+def _config(size: str, repeats: int | None, seed: int):  # -> BenchConfig
+    from cadalign.eval.bench import BenchConfig
+    from cadalign.eval.bench_data import size_spec
+
+    return BenchConfig(size, repeats or size_spec(size).repeats, seed)
+
+
+def _print_summary(out: Path) -> None:
+    from cadalign.eval.bench import load_bench
+    from cadalign.eval.bench_report import recommendations
+
+    for r in recommendations(load_bench(out)):
+        console.print(f"  {r['stage']:<8} recommended [bold]{r['recommended setting']}[/]: "
+                      f"{r['accuracy metric']} = {r['accuracy']:.4g}, {r['cost metric']} = {r['cost']:.4g}"
+                      + (f" ([red]{r['failed']} failed[/])" if r["failed"] else ""))
+
+
+def _run(stages: list[str], out: Path, size: str, repeats: int | None, seed: int, overwrite: bool) -> None:
+    from cadalign.eval.bench import run_bench
+
+    with user_errors():
+        run_bench(stages, out, _config(size, repeats, seed), overwrite=overwrite, progress=track)
+        _print_summary(out)
+    console.print(f"[green]written {out / 'bench.json'} and {out / 'bench.html'}[/]")
+
+
+def _stage_command(stage: str, doc: str) -> None:
+    def command(out: Path = OUT, size: str = SIZE, repeats: int | None = REPEATS, seed: int = SEED,
+                overwrite: bool = OVERWRITE) -> None:
+        _run([stage], out, size, repeats, seed, overwrite)
+
+    command.__doc__ = doc
+    app.command(stage)(command)
+
+
+for _stage, _doc in (
+    ("sfm", "SfM presets / features / matcher / mapper: rotation error vs seconds on a simulated clip."),
+    ("align", "Sim(3) ICP iterations and schedule: pose error vs seconds on a synthetic cloud with a known Sim(3)."),
+    ("render", "Ray-cast ground truth resolution: label agreement with a finer render vs ms per frame."),
+    ("seg", "Segmentation network input scale x width (short training): mIoU vs ms per frame."),
+    ("depth", "Depth network input scale x width (short training): delta1 vs ms per frame."),
+    ("refine", "Pose refinement iterations: ADD error vs ms per instance."),
+    ("fuse", "Fusion voxel size: Chamfer distance to the CAD vs ms per frame (frames/s in the table)."),
+    ("emulate", "LiDAR rays and engine (BVH vs torch): surface gap vs seconds per scan."),
+):
+    _stage_command(_stage, _doc)
+
+
+@app.command("all")
+def all_stages(
+    out: Path = OUT, size: str = SIZE, repeats: int | None = REPEATS, seed: int = SEED, overwrite: bool = OVERWRITE,
+    skip: list[str] = typer.Option([], "--skip", help="Stage to leave out (repeatable), e.g. --skip seg."),
+    robustness: bool = typer.Option(True, "--robustness/--no-robustness", help="Also run the low-visibility sweep."),
+) -> None:
+    """Every stage's sweep (sim, sfm, align, render, seg, depth, refine, fuse, emulate), then robustness."""
+    from cadalign.eval.bench import STAGES
+
+    bad = [s for s in skip if s not in STAGES]
+    if bad:
+        raise typer.BadParameter(f"{bad}; allowed: {', '.join(STAGES)}", param_hint="--skip")
+    _run([s for s in STAGES if s not in skip], out, size, repeats, seed, overwrite)
+    if robustness:
+        robust(out=out, size=size, seed=seed, models=None)
+
+
+@app.command("robustness")
+def robust(
+    out: Path = OUT, size: str = SIZE, seed: int = SEED,
+    models: Path | None = typer.Option(None, "--models", help="Optional folder with seg/ and/or depth/ training runs "
+                                       "(cadalign train) to score under each condition."),
+) -> None:
+    """Low visibility: turbidity (Jerlov type), marine snow density and light level, >= 3 severities each;
+    SfM registration rate, rotation error and image contrast (and model scores with --models) vs severity."""
+    from cadalign.eval.bench_report import write_bench_report
+    from cadalign.eval.robustness import run_robustness
+
+    with user_errors():
+        rob = run_robustness(out, size=size, seed=seed, models=models, progress=track)
+        write_bench_report(out)
+    for r in rob["rows"]:
+        m = {k: float("nan") if v is None else v for k, v in r["metrics"].items()}
+        console.print(f"  {r['effect']:<11} {r['severity']:<9} registration {m.get('registration_rate', -1):.2f}  "
+                      f"rotation {m.get('rot_err_deg', -1):.3f} deg  contrast {m.get('contrast', -1):.3f}")
+    console.print(f"[green]written {out / 'robustness.json'} and {out / 'bench.html'}[/]")
 
 
 @app.command("sim")
@@ -18,11 +116,22 @@ def sim(
     out: Path = typer.Option(Path("runs/bench/sim"), "--out", help="Folder for bench_sim.json and bench_sim.png."),
     frames: int = typer.Option(8, "--frames", min=1, help="Frames to time (spread over the trajectory)."),
     resolution: str | None = typer.Option(None, "--resolution", help="WIDTHxHEIGHT (default: the scene's)."),
+    sweep: bool = typer.Option(False, "--sweep", help="Run the effects on/off sweep into OUT/bench.json instead "
+                               "(default scene; uses --size/--repeats/--seed/--overwrite)."),
+    size: str = SIZE,
+    repeats: int | None = REPEATS,
+    seed: int = SEED,
+    overwrite: bool = OVERWRITE,
 ) -> None:
-    """Per-frame cost of the simulator: bare render, effect-free path, each effect, all effects, writing."""
+    """Per-frame cost of the simulator: bare render, effect-free path, each effect, all effects, writing.
+
+    With --sweep: effect subsets (none ... all) as an accuracy-vs-time sweep like the other stages."""
     from cadalign.eval.bench_sim import bench_sim
     from cadalign.sim.spec import default_scene_path
 
+    if sweep:
+        _run(["sim"], out, size, repeats, seed, overwrite)
+        return
     with user_errors():
         r = bench_sim(scene or default_scene_path(), out, frames=frames, resolution=_resolution(resolution),
                       progress=track)

@@ -1,0 +1,217 @@
+"""Robustness under low visibility (``cadalign bench robustness``): turbidity, marine snow and light level.
+
+The underwater counterpart of the fog / rain / snow / low-light tests of driving benchmarks. Each
+condition is the benchmark scene (default scene at 1 frame/s, every water effect on) with one factor made
+worse, simulated as a short clip:
+
+* ``turbidity``: the Jerlov water type (clearer ocean I ... coastal 7C);
+* ``marine_snow``: particles per cubic metre (the default scene has 20);
+* ``light``: the light level, a factor on the ambient light and on both lamps (1 = the default scene).
+
+Per condition: SfM (``fast`` preset, 1 thread) registration rate and rotation error against the exact
+cameras; the image contrast the simulator's ground truth lets us measure exactly (:func:`contrast_metrics`,
+structure vs background from the true class map); and, given trained networks (``models/seg``,
+``models/depth``: ``cadalign train`` run folders), their mIoU / delta1 on the condition's frames.
+
+Writes ``robustness.json`` (one row per condition, saved after each, reused on re-run) and one
+``robustness_<effect>.png`` per effect (metrics against severity, the unchanged scene as severity 0).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cadalign.errors import ConfigError
+from cadalign.eval.bench import json_safe, num
+from cadalign.eval.bench_data import bench_scene, simulate_clip, size_spec
+from cadalign.io import fingerprint, read_image, read_json, write_json, write_text
+
+log = logging.getLogger(__name__)
+ROBUSTNESS_JSON = "robustness.json"
+BASELINE = {"turbidity": "IB", "marine_snow": 20.0, "light": 1.0}
+"""The unchanged default scene's value of each factor (severity 0)."""
+SEVERITIES: dict[str, tuple[Any, ...]] = {
+    "turbidity": ("II", "III", "3C", "7C"),
+    "marine_snow": (100.0, 400.0, 1600.0, 4000.0),
+    "light": (0.4, 0.15, 0.05, 0.02),
+}
+"""Values from mild to severe; tiny/small runs take the first three, full all four."""
+_AMBIENT, _INTENSITY = "ambient = 0.35\n", "intensity = 160.0\n"
+
+
+def condition_scene(text: str, effect: str, value: Any) -> str:
+    """The scene TOML ``text`` with ``effect`` set to ``value`` (see the module doc)."""
+    if effect == "turbidity":
+        if 'jerlov = "IB"' not in text:
+            raise ConfigError("the benchmark scene must declare jerlov = \"IB\" to derive turbidity conditions")
+        return text.replace('jerlov = "IB"', f'jerlov = "{value}"')
+    if effect == "marine_snow":
+        return text + f"\n[effect_params.marine_snow]\ndensity_per_m3 = {float(value)}\n"
+    if effect == "light":
+        if _AMBIENT not in text or _INTENSITY not in text:
+            raise ConfigError("the benchmark scene must hold 'ambient = 0.35' and lamps of 'intensity = 160.0'")
+        return text.replace(_AMBIENT, f"ambient = {0.35 * float(value):.6g}\n").replace(
+            _INTENSITY, f"intensity = {160.0 * float(value):.6g}\n")
+    raise ConfigError(f"unknown robustness effect {effect!r}; allowed: {', '.join(SEVERITIES)}")
+
+
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 RGB -> (H, W) float64 Rec. 709 luma in [0, 1]."""
+    return np.asarray(rgb, dtype=np.float64)[..., :3] @ np.array([0.2126, 0.7152, 0.0722]) / 255.0
+
+
+def contrast_metrics(rgb: np.ndarray, class_id: np.ndarray) -> dict[str, float]:
+    """Contrast of one frame, using the true class map (0 = background: seabed and open water).
+
+    * ``contrast``: Michelson contrast of the structure against the background,
+      ``|mean(L_fg) - mean(L_bg)| / (mean(L_fg) + mean(L_bg))`` (0 when either side is empty or both black);
+    * ``rms_contrast_fg``: RMS contrast inside the structure, ``std(L_fg) / mean(L_fg)`` (texture and edges
+      that features and networks can use; 0 without structure pixels).
+    """
+    L = luminance(rgb)
+    fg = np.asarray(class_id) > 0
+    if L.shape != fg.shape:
+        raise ValueError(f"image {L.shape} and class map {fg.shape} differ in size")
+    if not fg.any() or fg.all():
+        return {"contrast": 0.0, "rms_contrast_fg": 0.0 if not fg.any() else float(L.std() / max(L.mean(), 1e-9))}
+    mf, mb = float(L[fg].mean()), float(L[~fg].mean())
+    michelson = abs(mf - mb) / (mf + mb) if mf + mb > 0 else 0.0
+    return {"contrast": michelson, "rms_contrast_fg": float(L[fg].std() / mf) if mf > 0 else 0.0}
+
+
+def clip_contrast(sim_dir: Path) -> dict[str, float]:
+    """Mean :func:`contrast_metrics` over the frames of a simulation folder."""
+    scene = Path(sim_dir) / "gt" / "sim" / "000000"
+    rows = []
+    for f in sorted((Path(sim_dir) / "frames").glob("*.png")):
+        rows.append(contrast_metrics(read_image(f), read_image(scene / "class" / f.name, unchanged=True)))
+    if not rows:
+        raise ConfigError(f"{sim_dir}/frames holds no frame")
+    return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+
+
+def _sfm_scores(sim: Path, work: Path, seed: int) -> dict[str, float]:
+    from cadalign.config import resolve
+    from cadalign.eval.sfm_metrics import evaluate
+    from cadalign.sfm import PRESETS, SfMConfig, run
+
+    cfg = resolve(SfMConfig, PRESETS, "fast", overrides={"num_threads": 1, "seed": seed})
+    t0 = time.perf_counter()
+    try:
+        run(cfg, sim / "frames", work, overwrite=True)
+        g = evaluate(work, sim)
+    except Exception as exc:  # no model at all is the worst registration, not a crash of the sweep
+        log.warning("robustness: SfM failed on %s: %s", sim, exc)
+        return {"registration_rate": 0.0, "rot_err_deg": float("nan"), "sfm_s": time.perf_counter() - t0}
+    return {"registration_rate": g["registration_rate"], "rot_err_deg": g["rot_err_deg_mean"],
+            "centre_rmse_rel": g["centre_rmse_rel"], "sfm_s": time.perf_counter() - t0}
+
+
+def conditions(size: str) -> list[tuple[str, str, Any]]:
+    """``(effect, severity name, value)`` of every condition of ``size``, the baseline first."""
+    n = 4 if size_spec(size).level >= 2 else 3
+    out = [("baseline", "0", None)]
+    for effect, values in SEVERITIES.items():
+        out += [(effect, str(i + 1), v) for i, v in enumerate(values[:n])]
+    return out
+
+
+def run_robustness(out_dir: Path, *, size: str = "small", seed: int = 0, models: Path | None = None,
+                   with_sfm: bool = True, progress: Callable[[Iterable[Any], str, int], Iterable[Any]] | None = None
+                   ) -> dict[str, Any]:
+    """Simulate and score every condition of ``size`` into ``out_dir`` (see the module doc); returns the dict."""
+    out_dir = Path(out_dir)
+    spec = size_spec(size)
+    path = out_dir / ROBUSTNESS_JSON
+    data_dir = out_dir / "data" / "robustness"
+    config = {"size": size, "seed": seed, "sfm": with_sfm, "models": str(models) if models else None,
+              "resolution": list(spec.sfm_resolution), "frames": spec.sfm_frames}
+    old = read_json(path) if path.is_file() else {}
+    done = {r["key"]: r for r in old.get("rows", [])} if old.get("config") == config else {}
+    base_text = bench_scene(out_dir / "data").read_text()
+    rows = []
+    conds = conditions(size)
+    for effect, sev, value in progress(conds, "robustness", len(conds)) if progress else conds:
+        key = fingerprint([effect, sev, value, config])
+        if key not in done:
+            text = base_text if effect == "baseline" else condition_scene(base_text, effect, value)
+            name = f"{effect}_{sev}" if value is None else f"{effect}_{value}"
+            scene = data_dir / f"{name}.toml"
+            if not scene.is_file() or scene.read_text() != text:
+                write_text(scene, text)
+            sim = simulate_clip(scene, data_dir / name, spec.sfm_resolution, spec.sfm_frames, seed)
+            metrics = clip_contrast(sim)
+            if with_sfm:
+                metrics.update(_sfm_scores(sim, data_dir / f"{name}_sfm", seed))
+            metrics.update(_model_scores(sim, models))
+            done[key] = {"key": key, "effect": effect, "severity": sev, "value": value, "metrics": metrics}
+        rows.append(done[key])
+        _save(path, config, rows, out_dir)
+    result = _save(path, config, rows, out_dir, plots=True)
+    return result
+
+
+def _model_scores(sim: Path, models: Path | None) -> dict[str, float]:
+    if models is None:
+        return {}
+    from cadalign.eval.bench_models import score_net
+
+    scene = sim / "gt" / "sim" / "000000"
+    out: dict[str, float] = {}
+    for task, key in (("seg", "miou"), ("depth", "delta1")):
+        if (Path(models) / task).exists():
+            out[key] = score_net(task, scene, Path(models) / task, split="all")[key]
+    return out
+
+
+def _save(path: Path, config: dict, rows: list[dict], out_dir: Path, plots: bool = False) -> dict[str, Any]:
+    result = {"config": config, "rows": rows, "baseline": BASELINE,
+              "description": ("Each condition makes one factor of the default scene worse (turbidity: Jerlov type; "
+                              "marine snow: particles per m^3; light: factor on ambient and lamps); "
+                              f"{config['frames']} frames at {config['resolution'][0]}x{config['resolution'][1]}. "
+                              "SfM: fast preset, 1 thread, vs the exact cameras (a failed SfM counts as 0 "
+                              "registered). Contrast: Michelson contrast of structure vs background from the "
+                              "true class map.")}
+    if plots:
+        result["plots"] = plot_robustness(result, out_dir)
+    write_json(path, json_safe(result))
+    return result
+
+
+def plot_robustness(result: dict[str, Any], out_dir: Path) -> dict[str, str]:
+    """One PNG per effect: each metric against severity (0 = the unchanged scene); returns effect -> file name."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = result["rows"]
+    base = next((r for r in rows if r["effect"] == "baseline"), None)
+    keys = [k for k in ("registration_rate", "rot_err_deg", "contrast", "rms_contrast_fg", "miou", "delta1")
+            if any(k in r["metrics"] for r in rows)]
+    files = {}
+    for effect in SEVERITIES:
+        sel = ([base] if base else []) + [r for r in rows if r["effect"] == effect]
+        if len(sel) < 2:
+            continue
+        fig, axes = plt.subplots(1, len(keys), figsize=(3.2 * len(keys), 3.0), squeeze=False)
+        x = [int(r["severity"]) for r in sel]
+        labels = [str(BASELINE[effect]) if r["effect"] == "baseline" else str(r["value"]) for r in sel]
+        for ax, k in zip(axes[0], keys, strict=True):
+            ax.plot(x, [num(r["metrics"].get(k)) for r in sel], "o-")
+            ax.set_xticks(x, labels, fontsize=7)
+            ax.set_title(k, fontsize=9)
+            ax.grid(alpha=0.3)
+        fig.suptitle(f"{effect}: metrics vs severity (left = the default scene)", fontsize=10)
+        fig.tight_layout()
+        name = f"robustness_{effect}.png"
+        fig.savefig(Path(out_dir) / name, dpi=100)
+        plt.close(fig)
+        files[effect] = name
+    return files

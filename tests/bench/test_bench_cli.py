@@ -1,0 +1,84 @@
+"""``cadalign bench``: --help of every subcommand, tiny end-to-end runs of cheap stages, resume, the HTML."""
+
+from __future__ import annotations
+
+import base64
+import json
+
+import pytest
+from conftest import CHEAP_STAGES
+from typer.testing import CliRunner
+
+from cadalign.cli.main import app
+from cadalign.eval.bench import STAGES, load_bench
+from cadalign.eval.bench_report import recommendations
+
+runner = CliRunner()
+
+
+@pytest.mark.parametrize("cmd", ["all", "robustness", *STAGES])
+def test_help(cmd):
+    res = runner.invoke(app, ["bench", cmd, "--help"])
+    assert res.exit_code == 0, res.output
+    assert "--out" in res.output
+    if cmd != "robustness":
+        assert "--size" in res.output
+
+
+def test_bench_sim_help_keeps_per_effect_mode():
+    res = runner.invoke(app, ["bench", "sim", "--help"])
+    assert "--frames" in res.output and "--resolution" in res.output and "--sweep" in res.output
+
+
+def test_unknown_size_is_a_one_line_error(tmp_path):
+    res = runner.invoke(app, ["bench", "render", "--size", "huge", "--out", str(tmp_path)])
+    assert res.exit_code == 1
+    assert "unknown bench size 'huge'" in res.output and "tiny" in res.output
+
+
+def test_all_rejects_unknown_skip(tmp_path):
+    res = runner.invoke(app, ["bench", "all", "--skip", "nope", "--out", str(tmp_path)])
+    assert res.exit_code != 0
+
+
+def test_tiny_cheap_stages_end_to_end(tiny_bench):
+    bench = load_bench(tiny_bench)
+    assert bench["config"] == {"size": "tiny", "repeats": 1, "seed": 0}
+    for stage in CHEAP_STAGES:
+        st = bench["stages"][stage]
+        recs = [st["points"][k] for k in st["current"]]
+        assert len(recs) >= 3 and all(r["status"] == "done" for r in recs), [r.get("error") for r in recs]
+        assert st["recommended"] in [r["name"] for r in recs]
+        assert (tiny_bench / f"pareto_{stage}.png").read_bytes()[:4] == b"\x89PNG"
+    render = {r["name"]: r for r in bench["stages"]["render"]["points"].values()}
+    # finer renders agree better with the 2x reference
+    assert render["40x30"]["accuracy"] < render["80x60"]["accuracy"] < render["160x120"]["accuracy"] <= 1.0
+    align = {r["name"]: r for r in bench["stages"]["align"]["points"].values()}
+    assert align["30 it x5+refine"]["metrics"]["pose_rms_mm"] < 5.0  # recovers the known Sim(3) to mm
+    assert align["1 it"]["metrics"]["pose_rms_mm"] > align["10 it"]["metrics"]["pose_rms_mm"]
+    emulate = {r["name"]: r for r in bench["stages"]["emulate"]["points"].values()}
+    # both engines are exact: the same rays sample the surface identically
+    assert emulate["bvh 8x360"]["accuracy"] == pytest.approx(emulate["torch 8x360"]["accuracy"], rel=1e-5)
+
+
+def test_html_lists_recommendations_with_inlined_plots(tiny_bench):
+    html = (tiny_bench / "bench.html").read_text()
+    assert "src='data:image/png;base64," in html and "<img alt='Pareto plot render'" in html
+    for r in recommendations(load_bench(tiny_bench)):
+        assert f"<h2 id='{r['stage']}'>" in html
+        assert f"<span class='rec'>{r['recommended setting']}</span>" in html
+    blob = html.split("src='data:image/png;base64,")[1].split("'")[0]
+    assert base64.b64decode(blob)[:4] == b"\x89PNG"
+
+
+def test_rerun_reuses_finished_settings(tiny_bench):
+    before = json.loads((tiny_bench / "bench.json").read_text())["stages"]["render"]["points"]
+    res = runner.invoke(app, ["bench", "render", "--size", "tiny", "--repeats", "1", "--out", str(tiny_bench)])
+    assert res.exit_code == 0, res.output
+    after = json.loads((tiny_bench / "bench.json").read_text())["stages"]["render"]["points"]
+    assert after == before  # same records: nothing was re-measured
+
+
+def test_other_config_in_same_folder_is_refused(tiny_bench):
+    res = runner.invoke(app, ["bench", "render", "--size", "tiny", "--repeats", "2", "--out", str(tiny_bench)])
+    assert res.exit_code == 1 and "--overwrite" in res.output
