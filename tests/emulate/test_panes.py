@@ -131,3 +131,16 @@ def test_algorithm1_on_random_planes_in_a_depth_image(tilt, azim, dist, r0, c0, 
     p = res.panes[0]
     assert np.degrees(np.arccos(np.clip(p.plane.normal @ n, -1, 1))) <= 0.1
     assert abs(p.plane.offset - dist) < 1e-6 * dist
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), density=st.floats(0.0, 0.2), invalid=st.floats(0.0, 0.9))
+def test_random_sparse_masks_never_raise(seed: int, density: float, invalid: float) -> None:
+    """Specks, lines and blobs with holes in the depth: every component is a pane or a rejection with a reason."""
+    rng = np.random.default_rng(seed)
+    depth, _, pts = _tilted_plane_depth()
+    mask = rng.random(depth.shape) < density
+    valid = rng.random(depth.shape) >= invalid
+    res = extract_panes(mask, pts, valid, PaneConfig(min_pixels=1))
+    assert len(res.panes) + len(res.rejected) == int(res.labels.max())
+    assert all(isinstance(reason, str) and reason for _, reason in res.rejected)
