@@ -123,15 +123,18 @@ def conditions(size: str) -> list[tuple[str, str, Any]]:
 
 
 def run_robustness(out_dir: Path, *, size: str = "small", seed: int = 0, models: Path | None = None,
-                   with_sfm: bool = True, progress: Callable[[Iterable[Any], str, int], Iterable[Any]] | None = None
-                   ) -> dict[str, Any]:
-    """Simulate and score every condition of ``size`` into ``out_dir`` (see the module doc); returns the dict."""
+                   with_sfm: bool = True, resolution: tuple[int, int] | None = None, frames: int | None = None,
+                   progress: Callable[[Iterable[Any], str, int], Iterable[Any]] | None = None) -> dict[str, Any]:
+    """Simulate and score every condition of ``size`` into ``out_dir`` (see the module doc); returns the dict.
+
+    ``resolution`` / ``frames`` override the size's SfM clip (default: ``size_spec(size).sfm_*``)."""
     out_dir = Path(out_dir)
     spec = size_spec(size)
+    res, n_frames = tuple(resolution or spec.sfm_resolution), int(frames or spec.sfm_frames)
     path = out_dir / ROBUSTNESS_JSON
-    data_dir = out_dir / "data" / "robustness"
+    data_dir = out_dir / "data" / f"robustness_{res[0]}x{res[1]}_{n_frames}_s{seed}"
     config = {"size": size, "seed": seed, "sfm": with_sfm, "models": str(models) if models else None,
-              "resolution": list(spec.sfm_resolution), "frames": spec.sfm_frames}
+              "resolution": list(res), "frames": n_frames}
     old = read_json(path) if path.is_file() else {}
     done = {r["key"]: r for r in old.get("rows", [])} if old.get("config") == config else {}
     base_text = bench_scene(out_dir / "data").read_text()
@@ -145,7 +148,7 @@ def run_robustness(out_dir: Path, *, size: str = "small", seed: int = 0, models:
             scene = data_dir / f"{name}.toml"
             if not scene.is_file() or scene.read_text() != text:
                 write_text(scene, text)
-            sim = simulate_clip(scene, data_dir / name, spec.sfm_resolution, spec.sfm_frames, seed)
+            sim = simulate_clip(scene, data_dir / name, res, n_frames, seed)
             metrics = clip_contrast(sim)
             if with_sfm:
                 metrics.update(_sfm_scores(sim, data_dir / f"{name}_sfm", seed))
