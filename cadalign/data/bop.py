@@ -150,19 +150,49 @@ def _is_number(v: object) -> bool:
         return False
 
 
-def _numbers(entry: dict, key: str, n: int, where: str) -> None:
+_JSON_NUMBER = (int, float)  # exact types: bool (a subclass of int) is not a number here
+_Rows = list[tuple[str, str, list]]  # (where, key, values) of the numeric entries to check in one batch
+
+
+def _numbers(entry: dict, key: str, n: int, where: str, rows: _Rows) -> None:
+    """Check that ``entry[key]`` is a list of ``n`` JSON numbers; queue it in ``rows`` for the numeric checks."""
     v = entry.get(key)
-    if not isinstance(v, list) or len(v) != n or not all(_is_number(x) for x in v):
+    if not isinstance(v, list) or len(v) != n or not all(type(x) in _JSON_NUMBER for x in v):
         raise InputError(f"{where}: '{key}' must be a list of {n} finite numbers, got {v!r:.80}; "
                          "re-export the scene or fix the entry")
+    rows.append((where, key, v))
 
 
-def _rotation(entry: dict, key: str, where: str) -> None:
-    _numbers(entry, key, 9, where)
-    R = np.reshape(np.asarray(entry[key], dtype=np.float64), (3, 3))
-    if np.abs(R).max() > 2 or not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
-        raise InputError(f"{where}: '{key}' is not a rotation matrix (row-major 3x3, R R^T = I, det +1); "
+def _first_bad(rows: _Rows, n: int, rotation: bool) -> tuple[int, str] | None:
+    """Index and problem of the first row that is non-finite (or not a rotation), vectorised over all rows."""
+    try:
+        arr = np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, n)
+    except OverflowError:  # an integer beyond float range
+        bad = [i for i, r in enumerate(rows) if not all(_is_number(x) for x in r[2])]
+        return bad[0], "finite"
+    nonfinite = np.flatnonzero(~np.all(np.isfinite(arr), axis=1))
+    if len(nonfinite):
+        return int(nonfinite[0]), "finite"
+    if rotation:
+        R = arr.reshape(-1, 3, 3)
+        with np.errstate(over="ignore", invalid="ignore"):
+            err = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+            bad = (np.abs(R).max(axis=(1, 2)) > 2) | ~(err <= 1e-3) | ~(np.linalg.det(R) > 0)
+        if bad.any():
+            return int(np.flatnonzero(bad)[0]), "rotation"
+    return None
+
+
+def _check_rows(rows: _Rows, n: int, *, rotation: bool = False) -> None:
+    found = _first_bad(rows, n, rotation) if rows else None
+    if found is None:
+        return
+    where, key, v = rows[found[0]]
+    if found[1] == "finite":
+        raise InputError(f"{where}: '{key}' must be a list of {n} finite numbers, got {v!r:.80}; "
                          "re-export the scene or fix the entry")
+    raise InputError(f"{where}: '{key}' is not a rotation matrix (row-major 3x3, R R^T = I, det +1); "
+                     "re-export the scene or fix the entry")
 
 
 def _table(data: object, path: Path, kind: type) -> dict[str, object]:
@@ -177,35 +207,39 @@ def _table(data: object, path: Path, kind: type) -> dict[str, object]:
     return data
 
 
-def _check_camera(c: dict, where: str) -> None:
-    _numbers(c, "cam_K", 9, where)
-    if not (c["cam_K"][0] > 0 and c["cam_K"][4] > 0):
-        raise InputError(f"{where}: 'cam_K' must have positive focal lengths, got {c['cam_K']}")
+def _check_camera(c: dict, where: str, Ks: _Rows, Rs: _Rows, ts: _Rows) -> None:
+    _numbers(c, "cam_K", 9, where, Ks)
     if "depth_scale" in c and not (_is_number(c["depth_scale"]) and 0 < c["depth_scale"] <= MAX_DEPTH_SCALE):
         raise InputError(f"{where}: 'depth_scale' must be a positive number (<= {MAX_DEPTH_SCALE:g}), got "
                          f"{c['depth_scale']!r:.40}")
     for key in ("width", "height"):
-        if key in c and not (isinstance(c[key], int) and not isinstance(c[key], bool) and c[key] > 0):
+        if key in c and not (type(c[key]) is int and c[key] > 0):
             raise InputError(f"{where}: '{key}' must be a positive integer, got {c[key]!r:.40}")
     if ("width" in c) != ("height" in c):
         raise InputError(f"{where}: give both 'width' and 'height' or neither")
     if ("cam_R_w2c" in c) != ("cam_t_w2c" in c):
         raise InputError(f"{where}: give both 'cam_R_w2c' and 'cam_t_w2c' or neither")
     if "cam_R_w2c" in c:
-        _rotation(c, "cam_R_w2c", where)
-        _numbers(c, "cam_t_w2c", 3, where)
+        _numbers(c, "cam_R_w2c", 9, where, Rs)
+        _numbers(c, "cam_t_w2c", 3, where, ts)
 
 
-def _check_instances(gts: list, where: str) -> None:
+def _check_instances(gts: list, where: str, Rs: _Rows, ts: _Rows) -> None:
     for i, g in enumerate(gts):
         w = f"{where}, instance {i}"
         if not isinstance(g, dict):
             raise InputError(f"{w}: must be a JSON object with cam_R_m2c, cam_t_m2c and obj_id")
-        _rotation(g, "cam_R_m2c", w)
-        _numbers(g, "cam_t_m2c", 3, w)
+        _numbers(g, "cam_R_m2c", 9, w, Rs)
+        _numbers(g, "cam_t_m2c", 3, w, ts)
         oid = g.get("obj_id")
-        if not (isinstance(oid, int) and not isinstance(oid, bool) and oid >= 1):
+        if not (type(oid) is int and oid >= 1):
             raise InputError(f"{w}: 'obj_id' must be a positive integer (BOP model ids start at 1), got {oid!r:.40}")
+
+
+def _check_focal(Ks: _Rows) -> None:
+    for where, key, K in Ks:
+        if not (K[0] > 0 and K[4] > 0):
+            raise InputError(f"{where}: '{key}' must have positive focal lengths, got {K}")
 
 
 class BopScene:
@@ -234,10 +268,7 @@ class BopScene:
                 f"{self.dir}: image ids {missing[:10]} are in only one of scene_camera.json/scene_gt.json; "
                 "re-run the stage that wrote the scene (or delete the stray entries)"
             )
-        for k, c in self._cam.items():
-            _check_camera(c, f"{cam_path}, image {k}")
-        for k, gts in self._gt.items():
-            _check_instances(gts, f"{gt_path}, image {k}")
+        self._check_numbers(cam_path, gt_path)
         for k, infos in self._info.items():
             if k not in self._gt or len(infos) != len(self._gt[k]):
                 n_gt = len(self._gt[k]) if k in self._gt else "no"
@@ -245,6 +276,20 @@ class BopScene:
                                  "instances for it; re-run the stage that wrote the scene")
             if not all(isinstance(i, dict) for i in infos):
                 raise InputError(f"{info_path}, image {k}: every entry must be a JSON object")
+
+    def _check_numbers(self, cam_path: Path, gt_path: Path) -> None:
+        """Structure entry by entry, then every K, R and t at once (vectorised: large scenes open fast)."""
+        Ks: _Rows = []
+        Rs: _Rows = []
+        ts: _Rows = []
+        for k, c in self._cam.items():
+            _check_camera(c, f"{cam_path}, image {k}", Ks, Rs, ts)
+        for k, gts in self._gt.items():
+            _check_instances(gts, f"{gt_path}, image {k}", Rs, ts)
+        _check_rows(Ks, 9)
+        _check_focal(Ks)
+        _check_rows(Rs, 9, rotation=True)
+        _check_rows(ts, 3)
 
     @property
     def ids(self) -> list[int]:
