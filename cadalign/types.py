@@ -47,6 +47,8 @@ def _checked_apply(out: np.ndarray, x: np.ndarray, what: str) -> np.ndarray:
 class Rigid3:
     """A rigid transform ``x_a = R @ x_b + t`` (``a_from_b``).
 
+    Construction raises :class:`~cadalign.errors.InputError` for a wrong shape or a NaN/inf entry.
+
     Attributes:
         R: (3, 3) rotation matrix.
         t: (3,) translation in metres.
@@ -94,7 +96,12 @@ class Rigid3:
 
 @dataclass(frozen=True)
 class Sim3:
-    """A similarity ``x_a = s * R @ x_b + t`` (``a_from_b``); ``s > 0``."""
+    """A similarity ``x_a = s * R @ x_b + t`` (``a_from_b``); ``s > 0``.
+
+    A scale that is not finite and positive (also after ``inverse`` or ``@`` overflow) raises
+    :class:`~cadalign.errors.DegenerateGeometryError`; a wrong shape or NaN/inf in ``R``/``t`` raises
+    :class:`~cadalign.errors.InputError`. Both are ``ValueError`` subclasses.
+    """
 
     s: float = 1.0
     R: np.ndarray = field(default_factory=lambda: np.eye(3))
