@@ -139,7 +139,7 @@ class PosePipeline:
         n = self.cfg.identify_iters
         rng = np.random.default_rng(cfg.seed)
         Q = masked_depth_points(depth_m, mask, K, cfg.max_depth_points, rng) if depth_m is not None else None
-        use_depth = Q is not None and len(Q) >= cfg.min_depth_points
+        use_depth = Q is not None and len(Q) >= cfg.min_depth_points and cfg.method in ("depth", "both")
         scored = []
         for k in cands:
             g = self.geometry(k)
@@ -147,8 +147,8 @@ class PosePipeline:
                 Tk = refine_depth_icp(g, T, K, depth_m, mask, cfg, iters=n)[0]
                 d, _ = g.tree.query(Tk.inverse().apply(Q))
                 score = float(np.median(d))  # not capped by the diameter: that would favour small models
-            else:
-                Tk = refine_silhouette(g, T, K, mask, cfg, iters=n)[0]
+            else:  # with refinement off, the detector's pose is scored as it is
+                Tk = refine_silhouette(g, T, K, mask, cfg, iters=n)[0] if cfg.method in ("silhouette", "both") else T
                 score = -_window_iou(g, Tk, K, mask)
             scored.append((score, k, Tk))
         _, best, T_best = min(scored, key=lambda x: x[0])

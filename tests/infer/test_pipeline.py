@@ -72,3 +72,15 @@ def test_exact_poses_score_perfectly_and_a_shift_is_measured(scene: Path) -> Non
     assert rep["per_class"]["valve"]["ar_mssd"] < 1.0
     missed = evaluate_scene(preds[:1], scene, models, cmap.names, cmap.class_of_obj, PoseEvalConfig(), [0, 1])
     assert missed["detection"]["fn"] == len(preds) - 1 and missed["detection"]["precision"] == 1.0
+
+
+def test_preset_none_reports_the_detector_pose_unchanged(scene: Path, tiny_structure) -> None:
+    det = OracleDetector(scene, OracleConfig(seed=1))
+    pipe = PosePipeline(det, tiny_structure.models, tiny_structure.class_names, PRESETS["none"])
+    K = det.scene.frame(1).camera.K
+    records, times = pipe.process(1, "000001.png", np.zeros((120, 160, 3), np.uint8), K)
+    assert records and {"detector", "pose", "refinement", "temporal"} <= set(times)
+    for r in records:
+        assert r.refine_iters == {} and r.track_id == -1
+        np.testing.assert_array_equal(r.T_refined.matrix(), r.T_detector.matrix())
+        np.testing.assert_array_equal(r.T_cam_from_obj.matrix(), r.T_detector.matrix())
