@@ -154,6 +154,16 @@ class PosePipeline:
         _, best, T_best = min(scored, key=lambda x: x[0])
         return best, T_best
 
+    def _tracked_model(self, det: object, T: Rigid3, frame: int, T_world_from_cam: Rigid3 | None) -> int | None:
+        """The model id of an established track at the detection's place (skips identification), if any."""
+        if getattr(det, "obj_id", None) is not None:
+            return None
+        cands = self.candidates(int(det.label))
+        if len(cands) <= 1:
+            return None
+        gate = min(self.cfg.temporal.gate_m, 0.5 * min(self.models[k].diameter_m for k in cands))
+        return self.fuser.known_model(int(det.label), T, frame, gate, T_world_from_cam)
+
     def process(self, frame: int, name: str, image: np.ndarray, K: np.ndarray, depth_m: np.ndarray | None = None,
                 T_world_from_cam: Rigid3 | None = None) -> tuple[list[PoseRecord], dict[str, float]]:
         """Poses of one frame and the seconds spent per stage (``detector``, ``pose``, ``refinement``, ...)."""
@@ -173,7 +183,8 @@ class PosePipeline:
             ta = time.perf_counter()
             T0 = Rigid3(np.asarray(d.R_cam_from_obj, float), np.asarray(d.t_cam_from_obj_m, float))
             depth = depth_m if self.cfg.use_depth else None
-            oid, T_start = self.identify(d, T0, K, depth)
+            oid = self._tracked_model(d, T0, frame, T_world_from_cam)
+            oid, T_start = (oid, T0) if oid is not None else self.identify(d, T0, K, depth)
             tb = time.perf_counter()
             times["pose"] += tb - ta
             if oid is None:

@@ -156,6 +156,26 @@ class TemporalFuser:
     def _predict(self, tr: _Track, frame: int) -> Rigid3:
         return tr.T if tr.world else _apply_twist(tr.xi * (frame - tr.frame), tr.T)
 
+    def known_model(self, label: int, T_cam_from_obj: Rigid3, frame: int, gate_m: float,
+                    T_world_from_cam: Rigid3 | None = None, min_obs: int = 3) -> int | None:
+        """The model id of the nearest track of class ``label`` within ``gate_m`` seen at least ``min_obs`` times.
+
+        Tracks only take observations of one model id, so such a track's id was identified ``min_obs`` times
+        independently; the pipeline reuses it instead of identifying the model again.
+        """
+        if self.cfg.mode == "none":
+            return None
+        T_wc = T_world_from_cam if self.cfg.mode in ("auto", "world") else None
+        t_o = (T_wc @ T_cam_from_obj).t if T_wc is not None else T_cam_from_obj.t
+        best, best_d = None, gate_m
+        for tr in self.tracks:
+            if tr.label != label or tr.obj_id is None or len(tr.obs) < min_obs or tr.world != (T_wc is not None):
+                continue
+            d = float(np.linalg.norm(self._predict(tr, frame).t - t_o))
+            if d < best_d:
+                best, best_d = tr.obj_id, d
+        return best
+
     def _associate(self, obs: list[Observation], frame: int, T_wc: Rigid3 | None) -> list[_Track | None]:
         world = T_wc is not None
         pairs = []

@@ -141,3 +141,15 @@ def test_two_parts_get_two_tracks_and_none_mode_passes_through() -> None:
         assert [o.track_id for o in out] == [0, 1]
     raw = TemporalFuser(TemporalConfig(mode="none")).update(0, [Observation(1, A)])
     assert raw[0].T_cam_from_obj is A and raw[0].track_id == -1
+
+
+def test_known_model_needs_an_established_track() -> None:
+    fuser = TemporalFuser(TemporalConfig())
+    T = Rigid3(np.eye(3), np.array([0.0, 0.0, 3.0]))
+    near = Rigid3(np.eye(3), np.array([0.02, 0.0, 3.0]))
+    for i in range(3):
+        assert fuser.known_model(2, near, i, 0.05) is None  # fewer than three observations so far
+        fuser.update(i, [Observation(2, T, 5, Symmetry.none(), 0.5)])
+    assert fuser.known_model(2, near, 3, 0.05) == 5
+    assert fuser.known_model(2, Rigid3(np.eye(3), np.array([0.2, 0.0, 3.0])), 3, 0.05) is None  # beyond the gate
+    assert fuser.known_model(3, near, 3, 0.05) is None  # another class
