@@ -84,3 +84,22 @@ def test_preset_none_reports_the_detector_pose_unchanged(scene: Path, tiny_struc
         assert r.refine_iters == {} and r.track_id == -1
         np.testing.assert_array_equal(r.T_refined.matrix(), r.T_detector.matrix())
         np.testing.assert_array_equal(r.T_cam_from_obj.matrix(), r.T_detector.matrix())
+
+
+def test_calibration_uses_only_metric_poses(tmp_path: Path, tiny_sim: Path) -> None:
+    from cadalign.infer.run import load_calibration
+    from cadalign.io import read_json, write_json
+
+    cams = read_json(scene_cameras := resolve_scene_dir(tiny_sim) / "cameras.json")
+    metric = load_calibration(scene_cameras)
+    assert set(metric.T_world_from_cam_of) == set(cams["frames"]) and metric.K("unlisted.png").shape == (3, 3)
+    write_json(sfm := tmp_path / "cameras.json", {**cams, "units": "sfm"})
+    assert load_calibration(sfm).T_world_from_cam_of == {}  # SfM units: intrinsics only
+
+
+def test_no_predictions_score_zero(scene: Path) -> None:
+    cmap = load_class_map(scene)
+    rep = evaluate_scene([], scene, load_bop_models(scene.parent.parent / "models"), cmap.names, cmap.class_of_obj,
+                         PoseEvalConfig(), [0])
+    assert rep["detection"]["tp"] == 0 and rep["detection"]["fn"] > 0 and rep["detection"]["f1"] == 0.0
+    assert rep["overall"]["ar_mssd"] == 0.0 and rep["overall"]["t_err_m"]["n"] == 0
