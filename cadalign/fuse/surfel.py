@@ -12,7 +12,8 @@ Bayes update as the TSDF voxels, :mod:`cadalign.fuse.semantic`). Per frame:
    confidence-weighted average of position, normal and colour, the smaller radius, confidence ``+ weight``
    (capped at ``weight_cap``), and one Bayes label update.
 3. *New surfels* come from the remaining pixels, at most one per voxel cell and normal direction (a hash
-   set of ``(cell, dominant normal axis)`` keys), so the map density follows ``voxel_m``, not the image.
+   set of ``(cell, dominant normal axis)`` keys, kept per surfel as ``cell`` so a re-opened map continues
+   exactly), so the map density follows ``voxel_m``, not the image.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ from cadalign.fuse.semantic import bayes_update, clamped_log_probs
 from cadalign.fuse.tsdf import require_open3d
 from cadalign.types import Rigid3
 
-FIELDS = ("position", "normal", "radius", "confidence", "color", "label", "last_seen")
+FIELDS = ("position", "normal", "radius", "confidence", "color", "label", "last_seen", "cell")
 
 
 def measurement_normals(pts_cam: np.ndarray, valid: np.ndarray,
@@ -92,7 +93,7 @@ class SurfelMap:
         return {"position": np.zeros((capacity, 3), np.float32), "normal": np.zeros((capacity, 3), np.float32),
                 "radius": np.zeros(capacity, np.float32), "confidence": np.zeros(capacity, np.float32),
                 "color": np.zeros((capacity, 3), np.float32), "label": np.zeros((capacity, c), np.float32),
-                "last_seen": np.zeros(capacity, np.int32)}
+                "last_seen": np.zeros(capacity, np.int32), "cell": np.zeros((capacity, 4), np.int32)}
 
     def __len__(self) -> int:
         return self.n
@@ -188,9 +189,14 @@ class SurfelMap:
         R, t = T_local_from_cam.R.astype(np.float32), T_local_from_cam.t.astype(np.float32)
         pos = meas["points"][vv, uu] @ R.T + t
         nrm = meas["normals"][vv, uu] @ R.T
-        _, new = self._cells.insert(o3d.core.Tensor.from_numpy(self._keys(pos, nrm)))
-        sel = new.numpy()
-        k = int(sel.sum())
+        keys = self._keys(pos, nrm)
+        # one candidate per key, the first pixel in raster order: the hash set's parallel insert would pick
+        # an arbitrary one among duplicates, and maps must not depend on thread timing
+        packed = (keys[:, :3].astype(np.int64) + (1 << 19)) @ np.array([1 << 43, 1 << 23, 1 << 3]) + keys[:, 3]
+        first = np.sort(np.unique(packed, return_index=True)[1])
+        _, new = self._cells.insert(o3d.core.Tensor.from_numpy(np.ascontiguousarray(keys[first])))
+        sel = first[new.numpy()]
+        k = len(sel)
         if k == 0:
             return
         self._reserve(self.n + k)
@@ -199,6 +205,7 @@ class SurfelMap:
         D["position"][s], D["normal"][s] = pos[sel], nrm[sel]
         D["radius"][s], D["confidence"][s] = meas["radius"][vv, uu], meas["weight"][vv, uu]
         D["color"][s], D["last_seen"][s] = meas["rgb"][vv, uu], self.frames_integrated
+        D["cell"][s] = keys[sel]
         obs = clamped_log_probs(torch.from_numpy(np.ascontiguousarray(frame.probs[:, vv, uu].T)),
                                 self.cfg.label_min_prob)
         D["label"][s] = bayes_update(torch.zeros((k, self.n_classes)), obs, self.cfg.label_log_floor).numpy()
@@ -263,4 +270,4 @@ class SurfelMap:
             self._data[name][self.n:self.n + k] = arrays[name]
         self.n += k
         if k:
-            self._cells.insert(o3d.core.Tensor.from_numpy(self._keys(arrays["position"], arrays["normal"])))
+            self._cells.insert(o3d.core.Tensor.from_numpy(np.ascontiguousarray(arrays["cell"], dtype=np.int32)))

@@ -1,0 +1,26 @@
+"""A tiny simulated scene (6 effect-free frames, 160x120) and a small fusion config for the fusion tests."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from sim_testdata import write_tiny_scene
+
+from cadalign.fuse.config import FuseConfig
+
+
+@pytest.fixture(scope="session")
+def fuse_sim(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> Path:
+    """A `cadalign sim` output folder of the tiny scene (exact depth, class maps, poses, CAD models)."""
+    from cadalign.sim.run import simulate
+
+    root = tmp_path_factory.mktemp("fuse_sim")
+    scene = write_tiny_scene(root / "tiny.toml", effects=[], frames=6)
+    return simulate(scene, root / "sim", video=False, contact_sheet=False)
+
+
+@pytest.fixture(scope="session")
+def small_cfg() -> FuseConfig:
+    """3 cm voxels (the tiny scene's pixels are ~3 cm on the structure), a small initial grid."""
+    return FuseConfig(voxel_m=0.03, block_count=2000, depth_max_m=12.0)
