@@ -36,6 +36,29 @@ class EvalModel:
 
 
 @dataclass(frozen=True)
+class CroppedMask:
+    """A boolean mask stored as its bounding-box crop (long videos would not fit as full frames)."""
+
+    crop: np.ndarray
+    x0: int
+    y0: int
+
+    @staticmethod
+    def of(mask: np.ndarray) -> CroppedMask:
+        m = np.asarray(mask, bool)
+        rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+        if len(rows) == 0:
+            return CroppedMask(np.zeros((0, 0), bool), 0, 0)
+        return CroppedMask(m[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1].copy(), int(cols[0]), int(rows[0]))
+
+    def full(self, shape: tuple[int, int]) -> np.ndarray:
+        out = np.zeros(shape, bool)
+        h, w = self.crop.shape
+        out[self.y0:self.y0 + h, self.x0:self.x0 + w] = self.crop[: shape[0] - self.y0, : shape[1] - self.x0]
+        return out
+
+
+@dataclass(frozen=True)
 class PosePrediction:
     """One predicted instance in one frame (metres, pixels)."""
 
@@ -47,7 +70,7 @@ class PosePrediction:
     T_cam_from_obj: Rigid3
     obj_id: int | None = None
     """BOP model id when the pipeline identified it; else the matched GT instance's model is used."""
-    mask: np.ndarray | None = None
+    mask: np.ndarray | CroppedMask | None = None
 
 
 @dataclass(frozen=True)
@@ -128,6 +151,12 @@ def gt_instances(scene: BopScene, im_id: int, class_of_obj: dict[int, int], *, m
     return out
 
 
+def _mask_iou(pred: np.ndarray | CroppedMask | None, gt: np.ndarray | None) -> float:
+    if pred is None or gt is None:
+        return math.nan
+    return pm.mask_iou(pred.full(gt.shape) if isinstance(pred, CroppedMask) else pred, gt)
+
+
 def _pose_row(p: PosePrediction, g: GtInstance, model: EvalModel, K: np.ndarray, width: int) -> dict:
     Te, Tg = p.T_cam_from_obj, g.T_cam_from_obj
     syms = pm.symmetry_transforms(model.symmetry)
@@ -137,7 +166,7 @@ def _pose_row(p: PosePrediction, g: GtInstance, model: EvalModel, K: np.ndarray,
         "im_id": g.im_id, "gt_idx": g.gt_idx, "obj_id": g.obj_id, "label": g.label, "score": p.score,
         "pred_obj_id": p.obj_id, "distance_m": float(np.linalg.norm(Tg.t)), "visib_fract": g.visib_fract,
         "box_iou": float(pm.box_iou(p.box_xyxy[None], g.box_xyxy[None])[0, 0]),
-        "mask_iou": pm.mask_iou(p.mask, g.mask) if p.mask is not None and g.mask is not None else math.nan,
+        "mask_iou": _mask_iou(p.mask, g.mask),
         "t_err_m": pm.translation_error_m(Te.t, Tg.t),
         "r_err_deg": pm.rotation_error_deg(Te.R, Tg.R, model.symmetry),
         "add_m": pm.add(Te.R, Te.t, Tg.R, Tg.t, pts),

@@ -79,6 +79,7 @@ class PoseRecord:
     """After refinement, before temporal fusion."""
     refine_iters: dict[str, int]
     mask: np.ndarray | None = None
+    """(H, W) bool from the detector (a :class:`~cadalign.eval.pose_eval.CroppedMask` once stored for evaluation)."""
 
     def to_json(self) -> dict:
         from cadalign.data.coco import mask_to_rle
@@ -91,7 +92,7 @@ class PoseRecord:
             "T_cam_from_obj_detector": self.T_detector.matrix().tolist(),
             "T_cam_from_obj_refined": self.T_refined.matrix().tolist(),
             "refine_iters": self.refine_iters,
-            "mask_rle": mask_to_rle(self.mask) if self.mask is not None else None,
+            "mask_rle": mask_to_rle(self.mask) if isinstance(self.mask, np.ndarray) else None,
         }
 
 

@@ -19,7 +19,7 @@ import json
 import logging
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +27,7 @@ import numpy as np
 from cadalign.cad.model import CadModel
 from cadalign.config import to_dict
 from cadalign.errors import InputError
+from cadalign.eval.pose_eval import CroppedMask
 from cadalign.infer.detect import Detector, frame_ids, models_dir_of
 from cadalign.infer.model_geom import draw_wireframe
 from cadalign.infer.pipeline import InferConfig, PosePipeline, PoseRecord
@@ -157,7 +158,9 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
                     t["overlay"] = time.perf_counter() - t0
                 for k, v in t.items():
                     times.setdefault(k, []).append(v)
-                all_records.extend(records)
+                # kept for the evaluation: masks only with ground truth, and cropped to their box
+                all_records.extend(replace(r, mask=CroppedMask.of(r.mask) if gt_scene is not None and r.mask is not None
+                                           else None) for r in records)
                 names.append(vf.name)
         if writer is not None:
             writer.close()
@@ -232,7 +235,8 @@ def read_poses(path: Path) -> list[PoseRecord]:
                 Rigid3.from_matrix(np.asarray(d["T_cam_from_obj"])),
                 Rigid3.from_matrix(np.asarray(d.get("T_cam_from_obj_detector", d["T_cam_from_obj"]))),
                 Rigid3.from_matrix(np.asarray(d.get("T_cam_from_obj_refined", d["T_cam_from_obj"]))),
-                dict(d.get("refine_iters") or {}), rle_to_mask(d["mask_rle"]) if d.get("mask_rle") else None))
+                dict(d.get("refine_iters") or {}),
+                CroppedMask.of(rle_to_mask(d["mask_rle"])) if d.get("mask_rle") else None))
         except (KeyError, ValueError, TypeError) as exc:
             raise InputError(f"{path}, line {i + 1}: not a cadalign pose record ({exc})") from exc
     return out

@@ -112,3 +112,14 @@ def test_error_stats_and_distance_bins() -> None:
     rows = pm.binned_by({"e": np.array([1.0, 2.0, 3.0])}, np.array([0.5, 1.5, 1.7]), (0.0, 1.0, 2.0, 3.0))
     assert [r["n"] for r in rows] == [1, 2, 0]
     assert rows[1]["e_mean"] == pytest.approx(2.5) and math.isnan(rows[2]["e_mean"])
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), density=st.floats(0.0, 1.0))
+def test_cropped_mask_round_trip(seed: int, density: float) -> None:
+    from cadalign.eval.pose_eval import CroppedMask
+
+    mask = np.random.default_rng(seed).random((7, 9)) < density * 0.3
+    c = CroppedMask.of(mask)
+    np.testing.assert_array_equal(c.full(mask.shape), mask)
+    assert c.crop.size <= mask.size
