@@ -82,8 +82,10 @@ def _print_summary(out: Path) -> None:
     from cadalign.io import read_json
 
     t = read_json(out / "timings.json")
-    stages = ", ".join(f"{k} {v['mean_ms']:.1f} ms" for k, v in t["stages"].items())
-    console.print(f"{t['frames']} frames, {t['poses']} poses; per frame: {stages}")
+    stages = ", ".join(f"{k} {v:.1f} ms" for k, v in t["stages_ms"].items())
+    console.print(f"{t['frames']} frames, {t['poses']} poses; per frame: {stages} "
+                  f"(all stages: {(t['pipeline_ms_per_frame'] or 0):.1f} ms wall, "
+                  f"{t['stages'].get('pipeline_cpu', {}).get('mean_ms', 0):.1f} ms CPU)")
     if (out / "eval.json").is_file():
         ev = read_json(out / "eval.json")
         for which, rep in ev.items():

@@ -167,14 +167,18 @@ class PosePipeline:
 
     def process(self, frame: int, name: str, image: np.ndarray, K: np.ndarray, depth_m: np.ndarray | None = None,
                 T_world_from_cam: Rigid3 | None = None) -> tuple[list[PoseRecord], dict[str, float]]:
-        """Poses of one frame and the seconds spent per stage (``detector``, ``pose``, ``refinement``, ...)."""
+        """Poses of one frame and the seconds spent per stage.
+
+        ``detector`` (the whole ``detect`` call; a network's own split, e.g. its pose head, as ``detector.*``),
+        ``identify`` (which CAD model), ``refinement``, ``temporal``.
+        """
         K = np.asarray(K, dtype=np.float64)
         t0 = time.perf_counter()
         if hasattr(self.detector, "for_frame"):
             self.detector.for_frame(name)
         dets = self.detector.detect(image, K)
         t1 = time.perf_counter()
-        times = {"detector": t1 - t0, "pose": 0.0, "refinement": 0.0, "temporal": 0.0}
+        times = {"detector": t1 - t0, "identify": 0.0, "refinement": 0.0, "temporal": 0.0}
         times.update({f"detector.{k}": v for k, v in (getattr(self.detector, "last_timings", None) or {}).items()})
         kept = []
         for d in dets:
@@ -187,7 +191,7 @@ class PosePipeline:
             oid = self._tracked_model(d, T0, frame, T_world_from_cam)
             oid, T_start = (oid, T0) if oid is not None else self.identify(d, T0, K, depth)
             tb = time.perf_counter()
-            times["pose"] += tb - ta
+            times["identify"] += tb - ta
             if oid is None:
                 log.warning("frame %s: no CAD model of class %r; detection dropped", name, name_c)
                 continue

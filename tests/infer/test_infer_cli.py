@@ -49,7 +49,8 @@ def test_end_to_end_with_the_oracle(oracle_run: Path) -> None:
     assert (oracle_run / "overlay.mp4").stat().st_size > 0
     t = read_json(oracle_run / "timings.json")
     assert t["frames"] == 4 and t["detector"]["kind"] == "oracle"
-    assert {"detector", "pose", "refinement", "temporal"} <= set(t["stages"])
+    assert {"detector", "identify", "refinement", "temporal"} <= set(t["stages"])
+    assert set(t["stages_ms"]) == {"detector", "pose", "refinement"} and t["stages_ms"]["refinement"] > 0
     ev = read_json(oracle_run / "eval.json")
     assert ev["fused"]["detection"]["f1"] == 1.0  # the oracle reports every target
     det, ref = ev["detector"]["overall"], ev["refined"]["overall"]

@@ -79,7 +79,7 @@ def test_preset_none_reports_the_detector_pose_unchanged(scene: Path, tiny_struc
     pipe = PosePipeline(det, tiny_structure.models, tiny_structure.class_names, PRESETS["none"])
     K = det.scene.frame(1).camera.K
     records, times = pipe.process(1, "000001.png", np.zeros((120, 160, 3), np.uint8), K)
-    assert records and {"detector", "pose", "refinement", "temporal"} <= set(times)
+    assert records and {"detector", "identify", "refinement", "temporal"} <= set(times)
     for r in records:
         assert r.refine_iters == {} and r.track_id == -1
         np.testing.assert_array_equal(r.T_refined.matrix(), r.T_detector.matrix())
