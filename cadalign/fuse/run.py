@@ -125,13 +125,12 @@ def run(cfg: FuseConfig, source: Path, out_dir: Path, *, depth: str = "gt", labe
               "map": {"mesh_vertices": len(mesh), "mesh_faces": int(len(mesh.faces)), "points": len(points),
                       "origin": [float(x) for x in m.origin],
                       "label_histogram": np.bincount(mesh.labels, minlength=m.n_classes).tolist()},
-              "seconds_extract": round(time.perf_counter() - t0, 3)}
+              "seconds_extract": round(time.perf_counter() - t0, 3), "metrics": None}
     render_views(mesh, out_dir / "views.png", src.classes.names)
     if with_eval:
         if (src.scene.dir / "objects.json").is_file() and (src.scene.dir.parents[1] / "models").is_dir():
             report["metrics"] = evaluate(src, cfg, mesh, points)
         else:
-            report["metrics"] = None
             log.warning("no CAD truth next to %s (objects.json + models/): metrics skipped", src.scene.dir)
     write_json(out_dir / REPORT, report)
     return out_dir

@@ -1,0 +1,100 @@
+"""The fusion stage and ``cadalign fuse`` end to end on the tiny simulated scene."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cadalign.cli.main import app
+from cadalign.errors import ConfigError, InputError
+from cadalign.fuse.config import FuseConfig
+from cadalign.fuse.map_io import load_map, read_ply
+from cadalign.fuse.run import REPORT, run
+from cadalign.io import read_image, read_json
+
+
+@pytest.fixture(scope="module")
+def fused_dir(fuse_sim: Path, small_cfg: FuseConfig, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return run(small_cfg, fuse_sim, tmp_path_factory.mktemp("fuse") / "map")
+
+
+def test_run_writes_map_mesh_report_and_views(fused_dir: Path) -> None:
+    report = read_json(fused_dir / REPORT)
+    assert report["timing"]["frames"] == 6 and report["timing"]["frames_per_second"] > 0
+    m = report["metrics"]
+    assert m["completeness_within_5cm"] > 0.9 and m["label_accuracy"] > 0.95 and m["accuracy_mean_m"] < 0.02
+    vert, faces = read_ply(fused_dir / "mesh.ply")
+    assert len(vert) == report["map"]["mesh_vertices"] and faces is not None and faces.max() < len(vert)
+    assert set(np.unique(vert["class"])) <= {0, 1, 2, 3}
+    img = read_image(fused_dir / "views.png")
+    assert img.ndim == 3 and img.shape[0] > 300 and img.std() > 10
+    mp, meta = load_map(fused_dir / "map.npz")
+    assert len(meta.frame_ids) == 6 and meta.class_names == tuple(report["classes"])
+
+
+def test_rerun_reuses_and_other_config_is_refused(fused_dir: Path, fuse_sim: Path, small_cfg: FuseConfig) -> None:
+    stamp = (fused_dir / REPORT).stat().st_mtime_ns
+    assert run(small_cfg, fuse_sim, fused_dir) == fused_dir
+    assert (fused_dir / REPORT).stat().st_mtime_ns == stamp
+    with pytest.raises(ConfigError, match="another config"):
+        run(dataclasses.replace(small_cfg, voxel_m=0.05), fuse_sim, fused_dir)
+
+
+def test_missing_models_and_sources_are_clear_errors(fuse_sim: Path, small_cfg: FuseConfig, tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="--labels pred needs a segmentation model: pass --model-seg"):
+        run(small_cfg, fuse_sim, tmp_path / "a", labels="pred")
+    with pytest.raises(InputError, match="--depth pred needs a depth model: pass --model-depth"):
+        run(small_cfg, fuse_sim, tmp_path / "b", depth="pred")
+    with pytest.raises(InputError, match="depth_sfm"):
+        run(small_cfg, fuse_sim, tmp_path / "c", depth="sfm")
+    with pytest.raises(InputError, match="holds no BOP scene"):
+        run(small_cfg, tmp_path, tmp_path / "d")
+    with pytest.raises(InputError, match="unknown depth source"):
+        run(small_cfg, fuse_sim, tmp_path / "e", depth="lidar")
+
+
+def test_predicted_inputs_plug_in_as_callables(fuse_sim: Path, small_cfg: FuseConfig) -> None:
+    """Any ``rgb -> probs`` / ``(rgb, camera) -> depth`` function drives the map (here: the truth, disguised)."""
+    from cadalign.fuse.inputs import FrameSource, open_source
+    from cadalign.fuse.map_io import new_map
+    from cadalign.fuse.semantic import probs_from_labels
+
+    gt = open_source(fuse_sim)
+    by_rgb = {gt.scene.rgb(i).tobytes(): i for i in gt.ids}
+    seg = lambda rgb: probs_from_labels(gt.label_map(by_rgb[rgb.tobytes()]), gt.n_classes, 0.9)  # noqa: E731
+    dep = lambda rgb, cam: gt.scene.depth_m(by_rgb[rgb.tobytes()])  # noqa: E731
+    pred = FrameSource(gt.scene, gt.classes, gt.ids[:2], "pred", "pred", 0.9, dep, seg)
+    m = new_map(small_cfg, pred.n_classes)
+    for frame in pred:
+        m.integrate(frame)
+    assert len(m.extract_points()) > 1000
+
+
+def test_bench_fuse(fuse_sim: Path, small_cfg: FuseConfig, tmp_path: Path) -> None:
+    from cadalign.fuse.bench import bench_fuse
+
+    r = bench_fuse(fuse_sim, small_cfg, frames=2, warmup=1, out=tmp_path)
+    assert r["frames_timed"] == 2 and r["frames_per_second_median"] > 0 and r["image"] == "160x120"
+    assert set(r["seconds_by_part"]) == {"tsdf", "labels"}
+    assert read_json(tmp_path / "bench_fuse.json")["frames_timed"] == 2
+
+
+def test_cli_help() -> None:
+    result = CliRunner().invoke(app, ["fuse", "--help"])
+    assert result.exit_code == 0 and "--method" in result.output and "--model-seg" in result.output
+
+
+def test_cli_end_to_end(fuse_sim: Path, tmp_path: Path) -> None:
+    out = tmp_path / "cli_map"
+    args = ["fuse", str(fuse_sim), "--out", str(out), "--voxel", "0.04", "--method", "surfel", "--max-frames", "3",
+            "--no-eval"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    report = read_json(out / REPORT)
+    assert report["method"] == "surfel" and report["timing"]["frames"] == 3 and report["metrics"] is None
+    bad = CliRunner().invoke(app, ["fuse", str(fuse_sim), "--out", str(tmp_path / "x"), "--method", "octree"])
+    assert bad.exit_code == 1 and "method" in bad.output
