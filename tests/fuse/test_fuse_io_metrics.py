@@ -19,7 +19,8 @@ def _square(z: float = 0.0, size: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     return v, np.array([[0, 1, 2], [0, 2, 3]])
 
 
-def _geom(points: np.ndarray, labels: np.ndarray, faces: np.ndarray | None = None, n_classes: int = 3) -> LabelledGeometry:
+def _geom(points: np.ndarray, labels: np.ndarray, faces: np.ndarray | None = None,
+          n_classes: int = 3) -> LabelledGeometry:
     probs = np.full((len(points), n_classes), 0.1, np.float32)
     probs[np.arange(len(points)), labels] = 1 - 0.1 * (n_classes - 1)
     return LabelledGeometry(points, np.tile([0, 0, 1.0], (len(points), 1)).astype(np.float32),
