@@ -181,7 +181,8 @@ def measure_point(sweep: Sweep, shared: Any, point: SweepPoint, repeats: int) ->
             seconds.append(time.perf_counter() - t)
     metrics = _median_metrics(runs)
     rec = {"name": point.name, "knobs": point.knobs, "status": "done", "metrics": metrics,
-           "seconds": statistics.median(seconds), "seconds_all": seconds, "prepare_seconds": prepare_s,
+           "seconds": statistics.median(seconds), "seconds_min": min(seconds), "seconds_all": seconds,
+           "prepare_seconds": prepare_s,
            "peak_rss_mb": mem["peak_rss_mb"], "peak_rss_delta_mb": mem["peak_rss_mb"] - mem["start_rss_mb"],
            "memory_method": mem["method"], "repeats": repeats}
     rec["accuracy"] = _axis_value(rec, sweep.accuracy)
@@ -302,7 +303,7 @@ def replot_stage(bench: dict[str, Any], stage: str, path: Path) -> Path:
     return plot_pareto(path, [r["name"] for r in recs], [num(r["cost"]) for r in recs],
                        [num(r["accuracy"]) for r in recs], higher_is_better=acc["higher_is_better"],
                        cost_label=cost["label"], acc_label=acc["label"],
-                       title=f"{stage}: {acc['label']} vs {cost['label']}",
+                       title=f"{stage}: recommended '{st.get('recommended')}'",
                        notes=[knob_note(r["knobs"]) for r in recs])
 
 

@@ -40,7 +40,7 @@ class SizeSpec:
 SIZES: dict[str, SizeSpec] = {
     "tiny": SizeSpec((160, 120), 6, (320, 240), 8, 3, 1, 0),
     "small": SizeSpec((320, 240), 12, (320, 240), 12, 60, 3, 1),
-    "full": SizeSpec((640, 480), 24, (640, 480), 24, 400, 3, 2),
+    "full": SizeSpec((640, 480), 24, (640, 480), 24, 150, 3, 2),
 }
 """tiny: what the tests run (seconds per stage); small: minutes in all; full: what a person runs (<~1 h, 2 cores)."""
 

@@ -21,12 +21,15 @@ from cadalign.eval.bench_data import BenchData
 SCENE = Path("gt") / "sim" / "000000"
 
 _NO_REFINE = ("balanced, no refinement", {"mapper": {"refine_iterations": 0}})
+_GLOBAL = ("balanced, global mapper", {"mapper": {"kind": "global"}})
 SFM_POINTS = {
     0: (("fast", {}), ("balanced", {}), ("accurate", {})),
-    1: (("fast", {}), ("balanced", {}), ("accurate", {}), _NO_REFINE),
-    2: (("fast", {}), ("balanced", {}), ("accurate", {}), _NO_REFINE,
+    1: (("fast", {}), ("balanced", {}), ("accurate", {}), _NO_REFINE, _GLOBAL),
+    2: (("fast", {}), ("balanced", {}), ("accurate", {}), _NO_REFINE, _GLOBAL,
         ("balanced, exhaustive", {"matching": {"pairing": "exhaustive"}})),
 }
+"""Presets and one-knob variants (features: the presets' SIFT budgets; matcher: pairing; mapper: kind and
+refinement)."""
 
 
 def _preset_of(name: str) -> str:
@@ -64,14 +67,14 @@ def sfm_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
                      "a Sim(3) fit of the centres, rot_err_deg, is in the record: on a short arc the fit cannot pin "
                      "the roll about the path and that error mostly measures the gauge), with centre RMSE and "
                      "registration rate."),
-        repeats=1 if data.size.level < 2 else None)
+        repeats=1 if data.size.level < 2 else 2)  # 1 thread + fixed seed: repeats only re-measure the time
 
 
 # ---- dense networks ------------------------------------------------------------------------------------
 
 NET_POINTS = {0: ((0.25, 4), (0.5, 4), (0.5, 8)),
               1: ((0.25, 8), (0.5, 8), (0.5, 16), (1.0, 8)),
-              2: ((0.25, 12), (0.5, 12), (0.5, 24), (1.0, 12), (1.0, 24))}
+              2: ((0.25, 12), (0.5, 12), (0.5, 24), (1.0, 12))}
 
 
 def _loop(data: BenchData, cfg: BenchConfig):  # -> LoopConfig
@@ -117,7 +120,7 @@ def score_net(task: str, scene: Path, run: Path, train_s: float = float("nan"),
               split: str | None = None) -> dict[str, float]:
     """Score the network of training run ``run`` on the held-out frames of the BOP ``scene`` (``split``
     default: test, or all when the scene has no test block): mIoU (seg) or delta1/AbsRel (depth), and the
-    median inference ms per frame."""
+    median over frames of the inference ms (each the faster of two passes)."""
     import torch
 
     from cadalign.data.torch_datasets import DepthDataset, SegmentationDataset
@@ -133,9 +136,12 @@ def score_net(task: str, scene: Path, run: Path, train_s: float = float("nan"),
     with torch.inference_mode():
         for i in range(len(ds)):
             item = ds[i]
-            t0 = time.perf_counter()
-            out = seg_probabilities(dm, item["image"]) if task == "seg" else metric_depth(dm, item["image"])
-            ms.append(1000 * (time.perf_counter() - t0))
+            best = np.inf  # the faster of two passes: load on a shared machine only ever adds time
+            for _ in range(2):
+                t0 = time.perf_counter()
+                out = seg_probabilities(dm, item["image"]) if task == "seg" else metric_depth(dm, item["image"])
+                best = min(best, 1000 * (time.perf_counter() - t0))
+            ms.append(best)
             if task == "seg":
                 cm += confusion_matrix(out[0].argmax(0).numpy(), item["label"].numpy(), len(dm.classes))
             else:

@@ -71,9 +71,12 @@ def sim_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
         effects = knobs["effects"]
         secs, diffs = [], []
         for k in s["ids"]:
-            t0 = time.perf_counter()
-            _, rgb, _, _ = render_frame(variant, chain, k, s["renderer"], s["caster"])
-            secs.append(time.perf_counter() - t0)
+            best = np.inf  # min of two: load on a shared machine only ever adds time
+            for _ in range(2):
+                t0 = time.perf_counter()
+                _, rgb, _, _ = render_frame(variant, chain, k, s["renderer"], s["caster"])
+                best = min(best, time.perf_counter() - t0)
+            secs.append(best)
             diffs.append(float(np.mean(np.abs(np.clip(rgb, 0, 1) - s["ref"][k]))))  # linear RGB in [0, 1]
         return {"ms_per_frame": 1000 * float(np.median(secs)), "fidelity": 1.0 - float(np.mean(diffs)),
                 "effects": float(len(effects))}
@@ -84,7 +87,8 @@ def sim_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
         Metric("fidelity", "fidelity to the all-effects image (1 - mean |diff|)", True),
         Metric("ms_per_frame", "ms per frame (render + ground truth + effects)"), measure, setup, prepare=prepare,
         description=(f"Simulator cost with subsets of the water effects switched on, default scene at {w}x{h}, "
-                     f"{n_frames} frames. Fidelity = 1 - mean absolute RGB difference (0..1) to the image with "
+                     f"{n_frames} frames (per frame the faster of two renders, then the median). Fidelity = 1 - mean "
+                     "absolute RGB difference (0..1) to the image with "
                      "every effect: what dropping effects costs in realism."),
         teardown=lambda s: s["renderer"].close())
 

@@ -87,10 +87,14 @@ def plot_pareto(path: Path, names: Sequence[str], costs: Sequence[float], accs: 
                 higher_is_better: bool, cost_label: str, acc_label: str, title: str,
                 notes: Sequence[str] | None = None, tol: float = TOLERANCE) -> Path:
     """Scatter of every setting (cost on x, accuracy on y), the Pareto front as a step line, the
-    recommended setting as a star and each point annotated with its name (and ``notes``: knob values).
+    recommended setting as a star and each point annotated with its name (points on the front also with
+    their ``notes``: knob values).
 
-    The x axis is logarithmic when the costs span more than a factor of 20. Writes a PNG and returns its path.
+    An axis is logarithmic when its (positive) values span more than a factor of 20. Writes a PNG and
+    returns its path.
     """
+    import textwrap
+
     import matplotlib
 
     matplotlib.use("Agg")
@@ -100,7 +104,7 @@ def plot_pareto(path: Path, names: Sequence[str], costs: Sequence[float], accs: 
     ok = np.isfinite(c) & np.isfinite(a)
     front = pareto_front(list(c), list(a), higher_is_better=higher_is_better)
     rec = recommend(list(c), list(a), higher_is_better=higher_is_better, tol=tol)
-    fig, ax = plt.subplots(figsize=(7.0, 4.6))
+    fig, ax = plt.subplots(figsize=(8.0, 5.0))
     ax.scatter(c[ok], a[ok], s=28, color="tab:blue", zorder=3, label="setting")
     if front:
         order = sorted(front, key=lambda i: c[i])
@@ -111,15 +115,19 @@ def plot_pareto(path: Path, names: Sequence[str], costs: Sequence[float], accs: 
         best = np.nanmax(a[ok]) if higher_is_better else np.nanmin(a[ok])
         ax.axhline(accuracy_threshold(float(best), higher_is_better=higher_is_better, tol=tol), color="tab:red",
                    lw=0.7, ls=":", zorder=1)
-    for i in np.flatnonzero(ok):
-        text = names[i] + (f"\n{notes[i]}" if notes and notes[i] else "")
-        ax.annotate(text, (c[i], a[i]), textcoords="offset points", xytext=(5, 4), fontsize=7, color="#333")
-    if ok.any() and c[ok].min() > 0 and c[ok].max() / c[ok].min() > 20:
-        ax.set_xscale("log")
-    ax.set_xlabel(f"{cost_label} (lower is better)")
-    ax.set_ylabel(f"{acc_label} ({'higher' if higher_is_better else 'lower'} is better)")
-    ax.set_title(title, fontsize=10)
+    for n, i in enumerate(sorted(np.flatnonzero(ok), key=lambda j: c[j])):
+        text = names[i] + (f"\n{notes[i]}" if notes and notes[i] and i in front else "")
+        ax.annotate(text, (c[i], a[i]), textcoords="offset points", xytext=(6, 6 if n % 2 == 0 else -16),
+                    fontsize=7, color="#333")
+    for vals, set_scale in ((c[ok], ax.set_xscale), (a[ok], ax.set_yscale)):
+        if len(vals) and vals.min() > 0 and vals.max() / vals.min() > 20:
+            set_scale("log")
+    ax.set_xlabel(textwrap.fill(f"{cost_label} (lower is better)", 70), fontsize=9)
+    ax.set_ylabel(textwrap.fill(f"{acc_label} ({'higher' if higher_is_better else 'lower'} is better)", 45),
+                  fontsize=9)
+    ax.set_title(textwrap.fill(title, 80), fontsize=9)
     ax.grid(alpha=0.3)
+    ax.margins(x=0.15, y=0.12)
     ax.legend(fontsize=7, loc="best")
     if not ok.any():
         ax.text(0.5, 0.5, "no finished setting", transform=ax.transAxes, ha="center")

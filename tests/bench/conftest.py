@@ -1,4 +1,4 @@
-"""A tiny benchmark folder made through the CLI (render, align, emulate at --size tiny), shared by the tests."""
+"""A tiny benchmark folder made through the CLI (render, align, emulate, fuse at --size tiny), shared by the tests."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 from cadalign.cli.main import app
 
-CHEAP_STAGES = ("render", "align", "emulate")
+CHEAP_STAGES = ("render", "align", "emulate", "fuse")
 
 
 @pytest.fixture(scope="session")

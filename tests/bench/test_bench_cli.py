@@ -59,6 +59,10 @@ def test_tiny_cheap_stages_end_to_end(tiny_bench):
     emulate = {r["name"]: r for r in bench["stages"]["emulate"]["points"].values()}
     # both engines are exact: the same rays sample the surface identically
     assert emulate["bvh 8x360"]["accuracy"] == pytest.approx(emulate["torch 8x360"]["accuracy"], rel=1e-5)
+    assert emulate["bvh 8x360"]["accuracy"] > emulate["bvh 32x1440"]["accuracy"]  # more rays, smaller gaps
+    fuse = {r["name"]: r for r in bench["stages"]["fuse"]["points"].values()}
+    assert fuse["16 cm"]["metrics"]["chamfer_m"] > fuse["4 cm"]["metrics"]["chamfer_m"]
+    assert fuse["4 cm"]["metrics"]["label_accuracy"] > 0.8 and fuse["4 cm"]["metrics"]["frames_per_s"] > 0
 
 
 def test_html_lists_recommendations_with_inlined_plots(tiny_bench):
