@@ -65,16 +65,20 @@ def render_view(mesh: LabelledGeometry, eye: np.ndarray, target: np.ndarray, siz
 
 def render_views(mesh: LabelledGeometry, path: Path, class_names: Sequence[str], *, n_views: int = 3,
                  size: tuple[int, int] = (480, 360)) -> Path:
-    """A PNG grid: ``n_views`` views around the mesh (top row by class, bottom row observed colour) + legend."""
+    """A PNG grid: ``n_views`` views around the mesh (top row by class, bottom row observed colour) + legend.
+
+    The views frame the labelled (non-background) part of the map when it has one, so a large seabed does
+    not shrink the structure to a few pixels."""
     import cv2
 
-    lo, hi = np.percentile(mesh.points_m, [2, 98], axis=0)
+    fg = mesh.points_m[mesh.labels != 0]
+    lo, hi = np.percentile(fg if len(fg) >= 100 else mesh.points_m, [1, 99], axis=0)
     target = (lo + hi) / 2
     radius = max(float(np.linalg.norm(hi - lo)), 1e-3)
     rows = [[], []]
     for k in range(n_views):
         a = 2 * np.pi * k / n_views + np.pi / 6
-        eye = target + radius * np.array([np.cos(a), np.sin(a), 0.55])
+        eye = target + 1.1 * radius * np.array([np.cos(a), np.sin(a), 0.55])
         for r, by_class in enumerate((True, False)):
             rows[r].append(render_view(mesh, eye, target, size, by_class=by_class))
     grid = np.concatenate([np.concatenate(r, axis=1) for r in rows], axis=0)
