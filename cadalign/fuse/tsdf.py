@@ -116,17 +116,19 @@ class SemanticTSDF:
             for name in ATTRS:
                 _view(self.vbg.attribute(name))[fresh] = 0.0
         self.vbg.integrate(coords, dimg, cimg, Kt, E, 1.0, dmax, mult)
-        touched = torch.from_numpy(hm.find(coords)[0].numpy().astype(np.int64))
-        weight = _view(self.vbg.attribute("weight"))
-        weight[touched] = weight[touched].clamp_(max=cfg.weight_cap)
+        if self.frames_integrated + 1 > cfg.weight_cap:  # weights grow by <= 1 a frame: nothing to cap before
+            touched = torch.from_numpy(hm.find(coords)[0].numpy().astype(np.int64))
+            weight = _view(self.vbg.attribute("weight"))
+            weight[touched] = weight[touched].clamp_(max=cfg.weight_cap)
         t1 = time.perf_counter()
         self._update_labels(frame, mask)
         self.seconds["tsdf"] += t1 - t0
         self.seconds["labels"] += time.perf_counter() - t1
         self.frames_integrated += 1
 
-    def _surface_samples(self, frame: FuseFrame, mask: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        """Voxel indices (M, 3) of samples with |sdf| < label_band/2 <= trunc/2, and the pixel index (M,) of each."""
+    def _surface_samples(self, frame: FuseFrame, mask: np.ndarray) -> tuple[torch.Tensor, np.ndarray, int]:
+        """Voxel indices (n P, 3) of samples with |sdf| < label_band/2 <= trunc/2 (offset-major: the n samples of
+        the P pixels), the flat pixel indices (P,) and n."""
         s = self.cfg.label_pixel_stride
         if s > 1:
             sub = np.zeros_like(mask)
@@ -146,7 +148,7 @@ class SemanticTSDF:
         offsets = ((np.arange(n) + 0.5) / n - 0.5) * (band * self.cfg.voxel_m)
         zt = torch.from_numpy(z)
         vox = torch.cat([torch.round(torch.addcmul(t, dirs, (zt + float(o))[:, None])) for o in offsets])
-        return vox.to(torch.int32), torch.from_numpy(pix).repeat(n)
+        return vox.to(torch.int32), pix, n
 
     def _flat_index(self, vox: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Flattened voxel index into the attribute buffers and a found-mask, for (M, 3) voxel indices."""
@@ -160,11 +162,11 @@ class SemanticTSDF:
         return flat, torch.from_numpy(ok.numpy())
 
     def _update_labels(self, frame: FuseFrame, mask: np.ndarray) -> None:
-        vox, pix = self._surface_samples(frame, mask)
+        vox, pix, n = self._surface_samples(frame, mask)
         flat, ok = self._flat_index(vox)
-        flat, pix = flat[ok], pix[ok]
-        probs = torch.from_numpy(np.asarray(frame.probs, dtype=np.float32).reshape(self.n_classes, -1))
-        obs = clamped_log_probs(probs[:, pix].T, self.cfg.label_min_prob)
+        probs = np.asarray(frame.probs, dtype=np.float32).reshape(self.n_classes, -1)
+        obs_pix = clamped_log_probs(torch.from_numpy(np.ascontiguousarray(probs[:, pix].T)), self.cfg.label_min_prob)
+        flat, obs = flat[ok], obs_pix.repeat(n, 1)[ok]
         label = _view(self.vbg.attribute("label")).view(-1, self.n_classes)
         label[flat] = bayes_update(label[flat], obs, self.cfg.label_log_floor)
 
