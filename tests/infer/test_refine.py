@@ -92,3 +92,15 @@ def test_empty_mask_and_no_depth_leave_the_pose(valve_view) -> None:
     empty = np.zeros_like(view.mask)
     assert refine_silhouette(geom, T0, view.camera.K, empty, RefineConfig())[:2] == (T0, 0)
     assert refine_depth_icp(geom, T0, view.camera.K, np.zeros_like(view.depth_m), view.mask, RefineConfig())[1] == 0
+
+
+@pytest.mark.parametrize("t", [[0, 0, 1000.0], [0, 0, -2.0], [0, 0, 0.001], [50, 0, 2.0], [0, 0, 0.3]],
+                         ids=["far", "behind", "on-camera", "off-image", "too-close"])
+def test_degenerate_starts_keep_a_finite_pose(valve_view, t: list[float]) -> None:
+    model, geom, view = valve_view
+    T = Rigid3(view.T_cam_from_obj.R, np.array(t))
+    res = refine(geom, T, view.camera.K, view.mask, RefineConfig(), view.depth_m)
+    assert np.isfinite(res.T_cam_from_obj.matrix()).all()
+    full = refine(geom, view.T_cam_from_obj, view.camera.K, np.ones_like(view.mask), RefineConfig(),
+                  np.full(view.depth_m.shape, np.nan))
+    assert np.isfinite(full.T_cam_from_obj.matrix()).all() and full.iterations.get("depth", 0) == 0
