@@ -37,11 +37,6 @@ def test_bad_log_level_is_rejected():
     assert res.exit_code != 0
 
 
-def test_pending_command_says_which_issue():
-    res = runner.invoke(app, ["fuse"])
-    assert res.exit_code == 2 and "issue 8" in res.output
-
-
 def test_sim_with_misspelled_scene_key_fails_readably(tmp_path):
     scene = tmp_path / "s.toml"
     scene.write_text('name = "x"\neffekts = []\n[[objects]]\nname = "a"\nsource = "procedural:box"\n')

@@ -1,7 +1,7 @@
 """``cadalign demo --out DIR``: the main job on the embedded default scene.
 
-Stages run in order and reuse finished work on a re-run. Stages that have not
-landed yet are listed as pending in the summary.
+Stages run in order and reuse finished work on a re-run; a failed stage is reported
+in the summary and makes the command exit 1.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ from __future__ import annotations
 import typer
 
 from cadalign import __version__
-from cadalign.cli import align, bench, build_dataset, common, demo, emulate, pending, sfm, sim
+from cadalign.cli import align, bench, build_dataset, common, demo, emulate, sfm, sim
 from cadalign.cli import eval as eval_cli
 from cadalign.cli import fuse as fuse_cli
 from cadalign.cli import infer as infer_cli
@@ -47,8 +47,6 @@ app.add_typer(eval_cli.app, name="eval")
 app.add_typer(emulate.app, name="emulate")
 app.command("infer")(infer_cli.command)
 app.command("fuse")(fuse_cli.command)
-pending.register(app, skip={"sim", "sfm", "align", "build-dataset", "demo", "bench", "emulate", "train", "infer",
-                            "fuse"})
 
 
 def main() -> None:
