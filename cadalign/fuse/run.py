@@ -98,7 +98,7 @@ def _timing(m: SemanticMap, frames: int, seconds: float) -> dict:
 def run(cfg: FuseConfig, source: Path, out_dir: Path, *, depth: str = "gt", labels: str = "gt",
         seg_model: Path | None = None, depth_model: Path | None = None, split: str | None = None,
         max_frames: int | None = None, with_eval: bool = True, overwrite: bool = False,
-        progress: Progress | None = None) -> Path:
+        progress: Progress | None = None, checkpoint_every: int = 50) -> Path:
     """Fuse ``source`` into ``out_dir`` (layout in the module docstring); returns ``out_dir``."""
     out_dir = Path(out_dir)
     src = _open(cfg, source, depth, labels, seg_model, depth_model, split, max_frames)
@@ -114,7 +114,7 @@ def run(cfg: FuseConfig, source: Path, out_dir: Path, *, depth: str = "gt", labe
     if meta is not None:
         log.info("continuing %s after %d frames", map_path, before)
     m, meta, seconds = fuse(src, cfg, m=m, meta=meta, progress=progress,
-                            checkpoint=lambda mm, me: save_map(mm, me, map_path))
+                            checkpoint=lambda mm, me: save_map(mm, me, map_path), checkpoint_every=checkpoint_every)
     save_map(m, meta, map_path)
     t0 = time.perf_counter()
     mesh, points = m.extract_mesh(), m.extract_points()

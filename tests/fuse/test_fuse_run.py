@@ -44,6 +44,30 @@ def test_rerun_reuses_and_other_config_is_refused(fused_dir: Path, fuse_sim: Pat
         run(dataclasses.replace(small_cfg, voxel_m=0.05), fuse_sim, fused_dir)
 
 
+def test_interrupted_run_continues_from_its_checkpoint(fuse_sim: Path, small_cfg: FuseConfig, tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    from cadalign.fuse.tsdf import SemanticTSDF
+
+    real = SemanticTSDF.integrate
+    calls = []
+
+    def crash_on_fifth(self, frame):  # noqa: ANN001, ANN202 - test double
+        calls.append(1)
+        if len(calls) == 5:
+            raise KeyboardInterrupt
+        return real(self, frame)
+
+    monkeypatch.setattr(SemanticTSDF, "integrate", crash_on_fifth)
+    with pytest.raises(KeyboardInterrupt):
+        run(small_cfg, fuse_sim, tmp_path / "m", checkpoint_every=2, with_eval=False)
+    assert len(load_map(tmp_path / "m" / "map.npz")[1].frame_ids) == 4
+    monkeypatch.setattr(SemanticTSDF, "integrate", real)
+    run(small_cfg, fuse_sim, tmp_path / "m", checkpoint_every=2, with_eval=False)
+    report = read_json(tmp_path / "m" / REPORT)
+    assert report["timing"]["frames"] == 2
+    assert load_map(tmp_path / "m" / "map.npz")[1].frame_ids == list(range(6))
+
+
 def test_missing_models_and_sources_are_clear_errors(fuse_sim: Path, small_cfg: FuseConfig, tmp_path: Path) -> None:
     with pytest.raises(InputError, match="--labels pred needs a segmentation model: pass --model-seg"):
         run(small_cfg, fuse_sim, tmp_path / "a", labels="pred")
