@@ -49,10 +49,12 @@ def sim3_from_matrix(M: np.ndarray, tol: float = SIM3_ORTHO_TOL) -> Sim3:
     if not np.array_equal(M[3], [0.0, 0.0, 0.0, 1.0]):
         raise InputError(f"bottom row of a similarity must be (0, 0, 0, 1), got {M[3]}")
     A = M[:3, :3]
-    det = float(np.linalg.det(A))
-    if not det > 0:
-        raise InputError(f"det of the linear part is {det:g} <= 0: no positive scale (reflection or singular)")
-    s = float(np.cbrt(det))
+    # slogdet: det itself over/underflows for scales beyond ~1e+-100 (a valid, if extreme, similarity)
+    sign, logdet = np.linalg.slogdet(A)
+    if not (sign > 0 and np.isfinite(logdet)):
+        raise InputError(f"det of the linear part is {sign * np.exp(logdet):g} <= 0: no positive scale "
+                         "(reflection or singular)")
+    s = float(np.exp(logdet / 3.0))
     if not np.isfinite(s) or s <= 0:
         raise InputError(f"scale det^(1/3) = {s:g} is not finite and positive")
     R = A / s

@@ -136,3 +136,11 @@ def test_relative_pose_error() -> None:
     assert relative_pose_error(T, T) == (0.0, 0.0)
     # the translation error equals that of T_gt^-1 o T_est for rigid poses
     assert trans == pytest.approx(np.linalg.norm((T.inverse() @ est).t), abs=1e-12)
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+@pytest.mark.parametrize("scale", [1e-150, 1e-103, 1e103, 1e150])
+def test_sim3_from_matrix_extreme_scales_without_overflow(scale: float) -> None:
+    M = np.eye(4)
+    M[:3, :3] *= scale
+    assert sim3_from_matrix(M).s == pytest.approx(scale, rel=1e-12)
