@@ -173,3 +173,13 @@ def test_tsdf_weights_are_capped(src: FrameSource, small_cfg: FuseConfig) -> Non
     for _ in range(6):
         m.integrate(f)
     assert m.state()["weight"].max() == pytest.approx(3.0)
+
+
+def test_old_open3d_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    import open3d as o3d
+
+    from cadalign.fuse.tsdf import require_open3d
+
+    monkeypatch.setattr(o3d, "__version__", "0.16.1")
+    with pytest.raises(InputError, match="open3d 0.16.1 is too old"):
+        require_open3d()
