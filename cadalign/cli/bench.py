@@ -92,8 +92,8 @@ def all_stages(
 @app.command("robustness")
 def robust(
     out: Path = OUT, size: str = SIZE, seed: int = SEED,
-    models: Path | None = typer.Option(None, "--models", help="Optional folder with seg/ and/or depth/ training runs "
-                                       "(cadalign train) to score under each condition."),
+    models: Path | None = typer.Option(None, "--models", help="Optional folder with seg/, depth/ and/or pose/ "
+                                       "training runs (cadalign train) to score under each condition."),
 ) -> None:
     """Low visibility: turbidity (Jerlov type), marine snow density and light level, >= 3 severities each;
     SfM registration rate, rotation error and image contrast (and model scores with --models) vs severity."""
@@ -106,7 +106,8 @@ def robust(
     for r in rob["rows"]:
         m = {k: float("nan") if v is None else v for k, v in r["metrics"].items()}
         console.print(f"  {r['effect']:<11} {r['severity']:<9} registration {m.get('registration_rate', -1):.2f}  "
-                      f"rotation {m.get('rot_err_deg', -1):.3f} deg  contrast {m.get('contrast', -1):.3f}")
+                      f"rotation {m.get('rel_rot_err_deg', -1):.3f} deg (frame to frame)  "
+                      f"contrast {m.get('contrast', -1):.3f}")
     console.print(f"[green]written {out / 'robustness.json'} and {out / 'bench.html'}[/]")
 
 

@@ -56,7 +56,7 @@ def _stage_section(out: Path, bench: dict[str, Any], stage: str) -> str:
 
 def _robustness_section(out: Path, rob: dict[str, Any]) -> str:
     rows = [{"effect": r["effect"], "severity": r["severity"], "value": str(r["value"]),
-             **{k: num(v) for k, v in r["metrics"].items()}} for r in rob["rows"]]
+             **{k: num(v) for k, v in r["metrics"].items()}, "note": r.get("note") or ""} for r in rob["rows"]]
     plots = "".join(img_tag(out / p, f"robustness {k}") for k, p in rob.get("plots", {}).items())
     return (f"<h2 id='robustness'>Robustness under low visibility</h2><p>{html.escape(rob.get('description', ''))}</p>"
             + plots + table(rows))

@@ -8,10 +8,12 @@ worse, simulated as a short clip:
 * ``marine_snow``: particles per cubic metre (the default scene has 20);
 * ``light``: the light level, a factor on the ambient light and on both lamps (1 = the default scene).
 
-Per condition: SfM (``fast`` preset, 1 thread) registration rate and rotation error against the exact
-cameras; the image contrast the simulator's ground truth lets us measure exactly (:func:`contrast_metrics`,
-structure vs background from the true class map); and, given trained networks (``models/seg``,
-``models/depth``: ``cadalign train`` run folders), their mIoU / delta1 on the condition's frames.
+Per condition: SfM (``fast`` preset, 1 thread) registration rate and rotation errors against the exact
+cameras (absolute after the Sim(3) fit, and the gauge-free error between consecutive frames); the image
+contrast the simulator's ground truth lets us measure exactly (:func:`contrast_metrics`, structure vs
+background from the true class map); and, given trained networks (``models/seg``,
+``models/depth``, ``models/pose``: ``cadalign train`` run folders), their mIoU / delta1 on the condition's
+frames and the pose errors of ``cadalign infer`` with that detector.
 
 Writes ``robustness.json`` (one row per condition, saved after each, reused on re-run) and one
 ``robustness_<effect>.png`` per effect (metrics against severity, the unchanged scene as severity 0).
@@ -96,7 +98,7 @@ def clip_contrast(sim_dir: Path) -> dict[str, float]:
     return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
 
 
-def _sfm_scores(sim: Path, work: Path, seed: int) -> dict[str, float]:
+def _sfm_scores(sim: Path, work: Path, seed: int) -> dict[str, Any]:
     from cadalign.config import resolve
     from cadalign.eval.sfm_metrics import evaluate
     from cadalign.sfm import PRESETS, SfMConfig, run
@@ -108,9 +110,11 @@ def _sfm_scores(sim: Path, work: Path, seed: int) -> dict[str, float]:
         g = evaluate(work, sim)
     except Exception as exc:  # no model at all is the worst registration, not a crash of the sweep
         log.warning("robustness: SfM failed on %s: %s", sim, exc)
-        return {"registration_rate": 0.0, "rot_err_deg": float("nan"), "sfm_s": time.perf_counter() - t0}
+        return {"registration_rate": 0.0, "rot_err_deg": float("nan"), "rel_rot_err_deg": float("nan"),
+                "sfm_s": time.perf_counter() - t0, "sfm_error": f"{type(exc).__name__}: {exc}"[:300]}
     return {"registration_rate": g["registration_rate"], "rot_err_deg": g["rot_err_deg_mean"],
-            "centre_rmse_rel": g["centre_rmse_rel"], "sfm_s": time.perf_counter() - t0}
+            "rel_rot_err_deg": g["rel_rot_err_deg_mean"], "centre_rmse_rel": g["centre_rmse_rel"],
+            "sfm_s": time.perf_counter() - t0}
 
 
 def conditions(size: str) -> list[tuple[str, str, Any]]:
@@ -149,18 +153,21 @@ def run_robustness(out_dir: Path, *, size: str = "small", seed: int = 0, models:
             if not scene.is_file() or scene.read_text() != text:
                 write_text(scene, text)
             sim = simulate_clip(scene, data_dir / name, res, n_frames, seed)
-            metrics = clip_contrast(sim)
+            metrics: dict[str, Any] = clip_contrast(sim)
             if with_sfm:
                 metrics.update(_sfm_scores(sim, data_dir / f"{name}_sfm", seed))
-            metrics.update(_model_scores(sim, models))
-            done[key] = {"key": key, "effect": effect, "severity": sev, "value": value, "metrics": metrics}
+            note = metrics.pop("sfm_error", None)
+            metrics.update(_model_scores(sim, scene, models))
+            done[key] = {"key": key, "effect": effect, "severity": sev, "value": value, "metrics": metrics,
+                         "note": note}
         rows.append(done[key])
         _save(path, config, rows, out_dir)
     result = _save(path, config, rows, out_dir, plots=True)
     return result
 
 
-def _model_scores(sim: Path, models: Path | None) -> dict[str, float]:
+def _model_scores(sim: Path, scene_toml: Path, models: Path | None) -> dict[str, float]:
+    """mIoU / delta1 / pose errors of the networks in ``models/{seg,depth,pose}`` (those present) on ``sim``."""
     if models is None:
         return {}
     from cadalign.eval.bench_models import score_net
@@ -170,7 +177,33 @@ def _model_scores(sim: Path, models: Path | None) -> dict[str, float]:
     for task, key in (("seg", "miou"), ("depth", "delta1")):
         if (Path(models) / task).exists():
             out[key] = score_net(task, scene, Path(models) / task, split="all")[key]
+    if (Path(models) / "pose").exists():
+        out.update(pose_scores(sim, scene_toml, Path(models) / "pose"))
     return out
+
+
+def pose_scores(sim: Path, scene_toml: Path, run_dir: Path) -> dict[str, float]:
+    """Run ``cadalign infer`` (fast preset, detector = the pose network in ``run_dir``, the clip's exact depth
+    for ICP) on a simulation folder and return the fused poses' mean errors and ADD(-S) < 0.1 d recall."""
+    from cadalign.build_dataset import load_structure
+    from cadalign.config import resolve
+    from cadalign.infer import detect as det
+    from cadalign.infer.pipeline import PRESETS, InferConfig
+    from cadalign.infer.run import calibration_from_scene, run
+    from cadalign.models.maskrcnn.detector import load_pose_model
+
+    scene = sim / "gt" / "sim" / "000000"
+    cfg = resolve(InferConfig, PRESETS, "fast", overrides={"overlay": False})
+    structure = load_structure(scene_toml)
+    net, meta = load_pose_model(run_dir, "cpu")
+    detector = det.TorchDetector(net, cfg.score_thresh, "cpu")
+    out = sim.parent / f"{sim.name}_pose"
+    run(cfg, sim / "frames", detector, structure.models, tuple(meta.get("classes", structure.class_names)), out,
+        calib=calibration_from_scene(scene), detector_info={"kind": "network", "run": str(run_dir)},
+        depth_scene=scene, gt_scene=scene, overwrite=True)
+    ov = read_json(out / "eval.json")["fused"]["overall"]
+    return {"pose_t_err_m": ov["t_err_m"].get("mean"), "pose_r_err_deg": ov["r_err_deg"].get("mean"),
+            "pose_add_s_01d": ov.get("add_s_01d")}
 
 
 def _save(path: Path, config: dict, rows: list[dict], out_dir: Path, plots: bool = False) -> dict[str, Any]:
@@ -196,7 +229,8 @@ def plot_robustness(result: dict[str, Any], out_dir: Path) -> dict[str, str]:
 
     rows = result["rows"]
     base = next((r for r in rows if r["effect"] == "baseline"), None)
-    keys = [k for k in ("registration_rate", "rot_err_deg", "contrast", "rms_contrast_fg", "miou", "delta1")
+    keys = [k for k in ("registration_rate", "rel_rot_err_deg", "rot_err_deg", "contrast", "miou", "delta1",
+                        "pose_r_err_deg", "pose_add_s_01d")
             if any(k in r["metrics"] for r in rows)]
     files = {}
     for effect in SEVERITIES:

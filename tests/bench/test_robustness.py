@@ -74,6 +74,18 @@ def test_tiny_robustness_run_without_sfm(tmp_path, shared_data, monkeypatch):
     assert again["rows"] == res["rows"]
     html = write_bench_report(out).read_text()
     assert "<h2 id='robustness'>" in html and "alt='robustness light'" in html
+    # with a (2-step) segmentation network: its mIoU under each condition
+    from cadalign.models.resunet import ResUNetConfig
+    from cadalign.train.loop import LoopConfig
+    from cadalign.train.seg import SegTrainConfig, train_seg
+
+    base_scene = next(out.glob("data/robustness_*/baseline_0")) / "gt" / "sim" / "000000"
+    train_seg(SegTrainConfig(model=ResUNetConfig(base_channels=4, depth=3), scale=1.0,
+                             loop=LoopConfig(steps=2, batch_size=1, checkpoint_every=2, log_every=1)),
+              base_scene, tmp_path / "models" / "seg", split="all", val_split=None)
+    with_models = run_robustness(out, size="tiny", with_sfm=False, resolution=(48, 36), frames=1,
+                                 models=tmp_path / "models")
+    assert all(0.0 <= r["metrics"]["miou"] <= 1.0 for r in with_models["rows"])
 
 
 @pytest.mark.slow
