@@ -307,9 +307,19 @@ def replot_stage(bench: dict[str, Any], stage: str, path: Path) -> Path:
                        notes=[knob_note(r["knobs"]) for r in recs])
 
 
-def knob_note(knobs: dict[str, Any], max_len: int = 40) -> str:
-    """Compact ``k=v`` text of a knobs dict for plot annotations."""
-    text = " ".join(f"{k}={v}" for k, v in knobs.items())
+def knob_note(knobs: dict[str, Any], max_len: int = 48) -> str:
+    """Compact ``k=v`` text of a knobs dict for plot annotations; nested dicts flatten to ``a.b=v``.
+
+    >>> knob_note({"preset": "fast", "overrides": {"mapper": {"kind": "global"}}, "extra": {}})
+    'preset=fast overrides.mapper.kind=global'
+    """
+    def flat(d: dict[str, Any], prefix: str = "") -> list[str]:
+        out = []
+        for k, v in d.items():
+            out += flat(v, f"{prefix}{k}.") if isinstance(v, dict) else [f"{prefix}{k}={v}"]
+        return out
+
+    text = " ".join(flat(knobs))
     return text if len(text) <= max_len else text[: max_len - 1] + "…"
 
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from cadalign.eval.bench import BenchConfig, Metric, Sweep, SweepPoint
 from cadalign.eval.bench_data import BenchData
+from cadalign.io import fingerprint
 
 SCENE = Path("gt") / "sim" / "000000"
 
@@ -46,7 +47,7 @@ def sfm_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
 
         c = resolve(SfMConfig, PRESETS, knobs["preset"], overrides={**knobs["overrides"], "num_threads": 1,
                                                                      "seed": cfg.seed})
-        out = data.work("sfm", knobs["slug"])
+        out = data.work("sfm", fingerprint(knobs))
         t0 = time.perf_counter()
         run(c, sim / "frames", out, overwrite=True)
         sec = time.perf_counter() - t0
@@ -56,8 +57,7 @@ def sfm_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
                 "rel_rot_err_deg": g["rel_rot_err_deg_mean"]}
 
     w, h = data.size.sfm_resolution
-    pts = tuple(SweepPoint(n, {"preset": _preset_of(n), "overrides": o, "slug": f"p{i}"})
-                for i, (n, o) in enumerate(SFM_POINTS[data.size.level]))
+    pts = tuple(SweepPoint(n, {"preset": _preset_of(n), "overrides": o}) for n, o in SFM_POINTS[data.size.level])
     return Sweep(
         "sfm", pts, Metric("rel_rot_err_deg", "relative rotation error of consecutive frames, mean (deg)"),
         Metric("sfm_s", "seconds per SfM run (1 thread)"), measure, data.sfm_clip,
