@@ -25,6 +25,7 @@ def command(
     config: Path | None = typer.Option(None, "--config", help="TOML/YAML with overrides of the preset."),
     split: str | None = typer.Option(None, "--split", help="Only this split of a built dataset (train/val/test)."),
     max_frames: int | None = typer.Option(None, "--max-frames", min=1, help="Fuse only the first N frames."),
+    ids: str | None = typer.Option(None, "--ids", help="Only image ids A <= id < B, written A:B (held-out frames)."),
     no_eval: bool = typer.Option(False, "--no-eval", help="Skip the metrics against the CAD truth."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
 ) -> None:
@@ -34,11 +35,19 @@ def command(
     from cadalign.fuse.run import REPORT, run
     from cadalign.io import read_json
 
+    id_range = None
+    if ids is not None:
+        try:
+            a, b = (int(x) for x in ids.split(":"))
+        except ValueError:
+            raise typer.BadParameter(f"{ids!r}; expected A:B, e.g. 41:61", param_hint="--ids") from None
+        id_range = (a, b)
     overrides = {k: v for k, v in {"voxel_m": voxel, "method": method}.items() if v is not None}
     with user_errors():
         cfg = resolve(FuseConfig, PRESETS, preset, config, overrides)
         path = run(cfg, source, out, depth=depth, labels=labels, seg_model=model_seg, depth_model=model_depth,
-                   split=split, max_frames=max_frames, with_eval=not no_eval, overwrite=overwrite, progress=track)
+                   split=split, max_frames=max_frames, id_range=id_range, with_eval=not no_eval, overwrite=overwrite,
+                   progress=track)
     report = read_json(path / REPORT)
     t = report["timing"]
     fps = f"{t['frames_per_second']:.2f} frames/s" if t["frames_per_second"] else "nothing new to fuse"

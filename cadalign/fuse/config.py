@@ -47,6 +47,9 @@ class FuseConfig:
     ``trunc_voxels`` (the update is only ever applied where |sdf| < trunc/2)."""
     label_pixel_stride: int = bounded(1, ge=1)
     """Use every n-th pixel (in both directions) for the label update (speed knob; 1 = every pixel)."""
+    pred_depth_foreground_only: bool = True
+    """With predicted depth and a segmentation model: fuse only pixels segmented as non-background (depth
+    networks also predict depths for open water, which would become phantom surfaces)."""
     surfel_max_normal_deg: float = bounded(30.0, gt=0, le=90)
     """A measurement merges into a surfel only if their normals differ by less than this."""
     surfel_max_dist_voxels: float = bounded(2.0, gt=0)

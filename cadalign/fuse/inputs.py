@@ -133,6 +133,7 @@ def split_ids(scene_dir: Path, split: str | None) -> list[int] | None:
 
 def open_source(source: Path, *, depth: DepthSource = "gt", labels: LabelSource = "gt",
                 label_confidence: float = 0.95, split: str | None = None, max_frames: int | None = None,
+                id_range: tuple[int, int] | None = None,
                 depth_predictor: DepthPredictor | None = None,
                 seg_predictor: SegPredictor | None = None) -> FrameSource:
     """A :class:`FrameSource` over the scene found in ``source`` (see the module docstring)."""
@@ -143,6 +144,8 @@ def open_source(source: Path, *, depth: DepthSource = "gt", labels: LabelSource 
     scene_dir = find_scene(source)
     scene = bop.BopScene(scene_dir)
     ids = split_ids(scene_dir, split) or scene.ids
+    if id_range is not None:
+        ids = [i for i in ids if id_range[0] <= i < id_range[1]]
     if max_frames is not None:
         ids = ids[:max_frames]
     if not ids:

@@ -18,21 +18,31 @@ from cadalign.types import Camera
 
 
 def seg_predictor(run: Path, classes: Sequence[str], device: str = "cpu") -> SegPredictor:
-    """``rgb -> (C, H, W)`` probabilities of the segmentation network of ``run`` (its classes must match)."""
+    """``rgb -> (C, H, W)`` probabilities of the segmentation network of ``run`` (its classes must match).
+
+    The last result is remembered (keyed by the image object), so the depth mask and the labels of one frame
+    share one network pass.
+    """
     from cadalign.infer.dense import load_dense_model, seg_probabilities
 
     dm = load_dense_model(Path(run), task="seg", classes=classes, device=device)
+    last: list = [None, None]
 
     def predict(rgb: np.ndarray) -> np.ndarray:
-        return seg_probabilities(dm, rgb)[0].numpy()
+        if last[0] is not rgb:
+            last[0], last[1] = rgb, seg_probabilities(dm, rgb)[0].numpy()
+        return last[1]
 
     return predict
 
 
-def depth_predictor(run: Path, seg: SegPredictor | None = None, device: str = "cpu") -> DepthPredictor:
+def depth_predictor(run: Path, seg: SegPredictor | None = None, device: str = "cpu",
+                    foreground_only: bool = False) -> DepthPredictor:
     """``(rgb, camera) -> (H, W)`` metric depth of the depth network of ``run``.
 
     A network trained with a foreground-mask input gets ``seg``'s prediction (class != background) as mask.
+    ``foreground_only`` zeroes (invalidates) the depth wherever ``seg`` predicts background: depth networks
+    predict a depth for open water too, which would otherwise be fused as surfaces.
     """
     from cadalign.infer.dense import load_dense_model, metric_depth
 
@@ -41,8 +51,12 @@ def depth_predictor(run: Path, seg: SegPredictor | None = None, device: str = "c
         raise InputError(f"{dm.checkpoint} was trained with a foreground-mask input: also pass --model-seg RUN "
                          "so the mask can be predicted")
 
+    if foreground_only and seg is None:
+        raise InputError("fusing only the foreground of predicted depth needs a segmentation model (--model-seg)")
+
     def predict(rgb: np.ndarray, camera: Camera) -> np.ndarray:
-        fg = (seg(rgb).argmax(axis=0) != 0) if dm.mask_input and seg is not None else None
-        return metric_depth(dm, rgb, fg)[0].numpy()
+        fg = (seg(rgb).argmax(axis=0) != 0) if seg is not None and (dm.mask_input or foreground_only) else None
+        depth = metric_depth(dm, rgb, fg if dm.mask_input else None)[0].numpy()
+        return np.where(fg, depth, 0.0).astype(np.float32) if foreground_only else depth
 
     return predict

@@ -97,14 +97,15 @@ def _timing(m: SemanticMap, frames: int, seconds: float) -> dict:
 
 def run(cfg: FuseConfig, source: Path, out_dir: Path, *, depth: str = "gt", labels: str = "gt",
         seg_model: Path | None = None, depth_model: Path | None = None, split: str | None = None,
-        max_frames: int | None = None, with_eval: bool = True, overwrite: bool = False,
-        progress: Progress | None = None, checkpoint_every: int = 50) -> Path:
+        max_frames: int | None = None, id_range: tuple[int, int] | None = None, with_eval: bool = True,
+        overwrite: bool = False, progress: Progress | None = None, checkpoint_every: int = 50) -> Path:
     """Fuse ``source`` into ``out_dir`` (layout in the module docstring); returns ``out_dir``."""
     out_dir = Path(out_dir)
-    src = _open(cfg, source, depth, labels, seg_model, depth_model, split, max_frames)
+    src = _open(cfg, source, depth, labels, seg_model, depth_model, split, max_frames, id_range)
     config = {"fuse": to_dict(cfg), "source": str(src.scene.dir), "depth": depth, "labels": labels,
               "seg_model": str(seg_model) if seg_model else None,
-              "depth_model": str(depth_model) if depth_model else None, "split": split, "max_frames": max_frames}
+              "depth_model": str(depth_model) if depth_model else None, "split": split, "max_frames": max_frames,
+              "id_range": list(id_range) if id_range else None}
     if prepare_stage_dir(out_dir, "fuse", config, overwrite=overwrite) and (out_dir / REPORT).is_file():
         log.info("fusion already finished in %s; reusing it", out_dir)
         return out_dir
@@ -137,9 +138,10 @@ def run(cfg: FuseConfig, source: Path, out_dir: Path, *, depth: str = "gt", labe
 
 
 def _open(cfg: FuseConfig, source: Path, depth: str, labels: str, seg_model: Path | None,
-          depth_model: Path | None, split: str | None, max_frames: int | None) -> FrameSource:
+          depth_model: Path | None, split: str | None, max_frames: int | None,
+          id_range: tuple[int, int] | None) -> FrameSource:
     src = open_source(source, depth=depth, labels=labels, label_confidence=cfg.label_confidence, split=split,
-                      max_frames=max_frames)  # validates the choices and finds the classes
+                      max_frames=max_frames, id_range=id_range)  # validates the choices and finds the classes
     seg = dep = None
     if labels == "pred" or (depth == "pred" and seg_model is not None):
         if seg_model is None:
@@ -154,6 +156,6 @@ def _open(cfg: FuseConfig, source: Path, depth: str, labels: str, seg_model: Pat
                              "(a `cadalign train depth` run folder or checkpoint)")
         from cadalign.fuse.predictors import depth_predictor
 
-        dep = depth_predictor(depth_model, seg)
+        dep = depth_predictor(depth_model, seg, foreground_only=cfg.pred_depth_foreground_only and seg is not None)
     return FrameSource(src.scene, src.classes, src.ids, src.depth, src.labels, src.label_confidence, dep,
                        seg if labels == "pred" else None)

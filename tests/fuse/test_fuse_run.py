@@ -114,11 +114,14 @@ def test_cli_help() -> None:
 
 def test_cli_end_to_end(fuse_sim: Path, tmp_path: Path) -> None:
     out = tmp_path / "cli_map"
-    args = ["fuse", str(fuse_sim), "--out", str(out), "--voxel", "0.04", "--method", "surfel", "--max-frames", "3",
+    args = ["fuse", str(fuse_sim), "--out", str(out), "--voxel", "0.04", "--method", "surfel", "--ids", "1:4",
             "--no-eval"]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     report = read_json(out / REPORT)
     assert report["method"] == "surfel" and report["timing"]["frames"] == 3 and report["metrics"] is None
+    assert load_map(out / "map.npz")[1].frame_ids == [1, 2, 3]
     bad = CliRunner().invoke(app, ["fuse", str(fuse_sim), "--out", str(tmp_path / "x"), "--method", "octree"])
     assert bad.exit_code == 1 and "method" in bad.output
+    bad = CliRunner().invoke(app, ["fuse", str(fuse_sim), "--out", str(tmp_path / "y"), "--ids", "3-5"])
+    assert bad.exit_code == 2 and "A:B" in bad.output
