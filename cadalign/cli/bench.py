@@ -77,6 +77,8 @@ def all_stages(
     out: Path = OUT, size: str = SIZE, repeats: int | None = REPEATS, seed: int = SEED, overwrite: bool = OVERWRITE,
     skip: list[str] = typer.Option([], "--skip", help="Stage to leave out (repeatable), e.g. --skip seg."),
     robustness: bool = typer.Option(True, "--robustness/--no-robustness", help="Also run the low-visibility sweep."),
+    models: Path | None = typer.Option(None, "--models", help="For robustness: folder with seg/, depth/ and/or "
+                                       "pose/ training runs to score under each condition."),
 ) -> None:
     """Every stage's sweep (sim, sfm, align, render, seg, depth, refine, fuse, emulate), then robustness."""
     from cadalign.eval.bench import STAGES
@@ -86,7 +88,7 @@ def all_stages(
         raise typer.BadParameter(f"{bad}; allowed: {', '.join(STAGES)}", param_hint="--skip")
     _run([s for s in STAGES if s not in skip], out, size, repeats, seed, overwrite)
     if robustness:
-        robust(out=out, size=size, seed=seed, models=None)
+        robust(out=out, size=size, seed=seed, models=models)
 
 
 @app.command("robustness")

@@ -84,15 +84,19 @@ def _loop(data: BenchData, cfg: BenchConfig):  # -> LoopConfig
     return LoopConfig(steps=n, batch_size=2, lr=3e-3, checkpoint_every=n, log_every=max(1, n // 5), seed=cfg.seed)
 
 
-def _eval_split(scene: Path) -> str:
+def held_out_ids(scene: Path) -> tuple[int, ...]:
+    """The image ids of ``scene`` not in its training split: val + test (training here never validates),
+    or every frame when the scene is too short to have either."""
     from cadalign.errors import InputError
     from cadalign.train.data import select
 
-    try:
-        select(scene, "test")
-        return "test"
-    except InputError:
-        return "all"
+    ids: list[int] = []
+    for split in ("val", "test"):
+        try:
+            ids += select(scene, split).ids
+        except InputError:
+            pass
+    return tuple(sorted(ids)) or select(scene, "all").ids
 
 
 def _train(task: str, data: BenchData, cfg: BenchConfig, knobs: dict[str, Any]) -> tuple[Path, float]:
@@ -118,8 +122,8 @@ def _train(task: str, data: BenchData, cfg: BenchConfig, knobs: dict[str, Any]) 
 
 def score_net(task: str, scene: Path, run: Path, train_s: float = float("nan"),
               split: str | None = None) -> dict[str, float]:
-    """Score the network of training run ``run`` on the held-out frames of the BOP ``scene`` (``split``
-    default: test, or all when the scene has no test block): mIoU (seg) or delta1/AbsRel (depth), and the
+    """Score the network of training run ``run`` on the frames of ``split`` of the BOP ``scene`` (default:
+    :func:`held_out_ids`): mIoU (seg) or delta1/AbsRel (depth), and the
     median over frames of the inference ms (each the faster of two passes)."""
     import torch
 
@@ -129,8 +133,8 @@ def score_net(task: str, scene: Path, run: Path, train_s: float = float("nan"),
     from cadalign.infer.dense import load_dense_model, metric_depth, seg_probabilities
     from cadalign.train.data import select
 
-    sel = select(scene, split or _eval_split(scene))
-    ds = (SegmentationDataset if task == "seg" else DepthDataset)(sel.scene_dir, sel.ids)
+    ids = select(scene, split).ids if split else held_out_ids(scene)
+    ds = (SegmentationDataset if task == "seg" else DepthDataset)(scene, ids)
     dm = load_dense_model(run, task=task)
     ms, cm, acc = [], np.zeros((len(dm.classes), len(dm.classes)), np.int64), DepthAccumulator()
     with torch.inference_mode():
@@ -169,8 +173,8 @@ def _net_sweep(task: str, data: BenchData, cfg: BenchConfig) -> Sweep:
         prepare=lambda _s, k: _train(task, data, cfg, k),
         description=(f"{model} trained for {data.size.train_steps} steps (batch 2) per setting on the clip's training "
                      f"time blocks ({data.size.clip_frames} frames at {w}x{h}, all water effects), scored on the "
-                     "held-out blocks at full resolution. Knobs: input scale (x) and base width (w). Training "
-                     "time is in the record (train_s), not on the axis. Short training: the accuracy ranks "
+                     "held-out (val + test) blocks at full resolution. Knobs: input scale (x) and base width (w). "
+                     "Training time is in the record (train_s), not on the axis. Short training: the accuracy ranks "
                      "settings at a fixed budget, it is not what a full training reaches."))
 
 
