@@ -279,7 +279,9 @@ EMULATE_POINTS = {
 
 def emulate_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
     """LiDAR rays (beams x azimuth step) and engine (BVH / torch): surface sampling gap vs seconds per scan."""
-    ref_channels, ref_step = 256, 0.0625 if data.size.level else 0.125
+    pts = EMULATE_POINTS[data.size.level]
+    # the reference is finer than every setting (twice the beams, half the azimuth step)
+    ref_channels, ref_step = 2 * max(c for _, c, _ in pts), min(a for _, _, a in pts) / 2
 
     def lidar_cfg(channels: int, step: float):  # -> LidarConfig
         from cadalign.emulate.lidar import LidarConfig
@@ -326,7 +328,7 @@ def emulate_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
 
     return Sweep(
         "emulate", tuple(SweepPoint(f"{e} {c}x{360 / a:g}", {"engine": e, "channels": c, "azimuth_step_deg": a})
-                         for e, c, a in EMULATE_POINTS[data.size.level]),
+                         for e, c, a in pts),
         Metric("gap_m", "surface gap: mean distance from a dense scan to the nearest return (m)"),
         Metric("scan_s", "seconds per LiDAR scan"), measure, setup, prepare=prepare,
         description=(f"Spinning LiDAR (+-45 deg elevation, beams x azimuth steps) of the default scene from the first "
