@@ -97,7 +97,7 @@ def train_pose_stage(ctx: DemoContext) -> dict:
 
     out = ctx.out / "train" / "pose"
     r = run(_with_steps(PRESETS["fast"], ctx.cfg.pose_steps), ctx.dataset, out, resume=_has_ckpt(out))
-    score = out / "eval_test.json"
+    score = out / "eval_heldout.json"
     return {"dir": "train/pose", "steps": r.steps_done, "final_loss": r.final_loss, "dataset": ctx.dataset_kind,
             "metrics": read_json(score) if score.is_file() else None}
 

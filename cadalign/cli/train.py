@@ -93,7 +93,7 @@ def depth(
 @app.command("pose")
 def pose(
     ds: Path = typer.Argument(..., help=DS_HELP),
-    out: Path = typer.Option(..., "--out", help="Run folder: checkpoints/, metrics.json, loss.png, eval_test.json."),
+    out: Path = typer.Option(..., "--out", help="Run folder: checkpoints/, metrics.json, loss.png, eval_heldout.json."),
     preset: str = typer.Option("fast", "--preset", help="fast (320x240, ResNet-18) | balanced | accurate."),
     pose_param: str | None = typer.Option(None, "--pose", help="Pose parameterisation: thesis | improved."),
     config: Path | None = typer.Option(None, "--config", help="TOML/YAML overrides of the preset (see training/)."),
@@ -103,7 +103,7 @@ def pose(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a run made with another config."),
     device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
 ) -> None:
-    """Train Mask R-CNN with the 6-DoF pose head; scores the held-out (test) frames at the end."""
+    """Train Mask R-CNN with the 6-DoF pose head; scores the held-out (val + test) frames at the end."""
     from cadalign.config import resolve
     from cadalign.train.pose import PRESETS, PoseTrainConfig, run
 

@@ -1,7 +1,8 @@
 """Training the Mask R-CNN + pose network on a BOP dataset (``cadalign train pose``).
 
 ``run(cfg, dataset, out_dir)`` trains with the shared loop (:mod:`cadalign.train.loop`) and then scores
-the held-out frames (``eval_test.json``: detection precision/recall/F1 at IoU 0.5, mask IoU, translation and
+the held-out frames (val + test, never used in training; ``eval_heldout.json``, at the images' own resolution:
+detection precision/recall/F1 at IoU 0.5, mask IoU, translation and
 rotation errors of the matched detections, per class). The dataset is a ``cadalign build-dataset`` folder
 (``splits.json``, ``models/``) or one BOP scene folder (e.g. the simulator's ``gt/sim/000000``, models in
 ``../../models``), with the same frame selection as the dense trainers (:func:`cadalign.train.data.select`).
@@ -231,15 +232,15 @@ def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = Fa
     result = train_loop(model, make_step_fn(loss), data, cfg.loop, Path(out_dir), collate_fn=detection_collate,
                         augment=make_augment(cfg.augment), resume=resume, device=device, progress=progress,
                         extra_state=extra_state(cfg, classes))
-    test_ids = ds.splits.get("test") or []
-    if test_ids and not result.interrupted:
+    held_out = sorted((ds.splits.get("val") or []) + (ds.splits.get("test") or []))
+    if held_out and not result.interrupted:
         from cadalign.train.pose_eval import evaluate
 
         model.eval()
         syms = {k: [T[:3, :3] for T in o.symmetry.discretize(cfg.loss.continuous_samples)]
                 for k, o in geometry.items()}
-        report = evaluate(model, ResizedDetectionDataset(ds.scene_dir, test_ids, cfg.model.input_hw),
-                          cfg.eval_score_thresh, syms)
-        write_json(Path(out_dir) / "eval_test.json", report)
+        report = evaluate(model, DetectionPoseDataset(ds.scene_dir, held_out), cfg.eval_score_thresh, syms)
+        report["ids"] = held_out
+        write_json(Path(out_dir) / "eval_heldout.json", report)
         log.info("held-out frames: %s", report["summary"])
     return result

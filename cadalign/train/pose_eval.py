@@ -1,4 +1,4 @@
-"""A quick held-out score of a detection + pose model, written by ``cadalign train pose`` (``eval_test.json``).
+"""A quick held-out score of a detection + pose model, written by ``cadalign train pose`` (``eval_heldout.json``).
 
 Detections are matched to ground truth of the same class greedily by decreasing score at box IoU >= 0.5
 (each ground-truth instance at most once). Per class and overall: precision, recall, F1, mean mask IoU of the
