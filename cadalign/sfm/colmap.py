@@ -93,6 +93,12 @@ def extract_features(
                                   reader_options=reader, extraction_options=extraction, device=_device())
     counts = feature_counts(database)
     few = {n: counts.get(n, 0) for n in names if counts.get(n, 0) < cfg.features.min_features}
+    if len(names) < 3:
+        raise InputError(
+            f"only {len(names)} frame(s) left for SfM after frame selection ({', '.join(names) or 'none'}); SfM "
+            "needs at least 3 overlapping frames. See frames.json for why the others were skipped (blurred, "
+            "near-duplicate, black): lower frames.min_motion / frames.blur_ratio or give more footage"
+        )
     if len(names) - len(few) < 3:
         listed = ", ".join(f"{n} ({c})" for n, c in sorted(few.items())[:20])
         more = f" and {len(few) - 20} more" if len(few) > 20 else ""

@@ -136,3 +136,13 @@ def test_bad_inputs_and_keys_fail_readably(tmp_path: Path):
     assert res.exit_code == 1 and "did you mean 'matching.overlap'" in " ".join(res.output.split())
     res = runner.invoke(app, ["sfm", str(tmp_path / "f"), "--out", str(tmp_path / "o"), "--preset", "best"])
     assert res.exit_code == 1 and "allowed presets" in " ".join(res.output.split())
+
+
+def test_too_few_frames_left_after_selection_says_so(tmp_path: Path):
+    frames = tmp_path / "frames"
+    rng = np.random.default_rng(1)
+    a, b = (rng.integers(0, 255, (120, 160, 3), dtype=np.uint8) for _ in range(2))
+    for k, img in enumerate((a, b, b, b)):  # two distinct frames, then near-duplicates of the second
+        write_image(frames / f"{k:06d}.png", img)
+    with pytest.raises(InputError, match=r"only 2 frame\(s\) left for SfM after frame selection"):
+        run(PRESETS["fast"], frames, tmp_path / "out")
