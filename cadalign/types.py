@@ -201,3 +201,23 @@ class Camera:
         K[0] *= sx
         K[1] *= sy
         return Camera(K, width, height)
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One detected part instance in an image (what a detector hands to pose refinement and fusion)."""
+
+    box_xyxy: np.ndarray
+    """(4,) pixels in the input image."""
+    label: int
+    """Class index in the detector's class list (0 = background, never returned)."""
+    score: float
+    """Classification score in [0, 1]."""
+    mask: np.ndarray
+    """(H, W) bool in the input image."""
+    R_cam_from_obj: np.ndarray
+    """(3, 3) rotation object -> camera."""
+    t_cam_from_obj_m: np.ndarray
+    """(3,) translation object -> camera, metres."""
+    obj_id: int | None = None
+    """The CAD model (BOP obj_id) when the detector knows it; a network reports only the class."""

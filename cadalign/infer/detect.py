@@ -23,21 +23,15 @@ from cadalign.config import bounded
 from cadalign.data.bop import BopScene, mask_bbox
 from cadalign.data.torch_datasets import load_class_map
 from cadalign.geometry.rotations import axis_angle_to_matrix
+from cadalign.types import Detection
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class Detection:
-    """One detected instance (same fields as the network's ``Detection``, plus an optional model id)."""
+class OracleDetection(Detection):
+    """A :class:`~cadalign.types.Detection` made from ground truth, remembering which instance it came from."""
 
-    box_xyxy: np.ndarray
-    label: int
-    score: float
-    mask: np.ndarray
-    R_cam_from_obj: np.ndarray
-    t_cam_from_obj_m: np.ndarray
-    obj_id: int | None = None
     gt_idx: int | None = None
     """Oracle only: the ground-truth instance index in the frame (for measurements)."""
 
@@ -120,8 +114,9 @@ class OracleDetector:
             dR = axis_angle_to_matrix(rng.normal(scale=np.radians(cfg.noise_r_deg) / np.sqrt(3), size=3))
             dt = rng.normal(scale=cfg.noise_t_m / np.sqrt(3), size=3)
             T = inst.T_cam_from_obj
-            out.append(Detection(np.array([x, y, x + w, y + h], float), self.classes.class_of_obj[inst.obj_id], 1.0,
-                                 m, dR @ T.R, T.t + dt, inst.obj_id if cfg.give_obj_id else None, g))
+            box = np.array([x, y, x + w, y + h], float)
+            out.append(OracleDetection(box, self.classes.class_of_obj[inst.obj_id], 1.0, m, dR @ T.R, T.t + dt,
+                                       inst.obj_id if cfg.give_obj_id else None, g))
         return out
 
 

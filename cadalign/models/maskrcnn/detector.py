@@ -36,6 +36,7 @@ from cadalign.models.maskrcnn.roi_heads import (
     sample_rois,
 )
 from cadalign.models.maskrcnn.rpn import RPN, RPNSettings
+from cadalign.types import Detection
 
 MODEL_KIND = "maskrcnn_pose"
 """``extra_state["model"]`` of checkpoints written by ``cadalign train pose``."""
@@ -96,22 +97,6 @@ class MaskRCNNConfig:
             raise ValueError(f"anchor_sizes needs {len(STRIDES)} values (P2..P6), got {len(self.anchor_sizes)}")
         if min(self.input_hw) < 32:
             raise ValueError(f"input_hw must be at least 32 x 32, got {self.input_hw}")
-
-
-@dataclass(frozen=True)
-class Detection:
-    box_xyxy: np.ndarray
-    """(4,) pixels in the input image."""
-    label: int
-    """Class index in the model's class list (0 = background, never returned)."""
-    score: float
-    """Classification score in [0, 1]."""
-    mask: np.ndarray
-    """(H, W) bool in the input image."""
-    R_cam_from_obj: np.ndarray
-    """(3, 3) rotation object -> camera."""
-    t_cam_from_obj_m: np.ndarray
-    """(3,) translation object -> camera, metres."""
 
 
 @dataclass
