@@ -91,8 +91,12 @@ def valid_depth(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float) -> 
         return np.isfinite(d) & (d >= depth_min_m) & (d <= depth_max_m)
 
 
-def require_valid_depth(frame: FuseFrame, depth_min_m: float, depth_max_m: float, name: str = "frame") -> np.ndarray:
-    """The valid-depth mask of a frame; raises if no pixel has usable depth."""
+def require_valid_depth(frame: FuseFrame, depth_min_m: float, depth_max_m: float, name: str = "frame",
+                        n_classes: int | None = None) -> np.ndarray:
+    """The valid-depth mask of a frame; raises if no pixel has usable depth (or the class count is wrong)."""
+    if n_classes is not None and np.shape(frame.probs)[0] != n_classes:
+        raise InputError(f"{name} has probabilities for {np.shape(frame.probs)[0]} classes, the map {n_classes}; "
+                         "fuse frames of the same class list into one map")
     mask = valid_depth(frame.depth_m, depth_min_m, depth_max_m)
     if not mask.any():
         d = np.asarray(frame.depth_m)

@@ -108,7 +108,8 @@ class SurfelMap:
     def integrate(self, frame: FuseFrame) -> None:
         """Fuse one frame: associate and merge, then add surfels for the uncovered surface."""
         cfg = self.cfg
-        mask = require_valid_depth(frame, cfg.depth_min_m, cfg.depth_max_m, f"frame {self.frames_integrated}")
+        mask = require_valid_depth(frame, cfg.depth_min_m, cfg.depth_max_m, f"frame {self.frames_integrated}",
+                                   self.n_classes)
         if self.origin is None:
             self.origin = origin_from_frame(frame, mask, cfg.voxel_m * cfg.block_resolution)
         t0 = time.perf_counter()

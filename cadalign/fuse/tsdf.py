@@ -97,7 +97,8 @@ class SemanticTSDF:
         """Fuse one frame: TSDF + colour (Open3D), weight cap, then the label update near the surface."""
         o3d = require_open3d()
         cfg = self.cfg
-        mask = require_valid_depth(frame, cfg.depth_min_m, cfg.depth_max_m, f"frame {self.frames_integrated}")
+        mask = require_valid_depth(frame, cfg.depth_min_m, cfg.depth_max_m, f"frame {self.frames_integrated}",
+                                   self.n_classes)
         if self.origin is None:
             self.origin = origin_from_frame(frame, mask, cfg.voxel_m * self.res)
         t0 = time.perf_counter()

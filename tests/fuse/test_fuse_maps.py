@@ -131,6 +131,8 @@ def test_no_valid_depth_is_a_clear_error(method: str, src: FrameSource, small_cf
     for bad in (np.zeros_like(f.depth_m), np.full_like(f.depth_m, np.nan), np.full_like(f.depth_m, 50.0)):
         with pytest.raises(InputError, match="no valid depth in"):
             m.integrate(dataclasses.replace(f, depth_m=bad))
+    with pytest.raises(InputError, match="probabilities for 2 classes, the map 4"):
+        m.integrate(dataclasses.replace(f, probs=f.probs[:2]))
     assert m.frames_integrated == 0
     with pytest.raises(InputError, match="empty|no surfel"):
         m.extract_points()
