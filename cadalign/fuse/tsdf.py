@@ -167,7 +167,9 @@ class SemanticTSDF:
         flat, ok = self._flat_index(vox)
         probs = np.asarray(frame.probs, dtype=np.float32).reshape(self.n_classes, -1)
         obs_pix = clamped_log_probs(torch.from_numpy(np.ascontiguousarray(probs[:, pix].T)), self.cfg.label_min_prob)
-        flat, obs = flat[ok], obs_pix.repeat(n, 1)[ok]
+        obs = obs_pix.repeat(n, 1)
+        if not bool(ok.all()):  # samples outside allocated blocks (rare: blocks cover the whole truncation band)
+            flat, obs = flat[ok], obs[ok]
         label = _view(self.vbg.attribute("label")).view(-1, self.n_classes)
         label[flat] = bayes_update(label[flat], obs, self.cfg.label_log_floor)
 
