@@ -20,27 +20,44 @@ initialisation pass.
 
 from __future__ import annotations
 
+from functools import reduce
+
 import numpy as np
-import torch
 
 from cadalign.errors import InputError
 
 
-def bayes_update(stored: torch.Tensor, obs_log_probs: torch.Tensor, log_floor: float) -> torch.Tensor:
+def bayes_update(stored: np.ndarray, obs_log_probs: np.ndarray, log_floor: float) -> np.ndarray:
     """One recursive Bayes update of (N, C) stored relative log-probabilities with (N, C) observations.
 
-    ``obs_log_probs`` must already be clamped (see :func:`clamped_log_probs`). Returns the new stored values:
-    the largest entry of each row is 0 and every entry is >= ``log_floor``; ``softmax`` gives probabilities.
+    ``obs_log_probs`` must already be clamped (see :func:`clamped_log_probs`). Returns the new stored values
+    (float32): the largest entry of each row is 0 and every entry is >= ``log_floor``; ``softmax`` gives the
+    probabilities. (NumPy, column by column: with few classes this is ~10x faster than a row-wise max.)
     """
-    post = stored + obs_log_probs
-    post -= post.amax(dim=-1, keepdim=True)
-    return post.clamp_(min=log_floor)
+    post = np.add(stored, obs_log_probs, dtype=np.float32)
+    post -= reduce(np.maximum, (post[:, c] for c in range(post.shape[1])))[:, None]
+    return np.maximum(post, np.float32(log_floor), out=post)
 
 
-def clamped_log_probs(probs: torch.Tensor, min_prob: float) -> torch.Tensor:
-    """Log of probabilities clamped to ``[min_prob, 1]`` (non-finite inputs count as ``min_prob``)."""
-    p = torch.nan_to_num(probs.float(), nan=min_prob, posinf=1.0, neginf=min_prob)
-    return p.clamp(min=min_prob, max=1.0).log()
+def clamped_log_probs(probs: np.ndarray, min_prob: float) -> np.ndarray:
+    """(N, C) float32 log of probabilities clamped to ``[min_prob, 1]`` (non-finite inputs count as ``min_prob``)."""
+    p = np.nan_to_num(np.asarray(probs, dtype=np.float32), nan=min_prob, posinf=1.0, neginf=min_prob)
+    np.clip(p, min_prob, 1.0, out=p)
+    return np.log(p, out=p)
+
+
+def gather_rows(table: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``table[rows]`` for a C-contiguous (N, C) table, copying whole rows at once."""
+    return _as_void(table)[rows].view(table.dtype).reshape(len(rows), table.shape[1])
+
+
+def scatter_rows(table: np.ndarray, rows: np.ndarray, values: np.ndarray) -> None:
+    """``table[rows] = values`` (whole rows at once; with repeated rows one of the values is kept)."""
+    _as_void(table)[rows] = _as_void(np.ascontiguousarray(values, dtype=table.dtype))
+
+
+def _as_void(a: np.ndarray) -> np.ndarray:
+    return a.view(np.dtype((np.void, a.dtype.itemsize * a.shape[1]))).reshape(a.shape[0])
 
 
 def probs_from_labels(labels: np.ndarray, n_classes: int, confidence: float) -> np.ndarray:

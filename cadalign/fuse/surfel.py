@@ -22,7 +22,6 @@ import math
 import time
 
 import numpy as np
-import torch
 
 from cadalign.errors import InputError
 from cadalign.fuse.base import (
@@ -175,8 +174,8 @@ class SurfelMap:
         D["radius"][idx] = np.minimum(D["radius"][idx], meas["radius"][pv, pu])
         D["confidence"][idx] = np.minimum(c[:, 0] + a[:, 0], cfg.weight_cap)
         D["last_seen"][idx] = self.frames_integrated
-        obs = clamped_log_probs(torch.from_numpy(np.ascontiguousarray(frame.probs[:, pv, pu].T)), cfg.label_min_prob)
-        D["label"][idx] = bayes_update(torch.from_numpy(D["label"][idx]), obs, cfg.label_log_floor).numpy()
+        obs = clamped_log_probs(frame.probs[:, pv, pu].T, cfg.label_min_prob)
+        D["label"][idx] = bayes_update(D["label"][idx], obs, cfg.label_log_floor)
 
     def _keys(self, pos_local: np.ndarray, normals: np.ndarray) -> np.ndarray:
         cell = np.round(pos_local / self.cfg.voxel_m).astype(np.int32)
@@ -207,9 +206,8 @@ class SurfelMap:
         D["radius"][s], D["confidence"][s] = meas["radius"][vv, uu], meas["weight"][vv, uu]
         D["color"][s], D["last_seen"][s] = meas["rgb"][vv, uu], self.frames_integrated
         D["cell"][s] = keys[sel]
-        obs = clamped_log_probs(torch.from_numpy(np.ascontiguousarray(frame.probs[:, vv, uu].T)),
-                                self.cfg.label_min_prob)
-        D["label"][s] = bayes_update(torch.zeros((k, self.n_classes)), obs, self.cfg.label_log_floor).numpy()
+        obs = clamped_log_probs(frame.probs[:, vv, uu].T, self.cfg.label_min_prob)
+        D["label"][s] = bayes_update(np.zeros((k, self.n_classes), np.float32), obs, self.cfg.label_log_floor)
         self.n += k
 
     def _reserve(self, size: int) -> None:

@@ -24,7 +24,6 @@ import logging
 import time
 
 import numpy as np
-import torch
 
 from cadalign.errors import InputError
 from cadalign.fuse.base import (
@@ -35,7 +34,7 @@ from cadalign.fuse.base import (
     require_valid_depth,
 )
 from cadalign.fuse.config import FuseConfig
-from cadalign.fuse.semantic import bayes_update, clamped_log_probs
+from cadalign.fuse.semantic import bayes_update, clamped_log_probs, gather_rows, scatter_rows
 from cadalign.types import Rigid3
 
 log = logging.getLogger(__name__)
@@ -54,9 +53,9 @@ def require_open3d():  # -> module
     return o3d
 
 
-def _view(o3d_tensor) -> torch.Tensor:  # noqa: ANN001 - an open3d.core.Tensor
-    """A torch view sharing memory with a CPU Open3D tensor (valid until the hash map grows)."""
-    return torch.from_numpy(o3d_tensor.numpy())
+def _view(o3d_tensor) -> np.ndarray:  # noqa: ANN001 - an open3d.core.Tensor
+    """A NumPy view sharing memory with a CPU Open3D tensor: the grid's buffer, valid until the hash map grows."""
+    return o3d_tensor.numpy()
 
 
 class SemanticTSDF:
@@ -113,23 +112,23 @@ class SemanticTSDF:
         hm = self.vbg.hashmap()
         buf, new = hm.activate(coords)
         if new.numpy().any():  # fresh blocks: start empty and uniform whatever the allocator left there
-            fresh = torch.from_numpy(buf.numpy()[new.numpy()].astype(np.int64))
+            fresh = buf.numpy()[new.numpy()].astype(np.int64)
             for name in ATTRS:
                 _view(self.vbg.attribute(name))[fresh] = 0.0
         self.vbg.integrate(coords, dimg, cimg, Kt, E, 1.0, dmax, mult)
         if self.frames_integrated + 1 > cfg.weight_cap:  # weights grow by <= 1 a frame: nothing to cap before
-            touched = torch.from_numpy(hm.find(coords)[0].numpy().astype(np.int64))
+            touched = hm.find(coords)[0].numpy().astype(np.int64)
             weight = _view(self.vbg.attribute("weight"))
-            weight[touched] = weight[touched].clamp_(max=cfg.weight_cap)
+            weight[touched] = np.minimum(weight[touched], np.float32(cfg.weight_cap))
         t1 = time.perf_counter()
         self._update_labels(frame, mask)
         self.seconds["tsdf"] += t1 - t0
         self.seconds["labels"] += time.perf_counter() - t1
         self.frames_integrated += 1
 
-    def _surface_samples(self, frame: FuseFrame, mask: np.ndarray) -> tuple[torch.Tensor, np.ndarray, int]:
-        """Voxel indices (n P, 3) of samples with |sdf| < label_band/2 <= trunc/2 (offset-major: the n samples of
-        the P pixels), the flat pixel indices (P,) and n."""
+    def _surface_samples(self, frame: FuseFrame, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """Voxel indices (n P, 3) int32 of samples with |sdf| < label_band/2 <= trunc/2 (offset-major: the n
+        samples of the P pixels), the flat pixel indices (P,) and n."""
         s = self.cfg.label_pixel_stride
         if s > 1:
             sub = np.zeros_like(mask)
@@ -137,50 +136,54 @@ class SemanticTSDF:
             mask = sub
         pix = np.flatnonzero(mask)
         cam = frame.camera
-        u, v = pix % cam.width, pix // cam.width
+        v, u = np.divmod(pix, cam.width)
         z = np.asarray(frame.depth_m, dtype=np.float32).reshape(-1)[pix]
         T = np.linalg.inv(self._T_cam_from_local(frame))
-        # ray directions (z = 1) in the local frame, scaled by voxels: sample = (z + offset) * dir + t
-        rays = np.stack([(u + 0.5 - cam.cx) / cam.fx, (v + 0.5 - cam.cy) / cam.fy, np.ones(len(u))], 1)
-        dirs = torch.from_numpy((rays @ (T[:3, :3].T / self.cfg.voxel_m)).astype(np.float32))
-        t = torch.from_numpy((T[:3, 3] / self.cfg.voxel_m).astype(np.float32))
+        R = (T[:3, :3] / self.cfg.voxel_m).astype(np.float32)  # in voxels
+        t = (T[:3, 3] / self.cfg.voxel_m).astype(np.float32)
+        # ray (x, y, 1) in the local frame, column by column (an (N, 3) @ (3, 3) matmul is slow in numpy)
+        x = ((u + np.float32(0.5 - cam.cx)) * np.float32(1 / cam.fx)).astype(np.float32)
+        y = ((v + np.float32(0.5 - cam.cy)) * np.float32(1 / cam.fy)).astype(np.float32)
+        dirs = [x * R[k, 0] + y * R[k, 1] + R[k, 2] for k in range(3)]
         band = self.cfg.label_band_voxels
         n = max(1, int(np.ceil(band - 1e-6)))  # samples one voxel apart (or closer) across the band
         offsets = ((np.arange(n) + 0.5) / n - 0.5) * (band * self.cfg.voxel_m)
-        zt = torch.from_numpy(z)
-        vox = torch.cat([torch.round(torch.addcmul(t, dirs, (zt + float(o))[:, None])) for o in offsets])
-        return vox.to(torch.int32), pix, n
+        vox = np.empty((n * len(pix), 3), dtype=np.int32)
+        for j, o in enumerate(offsets):
+            zo = z + np.float32(o)
+            for k in range(3):
+                vox[j * len(pix):(j + 1) * len(pix), k] = np.rint(zo * dirs[k] + t[k])
+        return vox, pix, n
 
-    def _flat_index(self, vox: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Flattened voxel index into the attribute buffers and a found-mask, for (M, 3) voxel indices."""
+    def _flat_index(self, vox: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Flattened voxel index into the attribute buffers and a found-mask, for (M, 3) int32 voxel indices."""
         o3d = require_open3d()
         res = self.res
-        block = torch.div(vox, res, rounding_mode="floor")
+        block = np.floor_divide(vox, res)
         local = vox - block * res
-        buf, ok = self.vbg.hashmap().find(o3d.core.Tensor.from_numpy(block.numpy()))
-        buf_t = torch.from_numpy(buf.numpy().astype(np.int64))
-        flat = buf_t * res**3 + local[:, 0] + res * (local[:, 1] + res * local[:, 2])
-        return flat, torch.from_numpy(ok.numpy())
+        buf, ok = self.vbg.hashmap().find(o3d.core.Tensor.from_numpy(block))
+        flat = buf.numpy().astype(np.int64) * res**3 + (local[:, 0] + res * (local[:, 1] + res * local[:, 2]))
+        return flat, ok.numpy()
 
     def _update_labels(self, frame: FuseFrame, mask: np.ndarray) -> None:
         vox, pix, n = self._surface_samples(frame, mask)
         flat, ok = self._flat_index(vox)
         probs = np.asarray(frame.probs, dtype=np.float32).reshape(self.n_classes, -1)
-        obs_pix = clamped_log_probs(torch.from_numpy(np.ascontiguousarray(probs[:, pix].T)), self.cfg.label_min_prob)
-        obs = obs_pix.repeat(n, 1)
-        if not bool(ok.all()):  # samples outside allocated blocks (rare: blocks cover the whole truncation band)
+        obs_pix = clamped_log_probs(probs[:, pix].T, self.cfg.label_min_prob)
+        obs = np.tile(obs_pix, (n, 1))
+        if not ok.all():  # samples outside allocated blocks (rare: blocks cover the whole truncation band)
             flat, obs = flat[ok], obs[ok]
-        label = _view(self.vbg.attribute("label")).view(-1, self.n_classes)
-        label[flat] = bayes_update(label[flat], obs, self.cfg.label_log_floor)
+        label = _view(self.vbg.attribute("label")).reshape(-1, self.n_classes)
+        scatter_rows(label, flat, bayes_update(gather_rows(label, flat), obs, self.cfg.label_log_floor))
 
     def stored_at(self, points_local: np.ndarray) -> np.ndarray:
         """(N, C) stored relative log-probabilities of the voxel nearest to each local point (0 = uniform)."""
-        vox = torch.from_numpy(np.round(np.asarray(points_local) / self.cfg.voxel_m).astype(np.int32))
+        vox = np.ascontiguousarray(np.round(np.asarray(points_local) / self.cfg.voxel_m).astype(np.int32))
         flat, ok = self._flat_index(vox)
-        out = torch.zeros((len(vox), self.n_classes), dtype=torch.float32)
-        label = _view(self.vbg.attribute("label")).view(-1, self.n_classes)
-        out[ok] = label[flat[ok]]
-        return out.numpy()
+        out = np.zeros((len(vox), self.n_classes), dtype=np.float32)
+        label = _view(self.vbg.attribute("label")).reshape(-1, self.n_classes)
+        out[ok] = gather_rows(label, flat[ok])
+        return out
 
     def probs_at(self, points_local: np.ndarray, chunk: int = 500_000) -> np.ndarray:
         """(N, C) class probabilities at local points: the mean over the 8 voxels of the enclosing cell."""
@@ -242,10 +245,10 @@ class SemanticTSDF:
         if len(keys) == 0:
             return
         buf, _ = self.vbg.hashmap().activate(o3d.core.Tensor.from_numpy(keys))
-        idx = torch.from_numpy(buf.numpy().astype(np.int64))
+        idx = buf.numpy().astype(np.int64)
         for name in ATTRS:
             view = _view(self.vbg.attribute(name))
             if tuple(arrays[name].shape[1:]) != tuple(view.shape[1:]):
                 raise InputError(f"saved attribute {name!r} has block shape {arrays[name].shape[1:]}, "
                                  f"this map expects {tuple(view.shape[1:])} (different voxel blocks or classes)")
-            view[idx] = torch.from_numpy(np.ascontiguousarray(arrays[name], dtype=np.float32))
+            view[idx] = np.asarray(arrays[name], dtype=np.float32)

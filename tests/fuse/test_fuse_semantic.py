@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -21,18 +20,19 @@ from cadalign.types import Camera, Rigid3
 
 def test_bayes_update_exact_hand_case() -> None:
     # uniform prior x (0.7, 0.2, 0.1) -> the observation itself; stored relative to the mode
-    out = bayes_update(torch.zeros(1, 3), torch.log(torch.tensor([[0.7, 0.2, 0.1]])), log_floor=-20.0)
-    assert torch.allclose(out, torch.tensor([[0.0, math.log(2 / 7), math.log(1 / 7)]]), atol=1e-6)
+    obs = np.log(np.array([[0.7, 0.2, 0.1]], np.float32))
+    out = bayes_update(np.zeros((1, 3), np.float32), obs, log_floor=-20.0)
+    np.testing.assert_allclose(out, [[0.0, math.log(2 / 7), math.log(1 / 7)]], atol=1e-6)
     # a second identical observation squares the likelihood: p ∝ (0.49, 0.04, 0.01)
-    out2 = bayes_update(out, torch.log(torch.tensor([[0.7, 0.2, 0.1]])), log_floor=-20.0)
-    p = probs_from_stored(out2.numpy())[0]
+    out2 = bayes_update(out, obs, log_floor=-20.0)
+    p = probs_from_stored(out2)[0]
     np.testing.assert_allclose(p, np.array([0.49, 0.04, 0.01]) / 0.54, rtol=1e-5)
 
 
 def test_floor_and_clamp() -> None:
-    obs = clamped_log_probs(torch.tensor([[1.0, 0.0, float("nan"), float("inf")]]), min_prob=1e-3)
-    assert torch.allclose(obs, torch.log(torch.tensor([[1.0, 1e-3, 1e-3, 1.0]])))
-    s = torch.zeros(1, 4)
+    obs = clamped_log_probs(np.array([[1.0, 0.0, np.nan, np.inf]]), min_prob=1e-3)
+    np.testing.assert_allclose(obs, np.log([[1.0, 1e-3, 1e-3, 1.0]]), rtol=1e-6)
+    s = np.zeros((1, 4), np.float32)
     for _ in range(100):
         s = bayes_update(s, obs, log_floor=-5.0)
     assert s.max() == 0 and s.min() >= -5.0
@@ -42,10 +42,10 @@ def test_floor_and_clamp() -> None:
 @given(st.lists(st.floats(allow_nan=True, allow_infinity=True, width=32), min_size=3, max_size=3),
        st.floats(-50, -0.5))
 def test_update_is_finite_for_any_input(raw: list[float], floor: float) -> None:
-    stored = torch.tensor([[0.0, floor, floor / 2]])
-    out = bayes_update(stored, clamped_log_probs(torch.tensor([raw]), 1e-4), floor)
-    assert torch.isfinite(out).all() and out.max() == 0 and out.min() >= floor
-    p = probs_from_stored(out.numpy())
+    stored = np.array([[0.0, floor, floor / 2]], np.float32)
+    out = bayes_update(stored, clamped_log_probs(np.array([raw]), 1e-4), floor)
+    assert np.isfinite(out).all() and out.max() == 0 and out.min() >= np.float32(floor)
+    p = probs_from_stored(out)
     assert np.isfinite(p).all() and abs(p.sum() - 1) < 1e-6
 
 
