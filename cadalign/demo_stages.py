@@ -25,9 +25,9 @@ log = logging.getLogger(__name__)
 class DemoConfig:
     """How much each learning stage of the demo does (the defaults fit the demo in ~30 min on 2 cores)."""
 
-    seg_steps: int = bounded(400, ge=1)
+    seg_steps: int = bounded(150, ge=1)
     """Training steps of the segmentation network ('fast' preset otherwise)."""
-    depth_steps: int = bounded(400, ge=1)
+    depth_steps: int = bounded(300, ge=1)
     """Training steps of the depth network ('fast' preset otherwise)."""
     pose_steps: int = bounded(300, ge=1)
     """Training steps of the detector + pose head ('fast' preset otherwise)."""
@@ -66,6 +66,16 @@ def timed(name: str, fn: Callable[[DemoContext], dict], ctx: DemoContext) -> dic
     return info
 
 
+def _log_progress(name: str) -> Callable[[int, int, dict[str, float]], None]:
+    """A training progress callback that logs about every tenth of the run (the demo has no bar per step)."""
+
+    def report(step: int, total: int, metrics: dict[str, float]) -> None:
+        if step == total or step % max(1, total // 10) == 0:
+            log.info("%s: step %d/%d, loss %.4g", name, step, total, metrics.get("loss", float("nan")))
+
+    return report
+
+
 def _with_steps(preset: Any, steps: int) -> Any:
     return dataclasses.replace(preset, loop=dataclasses.replace(preset.loop, steps=steps))
 
@@ -75,7 +85,8 @@ def train_seg_stage(ctx: DemoContext) -> dict:
     from cadalign.train.seg import PRESETS, train_seg
 
     run = ctx.out / "train" / "seg"
-    r = train_seg(_with_steps(PRESETS["fast"], ctx.cfg.seg_steps), ctx.dataset, run, resume=_has_ckpt(run))
+    r = train_seg(_with_steps(PRESETS["fast"], ctx.cfg.seg_steps), ctx.dataset, run, resume=_has_ckpt(run),
+                  progress=_log_progress("train seg"))
     ev = evaluate_seg(run, ctx.dataset, run / "eval", split="test")
     return {"dir": "train/seg", "steps": r.steps_done, "final_loss": r.final_loss, "dataset": ctx.dataset_kind,
             "metrics": _pick(ev.metrics, ("miou", "pixel_accuracy", "iou")), "figures": _rel(ctx, ev.figures)}
@@ -86,7 +97,8 @@ def train_depth_stage(ctx: DemoContext) -> dict:
     from cadalign.train.depth import PRESETS, train_depth
 
     run = ctx.out / "train" / "depth"
-    r = train_depth(_with_steps(PRESETS["fast"], ctx.cfg.depth_steps), ctx.dataset, run, resume=_has_ckpt(run))
+    r = train_depth(_with_steps(PRESETS["fast"], ctx.cfg.depth_steps), ctx.dataset, run, resume=_has_ckpt(run),
+                    progress=_log_progress("train depth"))
     ev = evaluate_depth(run, ctx.dataset, run / "eval", split="test")
     return {"dir": "train/depth", "steps": r.steps_done, "final_loss": r.final_loss, "dataset": ctx.dataset_kind,
             "metrics": ev.metrics, "figures": _rel(ctx, ev.figures)}
@@ -96,7 +108,8 @@ def train_pose_stage(ctx: DemoContext) -> dict:
     from cadalign.train.pose import PRESETS, run
 
     out = ctx.out / "train" / "pose"
-    r = run(_with_steps(PRESETS["fast"], ctx.cfg.pose_steps), ctx.dataset, out, resume=_has_ckpt(out))
+    r = run(_with_steps(PRESETS["fast"], ctx.cfg.pose_steps), ctx.dataset, out, resume=_has_ckpt(out),
+            progress=_log_progress("train pose"))
     score = out / "eval_heldout.json"
     return {"dir": "train/pose", "steps": r.steps_done, "final_loss": r.final_loss, "dataset": ctx.dataset_kind,
             "metrics": read_json(score) if score.is_file() else None}
