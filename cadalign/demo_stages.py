@@ -76,6 +76,14 @@ def _log_progress(name: str) -> Callable[[int, int, dict[str, float]], None]:
     return report
 
 
+def _stop_if_interrupted(result: Any) -> Any:
+    """A training run stopped by Ctrl-C/SIGTERM saved its checkpoint and returned: stop the demo too
+    (re-running it resumes the training from that checkpoint)."""
+    if getattr(result, "interrupted", False):
+        raise KeyboardInterrupt(f"training interrupted at step {result.steps_done}; re-run the demo to resume")
+    return result
+
+
 def _with_steps(preset: Any, steps: int) -> Any:
     return dataclasses.replace(preset, loop=dataclasses.replace(preset.loop, steps=steps))
 
@@ -87,6 +95,7 @@ def train_seg_stage(ctx: DemoContext) -> dict:
     run = ctx.out / "train" / "seg"
     r = train_seg(_with_steps(PRESETS["fast"], ctx.cfg.seg_steps), ctx.dataset, run, resume=_has_ckpt(run),
                   progress=_log_progress("train seg"))
+    _stop_if_interrupted(r)
     ev = evaluate_seg(run, ctx.dataset, run / "eval", split="test")
     return {"dir": "train/seg", "steps": r.steps_done, "final_loss": r.final_loss, "dataset": ctx.dataset_kind,
             "metrics": _pick(ev.metrics, ("miou", "pixel_accuracy", "iou")), "figures": _rel(ctx, ev.figures)}
@@ -99,6 +108,7 @@ def train_depth_stage(ctx: DemoContext) -> dict:
     run = ctx.out / "train" / "depth"
     r = train_depth(_with_steps(PRESETS["fast"], ctx.cfg.depth_steps), ctx.dataset, run, resume=_has_ckpt(run),
                     progress=_log_progress("train depth"))
+    _stop_if_interrupted(r)
     ev = evaluate_depth(run, ctx.dataset, run / "eval", split="test")
     return {"dir": "train/depth", "steps": r.steps_done, "final_loss": r.final_loss, "dataset": ctx.dataset_kind,
             "metrics": ev.metrics, "figures": _rel(ctx, ev.figures)}
@@ -110,6 +120,7 @@ def train_pose_stage(ctx: DemoContext) -> dict:
     out = ctx.out / "train" / "pose"
     r = run(_with_steps(PRESETS["fast"], ctx.cfg.pose_steps), ctx.dataset, out, resume=_has_ckpt(out),
             progress=_log_progress("train pose"))
+    _stop_if_interrupted(r)
     score = out / "eval_heldout.json"
     return {"dir": "train/pose", "steps": r.steps_done, "final_loss": r.final_loss, "dataset": ctx.dataset_kind,
             "metrics": read_json(score) if score.is_file() else None}

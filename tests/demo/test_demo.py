@@ -53,3 +53,14 @@ def test_rerun_reuses_finished_stages(demo_out: tuple[Path, dict]) -> None:
 def test_demo_help() -> None:
     res = CliRunner().invoke(app, ["demo", "--help"])
     assert res.exit_code == 0 and "--out" in res.output
+
+
+def test_an_interrupted_training_stops_the_demo() -> None:
+    from types import SimpleNamespace
+
+    from cadalign.demo_stages import _stop_if_interrupted
+
+    done = SimpleNamespace(interrupted=False, steps_done=5)
+    assert _stop_if_interrupted(done) is done
+    with pytest.raises(KeyboardInterrupt, match="step 3"):
+        _stop_if_interrupted(SimpleNamespace(interrupted=True, steps_done=3))
