@@ -73,7 +73,7 @@ def _train_section(out: Path, name: str, info: dict) -> str:
         rows = [{"class": c, "IoU": v} for c, v in (m.get("iou") or {}).items()]
         body = table(rows) + table([_flat(m, ("miou", "miou_foreground", "pixel_accuracy"))])
     elif name == "train-depth":
-        rows = [{"pixels": k, **_flat(v)} for k, v in (m.get("metrics") or {}).items() if isinstance(v, dict)]
+        rows = [{"evaluated on": k, **_flat(v)} for k, v in (m.get("metrics") or {}).items() if isinstance(v, dict)]
         body = table(rows)
     else:
         summ = (m.get("summary") if isinstance(m, dict) else None) or {}
