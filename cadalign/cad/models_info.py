@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from cadalign.cad.model import CadModel
+from cadalign.cad.symmetry import Symmetry
 from cadalign.errors import InputError
 from cadalign.io import atomic_path
 
@@ -60,6 +61,22 @@ def models_info_entry(model: CadModel) -> dict:
             {"axis": [_round(v) for v in sym.axis], "offset": [_round(v * M_TO_MM) for v in sym.offset_m]}
         ]
     return entry
+
+
+def symmetry_from_entry(entry: dict) -> Symmetry:
+    """The :class:`Symmetry` (metres) of one ``models_info.json`` entry (millimetres): the inverse of the
+    symmetry part of :func:`models_info_entry`. Only the first continuous symmetry is kept (one axis)."""
+    mats = []
+    for flat in entry.get("symmetries_discrete", []):
+        T = np.reshape(np.asarray(flat, dtype=np.float64), (4, 4)).copy()
+        T[:3, 3] /= M_TO_MM
+        mats.append(T)
+    cont = entry.get("symmetries_continuous", [])
+    if cont:
+        c = cont[0]
+        return Symmetry("continuous", tuple(mats), np.asarray(c["axis"], float),
+                        np.asarray(c.get("offset", [0.0, 0.0, 0.0]), float) / M_TO_MM)
+    return Symmetry.discrete_from(mats) if mats else Symmetry.none()
 
 
 def write_models_info(models: dict[int, CadModel], path: str | Path) -> Path:

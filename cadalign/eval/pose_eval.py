@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cadalign.cad.models_info import symmetry_from_entry
 from cadalign.cad.symmetry import Symmetry
 from cadalign.data.bop import BopScene, mask_bbox
 from cadalign.errors import InputError
@@ -102,22 +103,8 @@ def load_bop_models(models_dir: Path, *, max_points: int = 20000) -> dict[int, E
         pts = np.asarray(trimesh.load(ply, process=False).vertices, dtype=np.float64) / 1000.0
         if len(pts) > max_points:
             pts = pts[np.linspace(0, len(pts) - 1, max_points).astype(int)]
-        out[int(key)] = EvalModel(pts, float(entry["diameter"]) / 1000.0, symmetry_from_info(entry))
+        out[int(key)] = EvalModel(pts, float(entry["diameter"]) / 1000.0, symmetry_from_entry(entry))
     return out
-
-
-def symmetry_from_info(entry: dict) -> Symmetry:
-    """The :class:`Symmetry` of one BOP ``models_info.json`` entry (mm -> m)."""
-    disc = []
-    for flat in entry.get("symmetries_discrete", []):
-        T = np.reshape(np.asarray(flat, dtype=np.float64), (4, 4)).copy()
-        T[:3, 3] /= 1000.0
-        disc.append(T)
-    cont = entry.get("symmetries_continuous", [])
-    if cont:
-        c = cont[0]
-        return Symmetry("continuous", tuple(disc), np.asarray(c["axis"], float), np.asarray(c["offset"], float) / 1e3)
-    return Symmetry.discrete_from(disc) if disc else Symmetry.none()
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.data import Dataset
 
-from cadalign.cad.symmetry import Symmetry
+from cadalign.cad.models_info import symmetry_from_entry
 from cadalign.config import bounded, to_dict
 from cadalign.data.bop import mask_bbox
 from cadalign.data.torch_datasets import DetectionPoseDataset, detection_collate
@@ -105,19 +105,8 @@ def locate_dataset(path: Path) -> PoseDataset:
     return PoseDataset(train.scene_dir, models, splits)
 
 
-def symmetry_from_bop(entry: dict) -> Symmetry:
-    """A :class:`Symmetry` (metres) from a BOP ``models_info.json`` entry (millimetres)."""
-    mats = []
-    for flat in entry.get("symmetries_discrete", []):
-        T = np.asarray(flat, dtype=np.float64).reshape(4, 4)
-        T[:3, 3] *= MM_TO_M
-        mats.append(T)
-    cont = entry.get("symmetries_continuous", [])
-    if cont:
-        c = cont[0]
-        return Symmetry("continuous", tuple(mats), np.asarray(c["axis"], float),
-                        np.asarray(c.get("offset", [0, 0, 0]), float) * MM_TO_M)
-    return Symmetry.discrete_from(mats) if mats else Symmetry.none()
+symmetry_from_bop = symmetry_from_entry
+"""Kept name: see :func:`cadalign.cad.models_info.symmetry_from_entry`."""
 
 
 def load_object_geometry(models_dir: Path, n_points: int, seed: int = 0) -> dict[int, ObjectGeometry]:

@@ -71,3 +71,15 @@ def test_write_model_ply_without_colors(tmp_path: Path, unit_cube: CadModel) -> 
     assert b"red" not in path.read_bytes().split(b"end_header")[0]
     back = trimesh.load(path, process=False)
     assert back.volume == pytest.approx(1e9, rel=1e-6)
+
+
+@pytest.mark.parametrize("sym", [Symmetry.none(), Symmetry.cyclic((1, 0, 0), 2, offset_m=(0.0, 0.01, 0.0)),
+                                 Symmetry.continuous((0, 0, 1), (0.001, 0.002, 0.0))])
+def test_symmetry_round_trips_through_models_info(sym: Symmetry) -> None:
+    from cadalign.cad.models_info import symmetry_from_entry
+
+    v, f = unit_cube_mesh()
+    back = symmetry_from_entry(models_info_entry(CadModel("c", v * 0.1, f, symmetry=sym)))
+    assert back.kind == sym.kind
+    for a, b in zip(back.discretize(8), sym.discretize(8), strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-9)
