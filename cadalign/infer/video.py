@@ -15,11 +15,10 @@ from pathlib import Path
 import numpy as np
 
 from cadalign.errors import InputError
+from cadalign.sfm.frames import IMAGE_SUFFIXES, VIDEO_SUFFIXES
 
 log = logging.getLogger(__name__)
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
 MAX_BAD_VIDEO_READS = 25
 """Consecutive failed reads after which a video counts as ended (a truncated file)."""
 
