@@ -10,6 +10,7 @@ image-to-depth relation stays that of the real camera.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import kornia.enhance as ke
@@ -109,13 +110,15 @@ def augment_dense(batch: dict, g: torch.Generator, cfg: AugmentConfig) -> dict:
     return out
 
 
-def random_patches(batch: dict, g: torch.Generator, size: tuple[int, int], focus_prob: float = 0.5) -> dict:
+def random_patches(batch: dict, g: torch.Generator, size: tuple[int, int], focus_prob: float = 0.5,
+                   focus_weights: Sequence[float] | None = None) -> dict:
     """Cut one ``size`` = (h, w) window per sample from every dense key (no resizing: the camera is unchanged).
 
     With probability ``focus_prob`` the window is centred (clamped to the image) on a random pixel of a class
-    drawn uniformly among the non-background classes present in the sample's ``label``, so small classes
-    (valves, hot stabs) are seen in most batches; otherwise the window is uniform. Frames smaller than ``size``
-    are returned unchanged.
+    drawn among the non-background classes present in the sample's ``label`` (uniformly, or with probability
+    proportional to ``focus_weights[class]``, e.g. rarer classes more often), so small classes (valves, hot
+    stabs) are seen in most batches; otherwise the window is uniform. Frames smaller than ``size`` are returned
+    unchanged.
     """
     image = batch["image"]
     b, _, h, w = image.shape
@@ -134,7 +137,7 @@ def random_patches(batch: dict, g: torch.Generator, size: tuple[int, int], focus
             lab = out["label"][i]
             classes = [int(c) for c in torch.unique(lab) if 0 < int(c) < 255]
             if classes:
-                c = classes[int(torch.randint(0, len(classes), (1,), generator=g, device=dev))]
+                c = classes[_pick(classes, focus_weights, g, dev)]
                 ys, xs = torch.nonzero(lab == c, as_tuple=True)
                 j = int(torch.randint(0, len(ys), (1,), generator=g, device=dev))
                 y0 = min(max(int(ys[j]) - ph // 2, 0), h - ph)
@@ -144,3 +147,12 @@ def random_patches(batch: dict, g: torch.Generator, size: tuple[int, int], focus
     for k in keys:
         out[k] = torch.stack(crops[k])
     return out
+
+
+def _pick(classes: list[int], weights: Sequence[float] | None, g: torch.Generator, dev: torch.device) -> int:
+    """Index into ``classes`` drawn uniformly, or proportionally to ``weights[c]`` (uniform if all are 0)."""
+    if weights is not None:
+        w = torch.tensor([float(weights[c]) if c < len(weights) else 0.0 for c in classes], device=dev)
+        if float(w.sum()) > 0:
+            return int(torch.multinomial(w, 1, generator=g))
+    return int(torch.randint(0, len(classes), (1,), generator=g, device=dev))

@@ -20,12 +20,22 @@ def _zero_like(x: torch.Tensor) -> torch.Tensor:
 
 
 def cross_entropy(logits: torch.Tensor, labels: torch.Tensor, weight: torch.Tensor | None = None,
-                  ignore_index: int = IGNORE) -> torch.Tensor:
-    """Mean (class-weighted) cross-entropy over labelled pixels; 0 when no pixel is labelled."""
+                  ignore_index: int = IGNORE, gamma: float = 0.0) -> torch.Tensor:
+    """Mean (class-weighted) cross-entropy over labelled pixels; 0 when no pixel is labelled.
+
+    With ``gamma > 0`` each pixel's term is scaled by ``(1 - p_true)**gamma`` (focal loss, Lin et al.), so
+    the many easy background pixels count less; the mean is still normalised by the summed class weights
+    of the labelled pixels, as ``F.cross_entropy`` does.
+    """
     valid = labels != ignore_index
     if not bool(valid.any()):
         return _zero_like(logits)
-    return F.cross_entropy(logits.float(), labels, weight=weight, ignore_index=ignore_index)
+    if gamma == 0:
+        return F.cross_entropy(logits.float(), labels, weight=weight, ignore_index=ignore_index)
+    ce = F.cross_entropy(logits.float(), labels, ignore_index=ignore_index, reduction="none")[valid]
+    w = weight[labels[valid]] if weight is not None else torch.ones_like(ce)
+    focal = (1.0 - torch.exp(-ce)).clamp_min(0) ** gamma
+    return (w * focal * ce).sum() / w.sum().clamp_min(1e-12)
 
 
 def soft_dice(logits: torch.Tensor, labels: torch.Tensor, ignore_index: int = IGNORE, eps: float = 1.0) -> torch.Tensor:

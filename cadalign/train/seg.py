@@ -50,6 +50,14 @@ class SegTrainConfig:
     """Train on random (height, width) windows of the scaled frames (whole frames at inference); None = off."""
     focus_prob: float = bounded(0.5, ge=0, le=1)
     """Share of patches centred on a pixel of a random present non-background class (small classes)."""
+    focus_power: float = bounded(0.0, ge=0)
+    """Focus classes are drawn with probability proportional to (training pixels of the class)^-focus_power
+    among those present in the frame: 0 = uniform, 0.5 = rarer classes (hot stabs) centred more often."""
+    class_weight_power: float = bounded(1.0, ge=0)
+    """Exponent applied to the median-frequency weights before clipping (0.5 = square-root weights: a
+    gentler push that over-predicts small classes less when focus patches already oversample them)."""
+    focal_gamma: float = bounded(0.0, ge=0)
+    """Focal-loss exponent on the cross-entropy (0 = plain cross-entropy)."""
 
 
 PRESETS: dict[str, SegTrainConfig] = {
@@ -63,22 +71,35 @@ PRESETS: dict[str, SegTrainConfig] = {
 }
 
 
-def class_weights(ds: ScaledDataset, n_classes: int, cfg: SegTrainConfig) -> np.ndarray | None:
-    """The cross-entropy class weights of ``cfg`` over the (scaled) training labels, or None."""
+def class_weights(counts: np.ndarray, image_counts: np.ndarray, cfg: SegTrainConfig) -> np.ndarray | None:
+    """The cross-entropy class weights of ``cfg`` from the training labels' pixel counts, or None.
+
+    ``counts``/``image_counts`` are those of :func:`cadalign.train.data.class_pixel_counts`.
+    """
     if cfg.class_weighting == "none":
         return None
-    counts, image_counts = class_pixel_counts(ds, n_classes)
-    w = np.minimum(median_frequency_weights(counts, image_counts), cfg.max_class_weight)
+    w = np.minimum(median_frequency_weights(counts, image_counts) ** cfg.class_weight_power, cfg.max_class_weight)
     return np.where(counts > 0, np.maximum(w, 1.0 / cfg.max_class_weight), 0.0)
 
 
-def seg_step(weight: torch.Tensor | None, dice_weight: float) -> Callable:
-    """The loop's step function: ``(model, batch) -> (CE [+ dice_weight * Dice], {"ce", "dice", "acc"})``."""
+def focus_weights(counts: np.ndarray, cfg: SegTrainConfig) -> list[float] | None:
+    """Per-class focus-patch weights ``counts**-focus_power`` (0 for absent classes), or None for uniform."""
+    if cfg.focus_power == 0:
+        return None
+    c = np.asarray(counts, dtype=np.float64)
+    return np.where(c > 0, np.maximum(c, 1.0) ** -cfg.focus_power, 0.0).tolist()
+
+
+def seg_step(weight: torch.Tensor | None, dice_weight: float, gamma: float = 0.0) -> Callable:
+    """The loop's step function: ``(model, batch) -> (CE [+ dice_weight * Dice], {"ce", "dice", "acc"})``.
+
+    ``gamma > 0`` makes the cross-entropy a focal loss.
+    """
 
     def step(model: nn.Module, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
         logits = model(batch["image"])
         w = weight.to(logits.device) if weight is not None else None
-        ce = cross_entropy(logits, batch["label"], w)
+        ce = cross_entropy(logits, batch["label"], w, gamma=gamma)
         metrics = {"ce": float(ce.detach())}
         loss = ce
         if dice_weight > 0:
@@ -114,8 +135,8 @@ def val_miou(ds: ScaledDataset, classes: tuple[str, ...], device: str, batch: in
     return fn
 
 
-def _patches(batch: dict, g: torch.Generator, cfg: SegTrainConfig) -> dict:
-    return batch if cfg.patch is None else random_patches(batch, g, cfg.patch, cfg.focus_prob)
+def _patches(batch: dict, g: torch.Generator, cfg: SegTrainConfig, focus: list[float] | None) -> dict:
+    return batch if cfg.patch is None else random_patches(batch, g, cfg.patch, cfg.focus_prob, focus)
 
 
 def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train", val_split: str | None = "val",
@@ -132,11 +153,13 @@ def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train",
     base = SegmentationDataset(sel.scene_dir, sel.ids)
     classes = base.classes.names
     data = ScaledDataset(base, cfg.scale)
-    weights = class_weights(data, len(classes), cfg)
+    counts, image_counts = class_pixel_counts(data, len(classes))
+    weights, focus = class_weights(counts, image_counts, cfg), focus_weights(counts, cfg)
     torch.manual_seed(cfg.loop.seed)
     model = ResUNet(len(classes), cfg.model)
     identity = {"task": "seg", "classes": list(classes), "model": to_dict(cfg.model), "scale": cfg.scale}
     write_run_record(out, "seg", cfg, identity, {"class_weights": None if weights is None else weights.tolist(),
+                                                 "focus_weights": focus, "class_pixels": counts.tolist(),
                                                  "dataset": {"scene": str(sel.scene_dir), "split": split,
                                                              "ids": list(sel.ids), "source": sel.source}},
                      resume=resume)
@@ -150,6 +173,6 @@ def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train",
         except Exception as exc:  # no val frames: train without validation rows
             log.info("no validation (%s)", exc)
     w = None if weights is None else torch.tensor(weights, dtype=torch.float32)
-    return train_loop(model, seg_step(w, cfg.dice_weight), data, cfg.loop, out,
-                      augment=(lambda b, g: augment_dense(_patches(b, g, cfg), g, cfg.augment)), val_fn=val_fn,
+    return train_loop(model, seg_step(w, cfg.dice_weight, cfg.focal_gamma), data, cfg.loop, out,
+                      augment=(lambda b, g: augment_dense(_patches(b, g, cfg, focus), g, cfg.augment)), val_fn=val_fn,
                       val_every=cfg.val_every, resume=resume, device=device, progress=progress, extra_state=identity)

@@ -148,3 +148,63 @@ def test_random_patches_focus_on_small_classes_and_keep_targets_aligned():
     uniform = random_patches(batch, torch.Generator().manual_seed(0), (16, 20), focus_prob=0.0)
     assert not bool((uniform["label"] == 3).flatten(1).any(1).all())
     assert random_patches(batch, torch.Generator(), (80, 80))["image"].shape == (4, 3, h, w)
+
+
+
+def test_focal_cross_entropy_by_hand():
+    logits = torch.tensor([[[[0.0, 1.0]], [[0.0, 0.0]]]])  # (1, 2, 1, 2): p_true of class 0 = 0.5 and e/(e+1)
+    p = torch.tensor([0.5, math.e / (math.e + 1)])
+    want = float(((1 - p) ** 2 * -torch.log(p)).mean())
+    label = torch.tensor([[[0, 0]]])
+    assert float(cross_entropy(logits, label, gamma=2.0)) == pytest.approx(want, rel=1e-5)
+    w = torch.tensor([3.0, 1.0])
+    assert float(cross_entropy(logits, label, w, gamma=2.0)) == pytest.approx(want, rel=1e-5)  # one class: w cancels
+    mixed = torch.tensor([[[0, 1]]])
+    p2, lw = torch.tensor([0.5, 1 / (math.e + 1)]), torch.tensor([3.0, 1.0])
+    want2 = float((lw * (1 - p2) ** 2 * -torch.log(p2)).sum() / lw.sum())
+    assert float(cross_entropy(logits, mixed, w, gamma=2.0)) == pytest.approx(want2, rel=1e-5)
+    ignored = torch.tensor([[[0, IGNORE]]])
+    assert float(cross_entropy(logits, ignored, w, gamma=2.0)) == pytest.approx(0.25 * math.log(2), rel=1e-5)
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.integers(0, 1000))
+def test_focal_gamma_zero_is_weighted_ce_and_gamma_lowers_it(seed):
+    g = torch.Generator().manual_seed(seed)
+    x, y = torch.randn(2, 4, 5, 6, generator=g), torch.randint(0, 4, (2, 5, 6), generator=g)
+    y[0, 0, 0] = IGNORE
+    w = torch.rand(4, generator=g) + 0.5
+    ref = torch.nn.functional.cross_entropy(x, y, weight=w, ignore_index=IGNORE)
+    assert float(cross_entropy(x, y, w, gamma=0.0)) == pytest.approx(float(ref), rel=1e-6)
+    assert float(cross_entropy(x, y, w, gamma=2.0)) < float(ref)
+
+
+def test_focus_weights_pick_the_weighted_class():
+    from cadalign.train.augment import random_patches
+
+    h, w = 40, 60
+    label = torch.zeros(6, h, w, dtype=torch.long)
+    label[:, :, :10] = 1  # a big class on the left
+    label[:, 37, 55] = 3  # one pixel of a rare class in the right corner
+    batch = {"image": torch.rand(6, 3, h, w), "label": label}
+    rare = random_patches(batch, torch.Generator().manual_seed(0), (16, 20), 1.0, focus_weights=[0, 0, 5, 1])
+    assert bool((rare["label"] == 3).flatten(1).any(1).all())  # class 2 is absent: only class 3 can be drawn
+    big = random_patches(batch, torch.Generator().manual_seed(0), (16, 20), 1.0, focus_weights=[0, 1, 0, 0])
+    assert not bool((big["label"] == 3).any()) and bool((big["label"] == 1).flatten(1).any(1).all())
+    zero = random_patches(batch, torch.Generator().manual_seed(0), (16, 20), 1.0, focus_weights=[0, 0, 0, 0])
+    assert torch.equal(zero["label"], random_patches(batch, torch.Generator().manual_seed(0), (16, 20), 1.0)["label"])
+
+
+def test_seg_class_and_focus_weights_by_hand():
+    from cadalign.train.seg import SegTrainConfig, class_weights, focus_weights
+
+    counts, image_counts = np.array([600, 300, 96, 4, 0]), np.array([1000, 1000, 1000, 1000, 0])
+    # frequencies 0.6, 0.3, 0.096, 0.004 -> median 0.198; weights 0.33, 0.66, 2.06, 49.5
+    full = class_weights(counts, image_counts, SegTrainConfig(max_class_weight=100.0))
+    assert full == pytest.approx([0.198 / 0.6, 0.198 / 0.3, 0.198 / 0.096, 0.198 / 0.004, 0.0])
+    root = class_weights(counts, image_counts, SegTrainConfig(max_class_weight=5.0, class_weight_power=0.5))
+    assert root == pytest.approx([max(math.sqrt(0.33), 0.2), math.sqrt(0.66), math.sqrt(0.198 / 0.096), 5.0, 0.0])
+    assert class_weights(counts, image_counts, SegTrainConfig(class_weighting="none")) is None
+    assert focus_weights(counts, SegTrainConfig()) is None
+    assert focus_weights(counts, SegTrainConfig(focus_power=0.5)) == pytest.approx(
+        [600**-0.5, 300**-0.5, 96**-0.5, 0.5, 0.0])
