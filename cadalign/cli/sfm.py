@@ -31,7 +31,7 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
 
 
 def _calibration(path: Path) -> dict[str, Any]:
-    """``camera.intrinsics`` from a cameras.json (e.g. a simulation's gt/sim/000000/cameras.json)."""
+    """``camera.intrinsics`` from a calibration file (a simulation's calibration.json, or a cameras.json)."""
     from cadalign.sfm.report import intrinsics_from_cameras_json
 
     return {"camera": {"intrinsics": list(intrinsics_from_cameras_json(path))}}
@@ -51,7 +51,9 @@ def command(
     gt: Path | None = typer.Option(None, "--gt", help="A 'cadalign sim' output folder to evaluate against."),
     config: Path | None = typer.Option(None, "--config", help="TOML/YAML/JSON file with SfMConfig keys."),
     overrides: list[str] = typer.Option([], "--set", help="Override a key, e.g. --set matching.overlap=15."),
-    calib: Path | None = typer.Option(None, "--calib", help="Known intrinsics from a cameras.json (fixed in BA)."),
+    calib: Path | None = typer.Option(
+        None, "--calib", help="Known intrinsics: a calibration.json {\"K\": [...]} (as sim writes) or a "
+        "cameras.json; set after self-calibrated mapping and held fixed (camera.known_intrinsics_from)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Delete SfM results of another config in --out."),
 ) -> None:
     """Structure from motion: frames -> SIFT -> matching -> mapping -> cameras.json, SfM depth, report."""

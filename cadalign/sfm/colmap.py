@@ -29,6 +29,12 @@ def _device() -> Any:
     return pycolmap.Device.cpu
 
 
+def fixed_while_mapping(cfg: SfMConfig) -> bool:
+    """Whether the known calibration is the camera from the start (else it replaces the self-calibrated one
+    before refinement, see :func:`cadalign.sfm.refine.refine`)."""
+    return cfg.camera.intrinsics is not None and cfg.camera.known_intrinsics_from == "mapping"
+
+
 def reader_options(cfg: SfMConfig, masks_dir: Path | None, exif_source: Path | None = None) -> Any:
     """``ImageReaderOptions``: camera model or known intrinsics, masks.
 
@@ -38,7 +44,7 @@ def reader_options(cfg: SfMConfig, masks_dir: Path | None, exif_source: Path | N
     import pycolmap
 
     opts = pycolmap.ImageReaderOptions()
-    if cfg.camera.intrinsics is not None:
+    if fixed_while_mapping(cfg):
         opts.camera_model = "PINHOLE"
         opts.camera_params = ",".join(f"{v:.10g}" for v in cfg.camera.intrinsics)
     else:
@@ -190,7 +196,7 @@ def _incremental_options(cfg: SfMConfig, image_names: list[str]) -> Any:
     opts.mapper.num_threads = cfg.num_threads
     opts.mapper.random_seed = cfg.seed
     opts.triangulation.random_seed = cfg.seed
-    if cfg.camera.intrinsics is not None and not cfg.camera.refine_intrinsics:
+    if fixed_while_mapping(cfg) and not cfg.camera.refine_intrinsics:
         opts.ba_refine_focal_length = False
         opts.ba_refine_principal_point = False
         opts.ba_refine_extra_params = False
@@ -214,7 +220,7 @@ def _global_options(cfg: SfMConfig, image_names: list[str]) -> Any:
     ba.ceres.use_gpu = False
     ba.ceres.solver_options.max_num_iterations = cfg.mapper.ba_global_max_num_iterations
     opts.mapper.global_positioning.use_gpu = False
-    if cfg.camera.intrinsics is not None and not cfg.camera.refine_intrinsics:
+    if fixed_while_mapping(cfg) and not cfg.camera.refine_intrinsics:
         ba.refine_focal_length = False
         ba.refine_principal_point = False
         ba.refine_extra_params = False

@@ -86,6 +86,7 @@ def refine(rec: Any, cfg: SfMConfig) -> dict[str, Any]:
 
     mp = cfg.mapper
     fixed = cfg.camera.intrinsics is not None and not cfg.camera.refine_intrinsics
+    calibrated = _set_known_intrinsics(rec, cfg)
     before = {"points": rec.num_points3D(), "reprojection_px": rec.compute_mean_reprojection_error()}
     dropped = []
     for _ in range(mp.refine_iterations):
@@ -105,4 +106,26 @@ def refine(rec: Any, cfg: SfMConfig) -> dict[str, Any]:
     after = {"points": rec.num_points3D(), "reprojection_px": rec.compute_mean_reprojection_error()}
     log.info("refinement: %d rounds, points %d -> %d, reprojection %.3f -> %.3f px", mp.refine_iterations,
              before["points"], after["points"], before["reprojection_px"], after["reprojection_px"])
-    return {"rounds": mp.refine_iterations, "observations_dropped": dropped, "before": before, "after": after}
+    out = {"rounds": mp.refine_iterations, "observations_dropped": dropped, "before": before, "after": after}
+    if calibrated:
+        out["known_intrinsics_set"] = calibrated
+    return out
+
+
+def _set_known_intrinsics(rec: Any, cfg: SfMConfig) -> dict[str, Any] | None:
+    """With ``camera.known_intrinsics_from == 'refinement'``: replace every self-calibrated camera of ``rec``
+    by the known PINHOLE calibration (the adjustment that follows moves poses and points to it); returns the
+    parameters before and after, or None when there is nothing to set."""
+    import pycolmap
+
+    if cfg.camera.intrinsics is None or cfg.camera.known_intrinsics_from != "refinement":
+        return None
+    changed = {}
+    for cid, cam in list(rec.cameras.items()):
+        changed[str(cid)] = {"model_before": cam.model.name, "params_before": list(map(float, cam.params)),
+                             "params_after": list(cfg.camera.intrinsics)}
+        rec.cameras[cid] = pycolmap.Camera(model="PINHOLE", width=cam.width, height=cam.height,
+                                           params=list(cfg.camera.intrinsics), camera_id=cid)
+    rec.update_point_3d_errors()
+    log.info("known calibration set after mapping: %s", changed)
+    return changed

@@ -9,6 +9,8 @@ Output layout (``OUT``)::
                                  scene_gt.json scene_gt_info.json, plus cadalign extras:
                                  class/ (uint8 class ids), instance/ (uint16, 0 = none, k = GT index k-1),
                                  normals/ (npz, camera frame), cameras.json, objects.json
+    OUT/calibration.json         the camera's intrinsics, as an underwater calibration of a real ROV camera
+                                 would give them (``--calib`` of sfm / build-dataset)
     OUT/contact_sheet.png        clean render vs each effect alone vs all effects
     OUT/sim_report.json          frames, seconds per frame per step and per effect
     OUT/cadalign_stage.json      the resolved config and version
@@ -35,10 +37,10 @@ from cadalign.render.bop_writer import frame_done, write_bop_frame
 from cadalign.sim.effects_chain import build_chain, run_chain
 from cadalign.sim.gt_files import posed_objects, write_models, write_scene_files
 from cadalign.sim.render import FrameGT, GroundTruthCaster, RGBRenderer
-from cadalign.sim.scene import SimScene, build_scene
+from cadalign.sim.scene import SimScene, build_scene, camera_from_spec
 from cadalign.sim.spec import SceneSpec, load_scene
 from cadalign.sim.trajectory import pose_at
-from cadalign.types import Rigid3
+from cadalign.types import Camera, Rigid3
 
 log = logging.getLogger(__name__)
 DEPTH_SCALE = 1.0  # BOP depth PNG unit: 1 mm (65.5 m range)
@@ -81,6 +83,7 @@ def simulate(
     if overwrite and out_dir.exists():
         shutil.rmtree(out_dir)
     reused = prepare_stage_dir(out_dir, "sim", config)
+    write_calibration(camera_from_spec(spec), out_dir / "calibration.json")
     report_path = out_dir / "sim_report.json"
     if reused and report_path.is_file():
         log.info("simulation in %s is complete; reusing it", out_dir)
@@ -99,6 +102,13 @@ def simulate(
         write_contact_sheet(scene, out_dir / "contact_sheet.png")
     write_json(report_path, _report(spec, timings))
     return out_dir
+
+
+def write_calibration(camera: Camera, path: Path) -> None:
+    """The simulated camera's intrinsics as a calibration file (no distortion: the simulator has none)."""
+    write_json(path, {"K": [float(v) for v in np.asarray(camera.K).ravel()], "width": camera.width,
+                      "height": camera.height, "distortion": None, "unit": "px",
+                      "convention": "pixel (0, 0) covers [0, 1)^2 (centres at +0.5), as COLMAP"})
 
 
 def render_frame(

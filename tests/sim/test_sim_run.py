@@ -64,6 +64,11 @@ def test_layout_and_report(tiny_sim: Path) -> None:
     assert set(report["seconds_per_frame_per_effect"]) == set(ALL_EFFECTS)
     info = read_json(tiny_sim / "gt" / "models" / "models_info.json")
     assert len(info) == 3 and all(v["diameter"] > 100 for v in info.values())  # mm
+    # the calibration file a real camera would come with equals every frame's K
+    from cadalign.sfm.report import intrinsics_from_cameras_json
+
+    K = read_json(sdir / "scene_camera.json")["0"]["cam_K"]
+    assert intrinsics_from_cameras_json(tiny_sim / "calibration.json") == (K[0], K[4], K[2], K[5])
 
 
 def test_bop_masks_match_projected_cad(tiny_sim: Path) -> None:
