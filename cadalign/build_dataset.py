@@ -22,22 +22,27 @@ The CAD is either a scene spec (TOML/YAML: the structure's parts with their worl
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cadalign.cad.model import CadModel
 from cadalign.config import to_dict
-from cadalign.data import bop
-from cadalign.io import fingerprint, prepare_stage_dir, read_json, write_image, write_json
-from cadalign.render.bop_writer import PosedObject, frame_done, merge_scene_files, write_bop_frame
+from cadalign.io import fingerprint, prepare_stage_dir, read_json, write_json
+from cadalign.render.bop_writer import PosedObject, frame_done, merge_scene_files
 from cadalign.render.camera_refine import CameraRefineConfig, RefinedCamera, rays_of, refine_cameras
 from cadalign.render.raycast import RaycastRenderer, RenderMesh
+from cadalign.scale.frames import CameraModel, FrameJob, FrameShared, write_frame
 from cadalign.types import Camera, Rigid3, Sim3
+
+if TYPE_CHECKING:
+    from cadalign.scale.executor import RayExecutor
 
 log = logging.getLogger(__name__)
 Progress = Callable[[Iterable, str, int], Iterable]
@@ -87,12 +92,14 @@ def metric_pose(entry: dict, cad_from_sfm: Sim3) -> tuple[Camera, Rigid3]:
 
 def render_frames(structure: Structure, cameras: dict[str, dict], cad_from_sfm: Sim3, sfm_dir: Path,
                   scene_dir: Path, progress: Progress | None = None,
-                  refine: CameraRefineConfig | None = DEFAULT_REFINE) -> tuple[dict[int, str], dict[int, bool]]:
+                  refine: CameraRefineConfig | None = DEFAULT_REFINE, executor: RayExecutor | None = None,
+                  ) -> tuple[dict[int, str], dict[int, bool]]:
     """Ray-cast and write every registered frame (resumably).
 
     Rays come from the SfM camera model (its distortion included), poses from the SfM refined against the
-    CAD (:mod:`cadalign.render.camera_refine`) unless ``refine`` is None. Returns im_id -> source frame name
-    and im_id -> whether the frame's pose was verified against the CAD.
+    CAD (:mod:`cadalign.render.camera_refine`) unless ``refine`` is None. With an ``executor`` (Ray) the
+    frames are rendered by its workers after the loop, else here one by one (same files either way).
+    Returns im_id -> source frame name and im_id -> whether the frame's pose was verified against the CAD.
     """
     import pycolmap
 
@@ -111,6 +118,8 @@ def render_frames(structure: Structure, cameras: dict[str, dict], cad_from_sfm: 
     renderers: dict[int, RaycastRenderer] = {}
     ids = list(range(len(names)))
     quality: dict[int, dict] = {}
+    shared = FrameShared(tuple(meshes), structure.objects, {}, scene_dir, DEPTH_SCALE)
+    pending: list[FrameJob] = []
     for k in progress(ids, "render", len(ids)) if progress else ids:
         _, T_world_from_cam = metric_pose(cameras[names[k]], cad_from_sfm)
         cam = by_name[names[k]].camera
@@ -124,15 +133,18 @@ def render_frames(structure: Structure, cameras: dict[str, dict], cad_from_sfm: 
             quality[k] = {"verified": refine is None}
         if frame_done(scene_dir, k):
             continue
+        sfm_depth = sfm_dir / "depth" / f"{Path(names[k]).stem}.npy"
+        job = FrameJob(k, cam.camera_id, camera, T_world_from_cam, sfm_dir / "images" / names[k],
+                       sfm_depth if sfm_depth.is_file() else None, cad_from_sfm.s)
+        if executor is not None:  # rendered by the executor's workers below
+            pending.append(job)
+            shared.cameras[cam.camera_id] = CameraModel.of(cam)
+            continue
         if cam.camera_id not in renderers:
             renderers[cam.camera_id] = RaycastRenderer(meshes, camera, rays_cam=rays_of(cam))
-        gt = renderers[cam.camera_id].render(T_world_from_cam)
-        sfm_depth = sfm_dir / "depth" / f"{Path(names[k]).stem}.npy"
-        if sfm_depth.is_file():  # semi-dense SfM depth, now in metres
-            d = np.load(sfm_depth).astype(np.float64) * cad_from_sfm.s
-            write_image(scene_dir / "depth_sfm" / bop.frame_name(k), bop.encode_depth(d, DEPTH_SCALE), atomic=False)
-        write_bop_frame(scene_dir, k, camera, T_world_from_cam.inverse(), gt, structure.objects, DEPTH_SCALE,
-                        rgb_source=sfm_dir / "images" / names[k])
+        write_frame(job, renderers[cam.camera_id], shared)
+    if executor is not None:
+        executor.render(pending, shared, progress)
     merge_scene_files(scene_dir, structure.objects, structure.class_names)
     frame_names = {k: n for k, n in zip(ids, names, strict=True)}
     write_json(scene_dir / "frame_names.json", {str(k): n for k, n in frame_names.items()})
@@ -163,12 +175,17 @@ def write_dataset_extras(ds: Path, structure: Structure, verified: dict[int, boo
 
 def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced", picks: Path | None = None,
                   gt: Path | None = None, cad_unit: str | None = None, calib: Path | None = None,
-                  overwrite: bool = False, progress: Progress | None = None) -> Path:
+                  overwrite: bool = False, progress: Progress | None = None, executor: RayExecutor | None = None,
+                  ) -> Path:
     """Run frames -> SfM -> align -> render -> write; returns ``out``. See the module doc for the layout.
 
-    ``calib``: a cameras.json with the camera's known intrinsics (first frame's K), held fixed in SfM. A
-    self-calibrated focal length off by 1 % moves every camera ~1 % along its axis (8 cm at 8 m), which
-    the CAD ground truth inherits; calibrate the ROV camera underwater and pass it.
+    ``calib``: the camera's known intrinsics (a ``calibration.json`` ``{"K": [...]}`` as 'cadalign sim'
+    writes, or a cameras.json). SfM maps self-calibrated, then sets and holds this calibration while it
+    refines the model (``camera.known_intrinsics_from``), and the CAD-anchored camera refinement keeps it
+    too. Without it the focal length is self-calibrated: on the default orbit it comes out ~0.8 % long,
+    which moves every object ~4 cm in its camera frame; calibrate the ROV camera underwater and pass it.
+    ``executor``: render the
+    frames with Ray (:mod:`cadalign.scale`); None renders them here. The dataset files are the same.
 
     Raises:
         AlignmentError: the alignment failed its quality gate (no dataset is written).
@@ -189,8 +206,6 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     t0 = time.perf_counter()
     sfm_cfg = SFM_PRESETS[preset]
     if calib is not None:
-        import dataclasses
-
         from cadalign.sfm.report import intrinsics_from_cameras_json
 
         sfm_cfg = dataclasses.replace(sfm_cfg, camera=dataclasses.replace(
@@ -208,12 +223,14 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
         import shutil
 
         shutil.rmtree(ds)
+    refine_cfg = DEFAULT_REFINE if calib is None else dataclasses.replace(DEFAULT_REFINE, intrinsics=False)
     config = {"align": fingerprint(read_json(align_json)["cad_from_sfm"]), "cad": str(Path(cad).resolve()),
-              "depth_scale": DEPTH_SCALE, "camera_refine": to_dict(DEFAULT_REFINE)}
+              "depth_scale": DEPTH_SCALE, "camera_refine": to_dict(refine_cfg)}
     prepare_stage_dir(ds, "build-dataset", config, overwrite=overwrite)
     t0 = time.perf_counter()
     cameras = read_json(sfm_dir / "cameras.json")["frames"]
-    frame_names, verified = render_frames(structure, cameras, cad_from_sfm, sfm_dir, ds / SCENE, progress)
+    frame_names, verified = render_frames(structure, cameras, cad_from_sfm, sfm_dir, ds / SCENE, progress,
+                                          refine=refine_cfg, executor=executor)
     splits = write_dataset_extras(ds, structure, verified)
     seconds["render_and_write"] = time.perf_counter() - t0
     report = {

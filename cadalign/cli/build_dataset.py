@@ -17,13 +17,24 @@ def command(
     init: Path | None = typer.Option(None, "--init", help="Picked point pairs (JSON) for the coarse alignment."),
     gt: Path | None = typer.Option(None, "--gt", help="Simulator output folder: report errors against truth."),
     cad_unit: str | None = typer.Option(None, "--cad-unit", help="Unit of a CAD mesh file: m, cm, mm or in."),
-    calib: Path | None = typer.Option(None, "--calib", help="Known intrinsics (a cameras.json), fixed in SfM."),
+    calib: Path | None = typer.Option(
+        None, "--calib", help="Known intrinsics: a calibration.json {\"K\": [...]} (as sim writes) or a "
+        "cameras.json; held fixed after mapping and in the CAD-anchored refinement."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
+    executor: str = typer.Option("local", "--executor",
+                                 help="Where frames are rendered: local (this process, no Ray) | ray (Ray tasks)."),
+    ray_address: str | None = typer.Option(None, "--ray-address",
+                                           help="Ray cluster address (e.g. ray://head:10001); default: $RAY_ADDRESS, "
+                                           "else a Ray instance started on this machine. Needs --executor ray."),
+    workers: int | None = typer.Option(None, "--workers", help="Ray: tasks running at once (local Ray: its CPUs); "
+                                       "default: all CPUs of the machine or cluster."),
 ) -> None:
     """Frames -> SfM -> CAD alignment (Sim3) -> per-frame CAD depth, normals, masks, poses -> BOP dataset."""
     from cadalign.build_dataset import build_dataset
+    from cadalign.scale import executor_config, make_executor
 
     with user_errors():
+        runner = make_executor(executor_config(executor, ray_address, workers))
         out_dir = build_dataset(source, cad, out, preset=preset, picks=init, gt=gt, cad_unit=cad_unit,
-                                calib=calib, overwrite=overwrite, progress=track)
+                                calib=calib, overwrite=overwrite, progress=track, executor=runner)
     console.print(f"[green]dataset written to {out_dir / 'dataset'}; report {out_dir / 'build_report.html'}[/]")

@@ -1,0 +1,20 @@
+"""Helpers of the scale-out tests (a module, not conftest, so imports are unambiguous)."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+
+def fresh_out(local_build: Path, dst: Path) -> Path:
+    """A new OUT holding the reference's sfm/ and align/ (reused by build_dataset when it gets the same
+    picks file, ``local_build / "picks.json"``), no dataset/."""
+    for name in ("sfm", "align"):
+        shutil.copytree(local_build / name, dst / name)
+    return dst
+
+
+def dataset_bytes(out: Path) -> dict[str, bytes]:
+    """Every file of OUT/dataset by relative path (temporary files included, so leftovers show up)."""
+    ds = out / "dataset"
+    return {str(p.relative_to(ds)): p.read_bytes() for p in sorted(ds.rglob("*")) if p.is_file()}
