@@ -36,6 +36,7 @@ from cadalign.models.maskrcnn.detector import MODEL_KIND, MaskRCNNConfig, MaskRC
 from cadalign.train.augment import AugmentConfig, colour_jitter
 from cadalign.train.data import select
 from cadalign.train.loop import LoopConfig, TrainResult, train_loop
+from cadalign.train.pose_crop import crop_batch
 from cadalign.train.pose_losses import ObjectGeometry, PoseLoss, PoseLossConfig
 
 log = logging.getLogger(__name__)
@@ -57,6 +58,17 @@ class PoseTrainConfig:
     """CAD surface points per object for the point-matching loss."""
     eval_score_thresh: float = bounded(0.5, ge=0, le=1)
     """Score threshold of the held-out evaluation."""
+    crop_hw: tuple[int, int] | None = None
+    """(height, width) of random training crops of the ``model.input_hw`` image, or None for whole images. Crops
+    keep small parts at the scale the network sees at inference (on the whole ``input_hw`` frame) at the cost
+    per step of the crop size; poses are unchanged (K's principal point moves), see :mod:`cadalign.train.pose_crop`."""
+    crop_object_prob: float = bounded(0.8, ge=0, le=1)
+    """Probability that a crop is placed around a randomly chosen instance (else uniformly)."""
+
+    def __post_init__(self) -> None:
+        if self.crop_hw is not None and (self.crop_hw[0] > self.model.input_hw[0]
+                                         or self.crop_hw[1] > self.model.input_hw[1]):
+            raise ValueError(f"crop_hw {tuple(self.crop_hw)} must fit in model.input_hw {tuple(self.model.input_hw)}")
 
 
 _FAST_MODEL = MaskRCNNConfig(
@@ -180,10 +192,18 @@ def make_step_fn(loss: PoseLoss) -> Callable[[nn.Module, dict], tuple[torch.Tens
     return step_fn
 
 
-def make_augment(cfg: AugmentConfig) -> Callable[[dict, torch.Generator], dict] | None:
-    if not cfg.enabled:
+def make_augment(cfg: AugmentConfig, crop_hw: tuple[int, int] | None = None, crop_object_prob: float = 0.8
+                 ) -> Callable[[dict, torch.Generator], dict] | None:
+    """The loop's ``augment``: random crops (when ``crop_hw``), then colour jitter (when enabled)."""
+    if not cfg.enabled and crop_hw is None:
         return None
-    return lambda batch, g: {**batch, "image": colour_jitter(batch["image"], g, cfg)}
+
+    def augment(batch: dict, g: torch.Generator) -> dict:
+        if crop_hw is not None:
+            batch = crop_batch(batch, g, tuple(crop_hw), crop_object_prob)
+        return {**batch, "image": colour_jitter(batch["image"], g, cfg)} if cfg.enabled else batch
+
+    return augment
 
 
 def extra_state(cfg: PoseTrainConfig, classes: tuple[str, ...]) -> dict:
@@ -218,8 +238,9 @@ def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = Fa
     loss = PoseLoss(geometry, cfg.loss)
     torch.manual_seed(cfg.loop.seed)
     model = MaskRCNNPose(cfg.model, classes)
+    augment = make_augment(cfg.augment, cfg.crop_hw, cfg.crop_object_prob)
     result = train_loop(model, make_step_fn(loss), data, cfg.loop, Path(out_dir), collate_fn=detection_collate,
-                        augment=make_augment(cfg.augment), resume=resume, device=device, progress=progress,
+                        augment=augment, resume=resume, device=device, progress=progress,
                         extra_state=extra_state(cfg, classes))
     held_out = sorted((ds.splits.get("val") or []) + (ds.splits.get("test") or []))
     if held_out and not result.interrupted:

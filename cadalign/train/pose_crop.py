@@ -1,0 +1,93 @@
+"""Random training crops for the detection + pose network (pose-preserving).
+
+Small parts (valves ~20 px, hot stabs ~6-12 px at 640x480) shrink to a few pixels when a whole frame is
+resized to a fast 320x240 input, below what the stride-4 pyramid level and a 0.5 box-IoU match can resolve.
+Training instead on crops of the full-resolution frame keeps every part at the scale the network sees at
+inference (the network is fully convolutional, so it then runs on the whole frame) at the cost per step of
+the small input.
+
+A crop only moves the image origin: the camera centre and orientation stay, so ``R``, ``t`` are unchanged and
+``K``'s principal point shifts by the crop offset. Boxes are recomputed from the cropped visible masks;
+instances with no pixel left are dropped (partly cut ones stay, as at the image border; the pose loss leaves
+out RoIs whose object origin is far outside them, see ``PoseLossConfig.max_center_offset``).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+_PER_IMAGE = ("boxes", "labels", "masks", "R", "t", "obj_ids")
+
+
+def masks_to_boxes(masks: Tensor) -> Tensor:
+    """``(G, 4)`` float xyxy boxes (exclusive max, pixel edges) of ``(G, H, W)`` bool masks; all have pixels."""
+    if masks.shape[0] == 0:
+        return torch.zeros(0, 4)
+    rows, cols = masks.any(2), masks.any(1)
+    h, w = masks.shape[-2:]
+    ar_h = torch.arange(h, device=masks.device)
+    ar_w = torch.arange(w, device=masks.device)
+    y0 = torch.where(rows, ar_h, h).min(1).values
+    y1 = torch.where(rows, ar_h, -1).max(1).values + 1
+    x0 = torch.where(cols, ar_w, w).min(1).values
+    x1 = torch.where(cols, ar_w, -1).max(1).values + 1
+    return torch.stack([x0, y0, x1, y1], 1).float()
+
+
+def crop_origin(hw: tuple[int, int], crop_hw: tuple[int, int], boxes: Tensor, g: torch.Generator,
+                object_prob: float) -> tuple[int, int]:
+    """Top-left ``(y0, x0)`` of a crop: with ``object_prob`` one holding a random instance's box centre, else uniform.
+
+    Instances are drawn uniformly, so the many small parts are in most crops, not only the large structure.
+    """
+    h, w = hw
+    ch, cw = crop_hw
+    u = torch.rand(4, generator=g).tolist()
+    if len(boxes) and u[0] < object_prob:
+        b = boxes[min(int(u[1] * len(boxes)), len(boxes) - 1)]
+        cx, cy = float(b[0] + b[2]) / 2, float(b[1] + b[3]) / 2
+        # the centre lands uniformly inside the crop, then the crop is clamped into the image
+        x0, y0 = cx - u[2] * cw, cy - u[3] * ch
+    else:
+        x0, y0 = u[2] * (w - cw), u[3] * (h - ch)
+    return int(round(min(max(y0, 0.0), h - ch))), int(round(min(max(x0, 0.0), w - cw)))
+
+
+def crop_target(target: dict, y0: int, x0: int, crop_hw: tuple[int, int]) -> dict:
+    """One image's targets cropped to ``[y0, y0 + ch) x [x0, x0 + cw)``: masks, boxes, K; empty instances dropped."""
+    ch, cw = crop_hw
+    masks = target["masks"][:, y0:y0 + ch, x0:x0 + cw]
+    keep = torch.nonzero(masks.flatten(1).any(1)).squeeze(1)
+    out = {k: target[k][keep] for k in _PER_IMAGE if k != "masks"}
+    out["masks"] = masks[keep]
+    out["boxes"] = masks_to_boxes(out["masks"]).to(target["boxes"].dtype)
+    K = target["K"].clone()
+    K[0, 2] -= x0
+    K[1, 2] -= y0
+    out["K"] = K
+    return out
+
+
+def crop_batch(batch: dict, g: torch.Generator, crop_hw: tuple[int, int], object_prob: float = 0.8) -> dict:
+    """A :func:`cadalign.data.torch_datasets.detection_collate` batch with each image randomly cropped.
+
+    ``image`` (B, 3, H, W) -> (B, 3, ch, cw); the per-image lists follow (see :func:`crop_target`).
+
+    Raises:
+        ValueError: the crop is larger than the images.
+    """
+    h, w = batch["image"].shape[-2:]
+    ch, cw = crop_hw
+    if ch > h or cw > w:
+        raise ValueError(f"crop {crop_hw} is larger than the training images {(h, w)}; lower crop_hw")
+    if (ch, cw) == (h, w):
+        return batch
+    images, per = [], {k: [] for k in (*_PER_IMAGE, "K")}
+    for i in range(batch["image"].shape[0]):
+        target = {k: batch[k][i] for k in (*_PER_IMAGE, "K")}
+        y0, x0 = crop_origin((h, w), crop_hw, target["boxes"], g, object_prob)
+        images.append(batch["image"][i, :, y0:y0 + ch, x0:x0 + cw])
+        for k, v in crop_target(target, y0, x0, crop_hw).items():
+            per[k].append(v)
+    return {**batch, "image": torch.stack(images), **per}
