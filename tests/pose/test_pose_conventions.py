@@ -173,3 +173,24 @@ def test_pose_targets_are_those_of_the_roi_s_own_object():
     assert np.all(iou.max(1) >= 0.5)
     assert torch.equal(rois.t, t[best]) and torch.equal(rois.obj_ids, target["obj_ids"][best])
     assert torch.equal(rois.labels, target["labels"][best])
+
+
+def test_crop_augment_is_seeded_and_config_checked(pose_bop: Path):
+    from cadalign.config import from_dict
+    from cadalign.errors import ConfigError
+    from cadalign.train.augment import AugmentConfig
+    from cadalign.train.pose import PRESETS, PoseTrainConfig, make_augment
+
+    ds = locate_dataset(pose_bop)
+    data = DetectionPoseDataset(ds.scene_dir, ds.splits["train"][:2])
+    batch = detection_collate([data[0], data[1]])
+    aug = make_augment(AugmentConfig(enabled=False), (60, 80))
+    a = aug(batch, torch.Generator().manual_seed(5))
+    b = aug(batch, torch.Generator().manual_seed(5))
+    assert a["image"].shape == (2, 3, 60, 80) and torch.equal(a["image"], b["image"])
+    assert all(torch.equal(x, y) for x, y in zip(a["K"], b["K"], strict=True))
+    assert make_augment(AugmentConfig(enabled=False)) is None
+    with pytest.raises(ConfigError, match="crop_hw"):
+        from_dict(PoseTrainConfig, {"crop_hw": [500, 320]}, base=PRESETS["fast"])
+    with pytest.raises(ValueError, match="larger than the training images"):
+        crop_batch(batch, torch.Generator(), (200, 80))
