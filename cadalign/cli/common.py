@@ -45,9 +45,14 @@ def track(items: Iterable[T], description: str, total: int | None = None) -> Ite
 
 @contextlib.contextmanager
 def user_errors() -> Iterator[None]:
-    """Turn the project's errors into a one-line message and exit code 1 (no traceback)."""
+    """Turn the project's errors into a one-line message and exit code 1 (no traceback); Ctrl-C (SIGINT)
+    into a one-line note and exit code 130 (128 + SIGINT, the shell's convention)."""
     try:
         yield
     except CadalignError as exc:
         console.print(f"[bold red]error:[/] {exc}")
         raise typer.Exit(code=1) from None
+    except KeyboardInterrupt:
+        console.print("[bold yellow]interrupted:[/] finished work is kept on disk; "
+                      "re-run the same command to resume")
+        raise typer.Exit(code=130) from None

@@ -42,6 +42,8 @@ def _report(result: Any, out: Path) -> None:
     state = "interrupted (continue with --resume)" if result.interrupted else "done"
     console.print(f"[green]{state}: {result.steps_done} steps, last loss {result.final_loss:.4g}, "
                   f"{result.seconds:.0f} s -> {out}[/]")
+    if result.interrupted:  # a non-zero code, so `train ... && eval ...` does not go on with a half-trained net
+        raise typer.Exit(code=130)
 
 
 @app.command("seg")

@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from cadalign.cad.procedural import DEFAULT_SIZES_M, make_part, seabed
 from cadalign.errors import InputError
-from cadalign.sim.spec import ObjectSpec, SceneSpec, resolve_source
+from cadalign.sim.spec import ObjectSpec, SceneSpec, check_mesh_clearance, resolve_source
 from cadalign.types import Camera, Rigid3
 
 log = logging.getLogger(__name__)
@@ -103,6 +103,8 @@ def build_scene(spec: SceneSpec, scene_path: Path | None = None, *, width: int |
             SimObject(o.name, obj_id, spec.classes.index(o.class_name), models[obj_id],
                       pose_from_spec(o.position, o.rpy_deg), o.texture, o)
         )
+    check_mesh_clearance(spec, [(o.T_world_from_obj.apply(o.mesh.vertices), o.mesh.faces) for o in objects],
+                         str(scene_path) if scene_path is not None else "<scene>")
     bed = None
     if spec.seabed is not None:
         bed = seabed(spec.seabed.size_m, spec.seabed.relief_m, spec.seed)
