@@ -194,3 +194,25 @@ def test_crop_augment_is_seeded_and_config_checked(pose_bop: Path):
         from_dict(PoseTrainConfig, {"crop_hw": [500, 320]}, base=PRESETS["fast"])
     with pytest.raises(ValueError, match="larger than the training images"):
         crop_batch(batch, torch.Generator(), (200, 80))
+
+
+def test_pose_head_input_is_invariant_to_crops_and_resizes():
+    """The head sees the RoI in normalised camera coordinates: a crop or a 2x resize (K moving along) is no change."""
+    from cadalign.models.maskrcnn.pose_head import PoseHead
+
+    torch.manual_seed(0)
+    head = PoseHead(8, 14, 8, 16, 2, "thesis").eval()
+    torch.nn.init.normal_(head.out.weight, std=1.0)  # the head starts nearly constant
+    feats = torch.randn(1, 8, 14, 14)
+    K = torch.tensor([[[300.0, 0, 160], [0, 300, 120], [0, 0, 1]]])
+    box = torch.tensor([[100.0, 50, 140, 90]])
+    Kc = K.clone()
+    Kc[:, 0, 2] -= 30
+    Kc[:, 1, 2] -= 20
+    Ks = K.clone()
+    Ks[:, :2] *= 2
+    with torch.no_grad():
+        ref = head(feats, box, K)
+        assert torch.allclose(head(feats, box - torch.tensor([30.0, 20, 30, 20]), Kc), ref, atol=1e-6)
+        assert torch.allclose(head(feats, box * 2, Ks), ref, atol=1e-6)
+        assert not torch.allclose(head(feats, box + 40, K), ref, atol=1e-4)

@@ -79,13 +79,13 @@ def test_euler_matches_numpy_and_thesis_decode():
 def test_pose_head_starts_at_identity_and_is_class_specific():
     head = PoseHead(8, 14, 8, 16, num_classes=3, param="improved")
     with torch.no_grad():
-        raw = head(torch.randn(5, 8, 14, 14), torch.tensor([[0, 0, 10, 10.0]]).expand(5, 4), (48, 64))
+        raw = head(torch.randn(5, 8, 14, 14), torch.tensor([[0, 0, 10, 10.0]]).expand(5, 4), K.float().expand(5, 3, 3))
     assert raw.shape == (5, 3, 9)
     R, t = decode_pose(raw[:, 1], "improved", K.float().expand(5, 3, 3), torch.tensor([[0, 0, 10, 10.0]] * 5))
     allo = ego_to_allo(R, t)
     assert float(geodesic_angle(allo, torch.eye(3).expand(5, 3, 3)).max()) < 0.05
     thesis = PoseHead(8, 14, 8, 16, 2, "thesis")
-    assert thesis(torch.randn(2, 8, 14, 14), torch.zeros(2, 4), (48, 64)).shape == (2, 2, 6)
+    assert thesis(torch.randn(2, 8, 14, 14), torch.zeros(2, 4), K.float().expand(2, 3, 3)).shape == (2, 2, 6)
 
 
 def _geometry(sym: Symmetry) -> ObjectGeometry:

@@ -168,7 +168,8 @@ class MaskRCNNPose(nn.Module):
         pooled = self.mask_pool(feats[:4], self._rois(pos))
         losses["mask"] = mask_loss(self.mask_head(pooled), pos, targets)
         if pose_loss is not None:
-            raw = self.pose_head(pooled, pos.boxes, hw)[torch.arange(len(pos.labels)), pos.labels]
+            Ks = torch.stack([t["K"] for t in targets]).to(pos.boxes)[pos.image]
+            raw = self.pose_head(pooled, pos.boxes, Ks)[torch.arange(len(pos.labels)), pos.labels]
             losses.update(pose_loss(self._pose_rois(raw, pos, targets)))
         return losses
 
@@ -186,10 +187,13 @@ class MaskRCNNPose(nn.Module):
         return PoseRoIs(raw, pos.boxes, pos.labels, pick("obj_ids"), pick("R"), pick("t"), K, self.cfg.pose)
 
     @torch.no_grad()
-    def inference(self, images: Tensor, score_thresh: float = 0.05, paste: bool = True) -> list[dict]:
+    def inference(self, images: Tensor, score_thresh: float = 0.05, paste: bool = True,
+                  K: Tensor | None = None) -> list[dict]:
         """Per image: ``boxes`` (D, 4) px, ``scores``, ``labels``, ``mask_probs`` (D, 28, 28) of the RoI,
         ``masks`` (D, H, W) bool (when ``paste``), ``pose_raw`` (D, dims) of the predicted class — at the size
-        of ``images``. Seconds per stage (detector, mask, pose) are left in ``self.last_timings``."""
+        of ``images``. ``K`` (N, 3, 3) are the intrinsics of ``images`` (the pose head sees the RoIs in
+        normalised camera coordinates); None stands for ``fx = W, fy = H`` and the principal point at the image
+        centre. Seconds per stage (detector, mask, pose) are left in ``self.last_timings``."""
         t0 = time.perf_counter()
         feats = self._features(images)
         hw = (images.shape[-2], images.shape[-1])
@@ -204,7 +208,11 @@ class MaskRCNNPose(nn.Module):
         t1 = time.perf_counter()
         probs = torch.sigmoid(self.mask_head(pooled))[rows, labels]
         t2 = time.perf_counter()
-        pose = self.pose_head(pooled, torch.cat(boxes), hw)[rows, labels]
+        if K is None:
+            h, w = hw
+            K = images.new_tensor([[w, 0.0, w / 2], [0.0, h, h / 2], [0.0, 0.0, 1.0]]).expand(len(images), 3, 3)
+        K_rois = torch.cat([K[i].to(images).expand(len(b), 3, 3) for i, b in enumerate(boxes)])
+        pose = self.pose_head(pooled, torch.cat(boxes), K_rois)[rows, labels]
         t3 = time.perf_counter()
         out, start = [], 0
         for b, s, lab in dets:
@@ -242,7 +250,7 @@ class MaskRCNNPose(nn.Module):
         scale = torch.tensor([w / w0, h / h0, 1.0], dtype=torch.float32, device=dev)
         K_net = scale[:, None] * K.to(dev, torch.float32)
         t0 = time.perf_counter()
-        res = self.inference(x, score_thresh=score_thresh, paste=False)[0]
+        res = self.inference(x, score_thresh=score_thresh, paste=False, K=K_net[None])[0]
         timings = dict(self.last_timings)
         timings["detector"] += t0 - t_start  # the resize
         n = len(res["boxes"])

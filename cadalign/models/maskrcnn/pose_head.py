@@ -98,10 +98,11 @@ def decode_pose(raw: Tensor, param: PoseParam, K: Tensor, boxes: Tensor) -> tupl
 
 
 class PoseHead(nn.Module):
-    """Convs on the RoI features + the normalised RoI box -> class-specific raw pose ``(R, C, D)``.
+    """Convs on the RoI features + the RoI box in normalised camera coordinates -> raw pose ``(R, C, D)``.
 
-    The RoI box (divided by the image size) is appended to the FC input so the ``thesis`` head, which
-    regresses absolute translations, can know where the RoI is in the image.
+    The RoI box ``((x - cx) / fx, (y - cy) / fy)`` of both corners is appended to the FC input so the ``thesis``
+    head, which regresses absolute translations, knows the RoI's viewing ray and angular size. These are
+    independent of image crops and resizes (K moves with them), unlike pixel positions divided by the image size.
     """
 
     def __init__(self, channels: int, pool: int, width: int, rep: int, num_classes: int, param: PoseParam) -> None:
@@ -126,9 +127,11 @@ class PoseHead(nn.Module):
         with torch.no_grad():
             self.out.bias.copy_(bias.reshape(-1))
 
-    def forward(self, feats: Tensor, boxes: Tensor, image_hw: tuple[int, int]) -> Tensor:
-        h, w = image_hw
-        geo = boxes / boxes.new_tensor([w, h, w, h])
+    def forward(self, feats: Tensor, boxes: Tensor, K: Tensor) -> Tensor:
+        """``feats`` (R, C, P, P) RoI features, ``boxes`` (R, 4) px and ``K`` (R, 3, 3) of the image the RoIs are in."""
+        f = torch.stack([K[:, 0, 0], K[:, 1, 1], K[:, 0, 0], K[:, 1, 1]], 1)
+        c = torch.stack([K[:, 0, 2], K[:, 1, 2], K[:, 0, 2], K[:, 1, 2]], 1)
+        geo = (boxes - c) / f
         x = self.convs(feats).flatten(1)
         x = F.relu(self.fc2(F.relu(self.fc1(torch.cat([x, geo], 1)))))
         return self.out(x).view(-1, self.num_classes, self.dims)
