@@ -76,7 +76,9 @@ def _build_stage(sim_dir: Path, scene: Path, out: Path, progress: Any) -> dict:
 
     t0 = time.perf_counter()
     try:
-        build_dataset(sim_dir / "frames", scene, out, preset="balanced", gt=sim_dir, progress=progress)
+        # the simulated ROV camera's calibration, as a real survey would pass its underwater calibration
+        build_dataset(sim_dir / "frames", scene, out, preset="balanced", gt=sim_dir, progress=progress,
+                      calib=sim_dir / "calibration.json")
     except AlignmentError as exc:
         return {"status": "failed (alignment gate)", "dir": "build", "error": str(exc),
                 "seconds": round(time.perf_counter() - t0, 2)}

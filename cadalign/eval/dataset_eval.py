@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from cadalign.data.bop import BopScene
-from cadalign.eval.dataset_metrics import depth_errors, mask_iou, pose_errors, sim3_errors
+from cadalign.eval.dataset_metrics import boundary_offset_px, depth_errors, mask_iou, pose_errors, sim3_errors
 from cadalign.eval.report import CSS, table
 from cadalign.geometry import umeyama
 from cadalign.io import read_image, read_json, write_text
@@ -65,6 +65,7 @@ def evaluate_against_sim(
     depth_rows = {"cad_depth": [], "sfm_depth": []}
     agg: dict[str, dict[str, list[float]]] = {k: {"coverage": [], "abs_rel": [], "delta1": []} for k in depth_rows}
     ious: dict[str, list[float]] = {}
+    offsets: dict[str, list[tuple[float, float]]] = {}
     rot_err, trans_err = [], []
     names = [o.name for o in structure.objects]
     for k, name in frame_names.items():
@@ -81,7 +82,9 @@ def evaluate_against_sim(
             if t_frame.info[g]["px_count_visib"] < 50 or obj not in b_index:
                 continue
             gb = b_index[obj]
-            ious.setdefault(names[obj], []).append(mask_iou(truth.mask(sim_id, g), built.mask(k, gb)))
+            true_mask, built_mask = truth.mask(sim_id, g), built.mask(k, gb)
+            ious.setdefault(names[obj], []).append(mask_iou(true_mask, built_mask))
+            offsets.setdefault(names[obj], []).append(boundary_offset_px(true_mask, built_mask))
             r, t = pose_errors(b_frame.instances[gb].T_cam_from_obj, t_frame.instances[g].T_cam_from_obj)
             rot_err.append(r)
             trans_err.append(t)
@@ -94,6 +97,12 @@ def evaluate_against_sim(
         "mask_visib_iou": {
             "all": _summary(all_iou),
             "per_part_median": {n: float(np.median(v)) for n, v in ious.items()},
+        },
+        # IoU punishes thin parts: the same outline error in pixels, and each part's mean width
+        "mask_visib_boundary_offset_px": {
+            "all": _summary([d for vals in offsets.values() for d, _ in vals]),
+            "per_part_median": {n: float(np.median([d for d, _ in v])) for n, v in offsets.items()},
+            "part_width_px_median": {n: float(np.median([w for _, w in v])) for n, v in offsets.items()},
         },
         "pose_in_camera": {"rotation_deg": _summary(rot_err), "translation_m": _summary(trans_err)},
         "frames_compared": len(frame_names),

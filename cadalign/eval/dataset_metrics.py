@@ -34,6 +34,27 @@ def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.logical_and(a, b).sum() / union) if union else 1.0
 
 
+def boundary_offset_px(truth: np.ndarray, est: np.ndarray) -> tuple[float, float]:
+    """(outline offset, mean width) of a mask ``est`` against ``truth``, both in pixels.
+
+    The offset is the area where the masks disagree divided by the true outline's length (its boundary
+    pixels): how far, on average, the estimated outline lies from the true one. A shift or growth of one
+    pixel all round reads ~1 whatever the part's size, whereas IoU punishes thin parts: a part 3 px wide
+    loses IoU 0.2 to an outline a third of a pixel off, a large one keeps 0.99. The width is ``2 A / P``
+    of the true mask. (nan, 0) for an empty ``truth``.
+    """
+    m, e = np.asarray(truth, dtype=bool), np.asarray(est, dtype=bool)
+    inner = m.copy()
+    inner[1:] &= m[:-1]
+    inner[:-1] &= m[1:]
+    inner[:, 1:] &= m[:, :-1]
+    inner[:, :-1] &= m[:, 1:]
+    perimeter = float((m & ~inner).sum())
+    if perimeter == 0:
+        return float("nan"), 0.0
+    return float((m ^ e).sum()) / perimeter, 2 * float(m.sum()) / perimeter
+
+
 def pose_errors(est: Rigid3, true: Rigid3) -> tuple[float, float]:
     """(rotation error in degrees, translation error in metres) between two poses."""
     return float(np.degrees(geodesic_angle(est.R, true.R))), float(np.linalg.norm(est.t - true.t))
