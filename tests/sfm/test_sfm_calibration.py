@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 import pytest
+from sfm_synthetic import synthetic_model
 
 from cadalign.errors import InputError
 from cadalign.eval.sfm_metrics import pose_errors
@@ -31,15 +32,7 @@ def _ba(rec: pycolmap.Reconstruction, refine_focal: bool) -> None:
 @pytest.fixture()
 def long_focal_model(tmp_path: Path) -> tuple[pycolmap.Reconstruction, pycolmap.Reconstruction]:
     """(truth, a model adjusted to a focal length 2 % too long, as self-calibration on a critical motion gives)."""
-    opts = pycolmap.SyntheticDatasetOptions()
-    opts.num_rigs, opts.num_frames_per_rig, opts.num_points3D = 1, 8, 300
-    opts.camera_width, opts.camera_height = 320, 240
-    opts.camera_model_id = pycolmap.CameraModelId.SIMPLE_RADIAL
-    opts.camera_params = [300.0, 160.0, 120.0, 0.0]
-    opts.inlier_match_ratio = 1.0
-    pycolmap.set_random_seed(5)
-    with pycolmap.Database.open(tmp_path / "database.db") as db:
-        truth = pycolmap.synthesize_dataset(opts, db)
+    truth = synthetic_model(tmp_path / "database.db", frames=8, points=300, seed=5)
     wrong = pycolmap.Reconstruction(truth)
     for cam in wrong.cameras.values():
         cam.params = [306.0, 160.0, 120.0, 0.0]

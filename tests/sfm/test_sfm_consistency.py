@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
+from sfm_synthetic import synthetic_model
 
 from cadalign.sfm.consistency import Break, Consistency, keep_largest_piece, pieces, sampson_px, sequence_consistency
 
@@ -51,16 +52,8 @@ def test_pieces_partition_the_registered_frames(cut_at: list[int], unregistered:
 @pytest.fixture()
 def synthetic(tmp_path: Path) -> tuple[pycolmap.Reconstruction, Path, list[str]]:
     """A pycolmap synthetic model (8 frames) and its database of exact verified matches."""
-    opts = pycolmap.SyntheticDatasetOptions()
-    opts.num_rigs, opts.num_frames_per_rig, opts.num_points3D = 1, 8, 400
-    opts.camera_width, opts.camera_height = 320, 240
-    opts.camera_model_id = pycolmap.CameraModelId.SIMPLE_RADIAL
-    opts.camera_params = [300.0, 160.0, 120.0, 0.0]
-    opts.inlier_match_ratio = 1.0
-    pycolmap.set_random_seed(3)
     db_path = tmp_path / "database.db"
-    with pycolmap.Database.open(db_path) as db:
-        rec = pycolmap.synthesize_dataset(opts, db)
+    rec = synthetic_model(db_path, frames=8, points=400, seed=3)
     names = sorted(im.name for im in rec.images.values())
     return rec, db_path, names
 
