@@ -47,7 +47,8 @@ from cadalign.train.checkpoint import (
 
 log = logging.getLogger(__name__)
 
-__all__ = ["LoopConfig", "StepFn", "TrainResult", "check_finite_batch", "stream_indices", "train_loop"]
+__all__ = ["LoopConfig", "StepFn", "TrainResult", "augment_seed", "check_finite_batch", "is_main_rank",
+           "stream_indices", "train_loop"]
 
 
 @dataclass(frozen=True)
@@ -98,6 +99,19 @@ class TrainResult:
     """Wall time of this call."""
     interrupted: bool
     """True when stopped by KeyboardInterrupt/SIGTERM (a checkpoint was written)."""
+
+
+def augment_seed(seed: int, step: int, rank: int) -> int:
+    """Seed of the augmentation generator of ``step`` on DDP ``rank``: each rank augments its own slice of the
+    batch, so the ranks must draw differently (rank 0 keeps the single-process seed)."""
+    return seed * 7_919 + step * 104_729 + 1 + rank * 15_485_863
+
+
+def is_main_rank() -> bool:
+    """True outside DDP and on rank 0: the process that writes run files."""
+    import torch.distributed as dist
+
+    return not (dist.is_available() and dist.is_initialized()) or dist.get_rank() == 0
 
 
 def _lr_lambda(cfg: LoopConfig) -> Callable[[int], float]:
@@ -295,7 +309,7 @@ def train_loop(model: nn.Module, step_fn: StepFn, dataset: Dataset, cfg: LoopCon
                 _after_step(run, loss_v, metrics, val_fn, val_every)
                 if progress is not None:
                     progress(run.step, cfg.steps, {"loss": loss_v, **metrics})
-                if flag["stop"]:
+                if flag["stop"] if world == 1 else _any_rank(flag["stop"], dev):  # all ranks stop at one step
                     interrupted = True
                     break
         except KeyboardInterrupt:
@@ -304,7 +318,20 @@ def train_loop(model: nn.Module, step_fn: StepFn, dataset: Dataset, cfg: LoopCon
         log.warning("interrupted at step %d: checkpoint written, continue with --resume", run.step)
     run.save(numbered=False)
     run.write_metrics(plot=True)
+    if world > 1:  # no rank returns (and may resume) before rank 0 has written the last checkpoint
+        import torch.distributed as dist
+
+        dist.barrier()
     return TrainResult(Path(run_dir), run.step, loss_v, time.perf_counter() - t0, interrupted)
+
+
+def _any_rank(flag: bool, dev: torch.device) -> bool:
+    """Whether ``flag`` is set on any DDP rank (a signal may reach the ranks between different steps)."""
+    import torch.distributed as dist
+
+    t = torch.tensor([1.0 if flag else 0.0], device=dev)
+    dist.all_reduce(t)
+    return bool(t.item() > 0)
 
 
 def _one_step(run: _Run, step_fn: StepFn, batch: dict, dev: torch.device,
@@ -313,7 +340,7 @@ def _one_step(run: _Run, step_fn: StepFn, batch: dict, dev: torch.device,
     check_finite_batch(batch, run.step)
     batch = _to_device(batch, dev)
     if augment is not None:
-        g = torch.Generator(device=dev).manual_seed(cfg.seed * 7_919 + run.step * 104_729 + 1)
+        g = torch.Generator(device=dev).manual_seed(augment_seed(cfg.seed, run.step, run.rank))
         batch = augment(batch, g)
     use_amp = cfg.amp and (dev.type == "cpu" or (dev.type == "cuda" and torch.cuda.is_bf16_supported()))
     with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=use_amp):

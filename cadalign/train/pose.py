@@ -35,7 +35,7 @@ from cadalign.io import prepare_stage_dir, read_json, write_json
 from cadalign.models.maskrcnn.detector import MODEL_KIND, MaskRCNNConfig, MaskRCNNPose
 from cadalign.train.augment import AugmentConfig, colour_jitter
 from cadalign.train.data import select
-from cadalign.train.loop import LoopConfig, TrainResult, train_loop
+from cadalign.train.loop import LoopConfig, TrainResult, is_main_rank, train_loop
 from cadalign.train.pose_crop import crop_batch
 from cadalign.train.pose_losses import ObjectGeometry, PoseLoss, PoseLossConfig
 
@@ -243,7 +243,7 @@ def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = Fa
                         augment=augment, resume=resume, device=device, progress=progress,
                         extra_state=extra_state(cfg, classes))
     held_out = sorted((ds.splits.get("val") or []) + (ds.splits.get("test") or []))
-    if held_out and not result.interrupted:
+    if held_out and not result.interrupted and is_main_rank():  # under DDP rank 0 scores and writes
         from cadalign.train.pose_eval import evaluate
 
         model.eval()

@@ -54,3 +54,13 @@ def local_build(scale_capture: tuple[Path, Path], tmp_path_factory: pytest.TempP
     write_json(out / "picks.json", {"pairs": [{"sfm": s.tolist(), "cad_m": c.tolist()}
                                               for s, c in zip(sfm_pts, cad_pts, strict=True)]})
     return build_dataset(sim / "frames", spec, out, preset="fast", picks=out / "picks.json")
+
+
+@pytest.fixture(scope="session")
+def ddp_scene(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> Path:
+    """The BOP scene folder of a 6-frame effect-free 160x120 simulation (models in ../../models)."""
+    from cadalign.sim.run import SCENE_SUBDIR, simulate
+
+    root = tmp_path_factory.mktemp("ddp")
+    spec = write_tiny_scene(root / "tiny.toml", effects=[], frames=6)
+    return simulate(spec, root / "sim", video=False, contact_sheet=False) / SCENE_SUBDIR
