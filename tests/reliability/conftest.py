@@ -29,4 +29,7 @@ def _write_catalogue() -> object:
     yield
     target = os.environ.get("CADALIGN_BAD_INPUT_TABLE")
     if target and CATALOGUE:
-        Path(target).write_text(markdown_table(CATALOGUE), encoding="utf-8")
+        head = ("# Bad inputs -> what the user sees\n\nWritten by the reliability tests (each row is a test that ran "
+                "the input and checked the message):\n`CADALIGN_BAD_INPUT_TABLE=THIS_FILE .venv/bin/python -m pytest "
+                "tests/reliability -m 'slow or not slow' -n 0 -p no:cacheprovider`\n\n")
+        Path(target).write_text(head + markdown_table(CATALOGUE), encoding="utf-8")

@@ -79,6 +79,16 @@ def interrupt_when(cmd: list[str], cwd: Path, ready: Callable[[], bool], *, time
             p.wait()
 
 
+def record_interrupt(stage: str, what: str, stopped: Stopped) -> str:
+    """Add the user's view of an interrupt (the note's line of stderr, the exit code) to the bad-input catalogue."""
+    from reliability_testdata import CATALOGUE
+
+    lines = [" ".join(ln.split()) for ln in stopped.stderr.splitlines() if "interrupted" in ln]
+    assert lines, stopped.stderr[-2000:]
+    CATALOGUE.append((stage, what, f"exit {stopped.returncode}", lines[-1]))
+    return lines[-1]
+
+
 def tree_digest(root: Path, skip: Callable[[Path], bool] = lambda p: False) -> dict[str, str]:
     """Relative path -> sha256 of every file under ``root`` (``skip(relative path)`` leaves one out)."""
     root = Path(root)

@@ -15,6 +15,7 @@ from signal_testdata import (
     assert_no_torn_files,
     cadalign,
     interrupt_when,
+    record_interrupt,
     run_to_end,
     tree_digest,
 )
@@ -77,6 +78,7 @@ def test_build_dataset_sigint_mid_render_then_rerun_equals_an_uninterrupted_buil
     assert stopped.seconds_to_exit < 20
     assert "interrupted:" in stopped.stderr and INTERRUPT_NOTE in stopped.stderr
     assert "Traceback" not in stopped.stderr
+    record_interrupt("build-dataset", "Ctrl-C (SIGINT) while rendering frames", stopped)
     done = sorted((scene / "frames_json").glob("*.json"))
     assert 3 <= len(done) < BUILD_FRAMES, "the signal did not land mid-render"
     assert not (build_case / "cut" / "build_report.json").exists()
@@ -136,6 +138,7 @@ def test_train_seg_sigint_then_resume_equals_an_uninterrupted_run(tiny_bop: Path
     assert stopped.returncode == 130, stopped.stderr[-2000:]
     assert stopped.seconds_to_exit < 30
     assert "interrupted (continue with --resume)" in stopped.stderr and "Traceback" not in stopped.stderr
+    record_interrupt("train seg", "Ctrl-C (SIGINT) mid-training", stopped)
     cut_rows = read_json(tmp_path / "cut" / "metrics.json")["rows"]
     assert 4 <= cut_rows[-1]["step"] < 24, "the signal did not land mid-training"
     assert_no_torn_files(tmp_path / "cut")
@@ -150,3 +153,25 @@ def test_train_seg_sigint_then_resume_equals_an_uninterrupted_run(tiny_bop: Path
     again = run_to_end(cmd("cut", "--resume"), tmp_path)  # finished: nothing more to do
     assert json.loads((tmp_path / "cut" / "metrics.json").read_text())["rows"][-1]["step"] == 24
     assert again.returncode == 0
+
+
+@pytest.mark.slow
+def test_sim_sigint_then_rerun_equals_an_uninterrupted_run(tmp_path: Path, shared_data: Path) -> None:
+    """``cadalign sim``: SIGINT once three frames are written, exit 130; the re-run renders only the rest and
+    every file (frames, BOP ground truth, contact sheet) is byte-identical to an uninterrupted run's; only
+    sim_report.json's timings differ. (Slow: three simulator start-ups, ~30 s on a loaded 2-core machine.)"""
+    write_tiny_scene(tmp_path / "tiny.toml", effects=["attenuation", "backscatter", "marine_snow"], frames=8)
+    run_to_end(cadalign("sim", "tiny.toml", "--out", "ref", "--no-video"), tmp_path)
+    stopped = interrupt_when(cadalign("sim", "tiny.toml", "--out", "cut", "--no-video"), tmp_path,
+                             lambda: (tmp_path / "cut" / "frames" / "000002.png").is_file())
+    assert stopped.returncode == 130 and INTERRUPT_NOTE in stopped.stderr, stopped.stderr[-2000:]
+    assert stopped.seconds_to_exit < 20
+    record_interrupt("sim", "Ctrl-C (SIGINT) while rendering frames", stopped)
+    assert 3 <= len(list((tmp_path / "cut" / "frames").glob("*.png"))) < 8
+    assert not (tmp_path / "cut" / "sim_report.json").exists()
+    assert_no_torn_files(tmp_path / "cut")
+    run_to_end(cadalign("sim", "tiny.toml", "--out", "cut", "--no-video"), tmp_path)
+    ref, cut = (tree_digest(tmp_path / d, skip=lambda p: p.name == "sim_report.json") for d in ("ref", "cut"))
+    assert len(ref) > 50 and ref == cut
+    report = read_json(tmp_path / "cut" / "sim_report.json")
+    assert 0 < report["frames_rendered_this_run"] <= 5
