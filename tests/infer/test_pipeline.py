@@ -103,3 +103,22 @@ def test_no_predictions_score_zero(scene: Path) -> None:
                          PoseEvalConfig(), [0])
     assert rep["detection"]["tp"] == 0 and rep["detection"]["fn"] > 0 and rep["detection"]["f1"] == 0.0
     assert rep["overall"]["ar_mssd"] == 0.0 and rep["overall"]["t_err_m"]["n"] == 0
+
+
+def test_min_box_side_makes_small_targets_dont_care(scene: Path) -> None:
+    """GT boxes with a shorter side under ``min_box_side_px`` are neither misses nor hits."""
+    cmap = load_class_map(scene)
+    models = load_bop_models(scene.parent.parent / "models")
+    gts = [g for g in gt_instances(BopScene(scene), 0, cmap.class_of_obj) if cmap.names[g.label] != "structure"
+           and g.visib_fract >= 0.1]
+    sides = sorted(min(g.box_xyxy[2] - g.box_xyxy[0], g.box_xyxy[3] - g.box_xyxy[1]) for g in gts)
+    assert len(sides) >= 2 and sides[0] < sides[-1]
+    cut = (sides[0] + sides[-1]) / 2
+    big = [g for g in gts if min(g.box_xyxy[2] - g.box_xyxy[0], g.box_xyxy[3] - g.box_xyxy[1]) >= cut]
+    preds = [PosePrediction(0, g.label, 1.0, g.box_xyxy, g.T_cam_from_obj) for g in big]
+    strict = evaluate_scene(preds, scene, models, cmap.names, cmap.class_of_obj, PoseEvalConfig(), [0])
+    assert strict["detection"]["fn"] == len(gts) - len(big) > 0
+    cfg = PoseEvalConfig(min_box_side_px=cut)
+    rep = evaluate_scene(preds, scene, models, cmap.names, cmap.class_of_obj, cfg, [0])
+    assert rep["detection"]["fn"] == 0 and rep["detection"]["tp"] == len(big) and rep["detection"]["f1"] == 1.0
+    assert rep["config"]["min_box_side_px"] == cut
