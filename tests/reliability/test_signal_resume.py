@@ -21,6 +21,7 @@ from signal_testdata import (
 )
 from sim_testdata import write_tiny_scene
 
+from cadalign.errors import InputError
 from cadalign.io import read_json, write_json
 
 BUILD_SCENE_EDITS = (  # the capture of tests/build: a closer orbit round a bigger block (SfM points on it)
@@ -175,3 +176,38 @@ def test_sim_sigint_then_rerun_equals_an_uninterrupted_run(tmp_path: Path, share
     assert len(ref) > 50 and ref == cut
     report = read_json(tmp_path / "cut" / "sim_report.json")
     assert 0 < report["frames_rendered_this_run"] <= 5
+
+
+def _bench_points(path: Path) -> dict[str, dict]:
+    try:
+        return read_json(path)["stages"]["emulate"]["points"]
+    except (InputError, KeyError):  # not written yet, or no setting finished yet
+        return {}
+
+
+@pytest.mark.slow
+def test_bench_sigint_then_rerun_keeps_finished_settings_and_equals_an_uninterrupted_run(tmp_path: Path,
+                                                                                         shared_data: Path) -> None:
+    """``cadalign bench emulate --size tiny``: SIGINT once one setting is saved, exit 130 with bench.json whole;
+    the re-run measures only the missing settings (the finished ones keep their records) and every setting's
+    accuracy and deterministic metrics equal an uninterrupted run's (timings are measurements and differ)."""
+    def cmd(out: str) -> list[str]:
+        return cadalign("bench", "emulate", "--size", "tiny", "--out", out)
+
+    run_to_end(cmd("ref"), tmp_path)
+    stopped = interrupt_when(cmd("cut"), tmp_path, lambda: len(_bench_points(tmp_path / "cut" / "bench.json")) >= 1)
+    assert stopped.returncode == 130 and INTERRUPT_NOTE in stopped.stderr, stopped.stderr[-2000:]
+    record_interrupt("bench", "Ctrl-C (SIGINT) between benchmark settings", stopped)
+    kept = _bench_points(tmp_path / "cut" / "bench.json")
+    assert_no_torn_files(tmp_path / "cut")
+    ref = _bench_points(tmp_path / "ref" / "bench.json")
+    assert 1 <= len(kept) < len(ref) == 5, "the signal did not land mid-sweep"
+    run_to_end(cmd("cut"), tmp_path)
+    cut = _bench_points(tmp_path / "cut" / "bench.json")
+    assert {k: cut[k] for k in kept} == kept  # finished settings were not measured again
+    assert cut.keys() == ref.keys()
+    for k in ref:
+        assert cut[k]["status"] == ref[k]["status"] == "done"
+        assert cut[k]["accuracy"] == ref[k]["accuracy"]
+        assert {m: cut[k]["metrics"][m] for m in ("gap_m", "returns", "rays")} == \
+            {m: ref[k]["metrics"][m] for m in ("gap_m", "returns", "rays")}
