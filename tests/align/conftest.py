@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from align_testdata import SyntheticCloud, make_cloud, structure_parts
 
@@ -54,3 +56,11 @@ def default_scene(shared_data):
     scene_parts, seabed = default_scene_parts()
     sfm_from_cad = Sim3(20.0, random_rotation(rng), rng.uniform(-100, 100, 3))
     return scene_parts, make_scene_cloud(0, scene_parts, seabed, sfm_from_cad=sfm_from_cad)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """A RuntimeWarning (NaN, inf, overflow, divide by zero) fails the tests of this folder (issue 11)."""
+    here = Path(__file__).parent
+    for item in items:
+        if here in item.path.parents:
+            item.add_marker(pytest.mark.filterwarnings("error::RuntimeWarning"))

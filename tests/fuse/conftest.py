@@ -24,3 +24,11 @@ def fuse_sim(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> Pat
 def small_cfg() -> FuseConfig:
     """3 cm voxels (the tiny scene's pixels are ~3 cm on the structure), a small initial grid."""
     return FuseConfig(voxel_m=0.03, block_count=2000, depth_max_m=12.0)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """A RuntimeWarning (NaN, inf, overflow, divide by zero) fails the tests of this folder (issue 11)."""
+    here = Path(__file__).parent
+    for item in items:
+        if here in item.path.parents:
+            item.add_marker(pytest.mark.filterwarnings("error::RuntimeWarning"))
