@@ -45,6 +45,10 @@ class FuseConfig:
     label_band_voxels: float = bounded(2.0, gt=0)
     """Voxels within +-band/2 of the observed surface (along the ray) get the label update; at most
     ``trunc_voxels`` (the update is only ever applied where |sdf| < trunc/2)."""
+    label_lookup: Literal["frustum", "reference"] = "frustum"
+    """How the label update finds the voxel of each sample: ``frustum`` looks its block up in a dense table of
+    the blocks this frame touched (fast); ``reference`` asks Open3D's hash map once per sample (the first
+    implementation, the baseline of ``bench_fuse``). Both update the same voxels with the same values."""
     label_pixel_stride: int = bounded(1, ge=1)
     """Use every n-th pixel (in both directions) for the label update (speed knob; 1 = every pixel)."""
     pred_depth_foreground_only: bool = True

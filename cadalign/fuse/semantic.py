@@ -34,15 +34,19 @@ def bayes_update(stored: np.ndarray, obs_log_probs: np.ndarray, log_floor: float
     (float32): the largest entry of each row is 0 and every entry is >= ``log_floor``; ``softmax`` gives the
     probabilities. (NumPy, column by column: with few classes this is ~10x faster than a row-wise max.)
     """
-    post = np.add(stored, obs_log_probs, dtype=np.float32)
+    return renormalise(np.add(stored, obs_log_probs, dtype=np.float32), log_floor)
+
+
+def renormalise(post: np.ndarray, log_floor: float) -> np.ndarray:
+    """In place: subtract each row's largest entry from an (N, C) float32 array, then floor it at ``log_floor``."""
     post -= reduce(np.maximum, (post[:, c] for c in range(post.shape[1])))[:, None]
     return np.maximum(post, np.float32(log_floor), out=post)
 
 
 def clamped_log_probs(probs: np.ndarray, min_prob: float) -> np.ndarray:
     """(N, C) float32 log of probabilities clamped to ``[min_prob, 1]`` (non-finite inputs count as ``min_prob``)."""
-    p = np.nan_to_num(np.asarray(probs, dtype=np.float32), nan=min_prob, posinf=1.0, neginf=min_prob)
-    np.clip(p, min_prob, 1.0, out=p)
+    p = np.fmax(np.asarray(probs, dtype=np.float32), np.float32(min_prob))  # fmax maps NaN to min_prob
+    np.fmin(p, np.float32(1.0), out=p)
     return np.log(p, out=p)
 
 

@@ -34,7 +34,15 @@ from cadalign.fuse.base import (
     require_valid_depth,
 )
 from cadalign.fuse.config import FuseConfig
-from cadalign.fuse.semantic import bayes_update, clamped_log_probs, gather_rows, scatter_rows
+from cadalign.fuse.semantic import bayes_update, clamped_log_probs, gather_rows, renormalise, scatter_rows
+from cadalign.fuse.tsdf_labels import (
+    Rays,
+    band_offsets,
+    band_pixels,
+    frame_blocks,
+    sample_voxels,
+    split_blocks,
+)
 from cadalign.types import Rigid3
 
 log = logging.getLogger(__name__)
@@ -72,6 +80,7 @@ class SemanticTSDF:
         self.seconds = {"tsdf": 0.0, "labels": 0.0}
         self.res = int(cfg.block_resolution)
         self.vbg = self._new_grid(int(cfg.block_count))
+        self._rays: Rays | None = None  # per-pixel ray slopes of the last camera (frustum label lookup)
 
     def _new_grid(self, capacity: int):  # -> o3d.t.geometry.VoxelBlockGrid
         o3d = require_open3d()
@@ -108,23 +117,34 @@ class SemanticTSDF:
         rgb = frame.rgb if frame.rgb is not None else np.full((*depth.shape, 3), 128, np.uint8)
         cimg = o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(rgb, dtype=np.float32) / 255.0))
         dmax, mult = float(cfg.depth_max_m), float(cfg.trunc_voxels)
+        capped = self.frames_integrated + 1 > cfg.weight_cap  # weights grow by <= 1 a frame: nothing to cap before
         coords = self.vbg.compute_unique_block_coordinates(dimg, Kt, E, 1.0, dmax, mult)
-        hm = self.vbg.hashmap()
-        buf, new = hm.activate(coords)
-        if new.numpy().any():  # fresh blocks: start empty and uniform whatever the allocator left there
-            fresh = buf.numpy()[new.numpy()].astype(np.int64)
+        self._activate(coords)
+        # integrate() activates the blocks again and may grow (rehash) the table: look rows up after it
+        self.vbg.integrate(coords, dimg, cimg, Kt, E, 1.0, dmax, mult)
+        if capped:
+            rows = self.vbg.hashmap().find(coords)[0].numpy().astype(np.int64)
+            weight = _view(self.vbg.attribute("weight"))
+            weight[rows] = np.minimum(weight[rows], np.float32(cfg.weight_cap))
+        t1 = time.perf_counter()
+        plan = self._plan_frustum(frame, mask, coords.numpy()) if cfg.label_lookup == "frustum" else None
+        if plan is not None:
+            self._apply_labels(frame, *plan)
+        else:
+            self._update_labels(frame, mask)
+        t2 = time.perf_counter()
+        self.seconds["tsdf"] += t1 - t0
+        self.seconds["labels"] += t2 - t1
+        self.frames_integrated += 1
+
+    def _activate(self, coords) -> None:  # noqa: ANN001 - an (N, 3) int32 open3d.core.Tensor
+        """Insert the blocks; fresh ones start empty and uniform whatever the allocator left there."""
+        buf, new = self.vbg.hashmap().activate(coords)
+        new = new.numpy()
+        if new.any():
+            fresh = buf.numpy()[new].astype(np.int64)
             for name in ATTRS:
                 _view(self.vbg.attribute(name))[fresh] = 0.0
-        self.vbg.integrate(coords, dimg, cimg, Kt, E, 1.0, dmax, mult)
-        if self.frames_integrated + 1 > cfg.weight_cap:  # weights grow by <= 1 a frame: nothing to cap before
-            touched = hm.find(coords)[0].numpy().astype(np.int64)
-            weight = _view(self.vbg.attribute("weight"))
-            weight[touched] = np.minimum(weight[touched], np.float32(cfg.weight_cap))
-        t1 = time.perf_counter()
-        self._update_labels(frame, mask)
-        self.seconds["tsdf"] += t1 - t0
-        self.seconds["labels"] += time.perf_counter() - t1
-        self.frames_integrated += 1
 
     def _surface_samples(self, frame: FuseFrame, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         """Voxel indices (n P, 3) int32 of samples with |sdf| < label_band/2 <= trunc/2 (offset-major: the n
@@ -175,6 +195,50 @@ class SemanticTSDF:
             flat, obs = flat[ok], obs[ok]
         label = _view(self.vbg.attribute("label")).reshape(-1, self.n_classes)
         scatter_rows(label, flat, bayes_update(gather_rows(label, flat), obs, self.cfg.label_log_floor))
+
+    def _plan_frustum(self, frame: FuseFrame, mask: np.ndarray, open3d_keys: np.ndarray):  # noqa: ANN202
+        """The label samples of :meth:`_surface_samples` (same voxels, same float32 arithmetic) with their voxel
+        rows from one hash query per distinct block: flat pixel indices (P,), samples per pixel n, and the
+        flat voxel row of each sample (n P,) (-1: its block was never allocated). None when the frame's
+        blocks span too big a box (the reference path then does the update)."""
+        cfg, cam = self.cfg, frame.camera
+        pix = band_pixels(mask, cfg.label_pixel_stride) if cfg.label_pixel_stride > 1 else np.flatnonzero(mask)
+        if self._rays is None or self._rays.key != Rays.of_key(cam.K, cam.width, cam.height):
+            self._rays = Rays.of(cam.K, cam.width, cam.height)
+        T = np.linalg.inv(self._T_cam_from_local(frame))
+        T[:3] /= cfg.voxel_m
+        z = np.asarray(frame.depth_m, dtype=np.float32).reshape(-1)[pix]
+        offsets = band_offsets(cfg.label_band_voxels, cfg.voxel_m)
+        block, local = split_blocks(sample_voxels(self._rays.x[pix], self._rays.y[pix], z, T, offsets), self.res)
+        plan = frame_blocks(block, open3d_keys.T)
+        if plan is None:
+            return None
+        o3d = require_open3d()
+        buf, found = self.vbg.hashmap().find(o3d.core.Tensor.from_numpy(plan.keys))
+        rows = np.where(found.numpy(), buf.numpy().astype(np.int32), -1)
+        flat = plan.sample_rows(rows)
+        ok = flat >= 0
+        flat *= self.res**3
+        flat += local
+        flat[~ok] = -1
+        return pix, len(offsets), flat
+
+    def _apply_labels(self, frame: FuseFrame, pix: np.ndarray, n: int, flat: np.ndarray) -> None:
+        """The Bayes update of the voxels ``flat`` (n P,) (offset-major samples of the P pixels ``pix``; -1 =
+        none), exactly as :meth:`_update_labels` does it."""
+        C = self.n_classes
+        probs = np.asarray(frame.probs, dtype=np.float32).reshape(C, -1)
+        obs_pix = clamped_log_probs(probs[:, pix].T, self.cfg.label_min_prob)
+        label = _view(self.vbg.attribute("label")).reshape(-1, C)
+        if flat.min() >= 0:
+            post = gather_rows(label, flat)
+            post.reshape(n, len(pix), C)[...] += obs_pix
+        else:  # samples outside allocated blocks (rare: blocks cover the whole truncation band)
+            keep = np.flatnonzero(flat >= 0)
+            flat = flat[keep]
+            post = gather_rows(label, flat)
+            post += obs_pix[keep % len(pix)]
+        scatter_rows(label, flat, renormalise(post, self.cfg.label_log_floor))
 
     def stored_at(self, points_local: np.ndarray) -> np.ndarray:
         """(N, C) stored relative log-probabilities of the voxel nearest to each local point (0 = uniform)."""

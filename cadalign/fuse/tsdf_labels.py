@@ -1,0 +1,160 @@
+"""The label update of the semantic TSDF: which voxels a frame's labels go to, found without per-sample hashing.
+
+Both paths sample the same voxels (see :mod:`cadalign.fuse.tsdf`): every valid pixel casts ``n`` samples
+along its ray, one voxel apart, inside ``+-label_band/2`` of its depth, i.e. ``|sdf| < trunc/2``.
+
+- ``reference`` (the first implementation, kept as the benchmark baseline): the voxel index of every sample,
+  then one Open3D hash-map query per sample (~400k a frame at 640x480) for its block.
+- ``frustum``: the samples' blocks and the blocks the TSDF integrates are merged into one set with a mask over
+  their bounding box (:func:`frame_blocks`), the hash map is asked once per distinct block (~10-50k), and a
+  dense table over the box gives every sample its buffer row with one array lookup. Per-camera ray slopes are
+  computed once. The positions use the same float32 operations in the same order as the reference, so both
+  paths write identical values (a test checks this bit for bit, across hash-map growth).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+MAX_TABLE_CELLS = 1 << 25
+"""Largest box of blocks a frame may span for the frustum path (a bool mask and an int32 table of this many
+cells, 160 MB); a frame seeing further falls back to the reference path."""
+
+
+@dataclass(frozen=True)
+class FrameBlocks:
+    """The blocks one frame integrates, and the block of each label sample, as cells of one box of blocks.
+
+    Attributes:
+        keys: (K, 3) int32 block keys to integrate, sorted by cell.
+        cells: (K,) int64 cell of each key in the box (x-major, ``(x * sy + y) * sz + z``).
+        sample_cells: (M,) int64 cell of each label sample's block.
+        n_cells: number of cells in the box.
+    """
+
+    keys: np.ndarray
+    cells: np.ndarray
+    sample_cells: np.ndarray
+    n_cells: int
+
+    def sample_rows(self, key_rows: np.ndarray) -> np.ndarray:
+        """(M,) int64 buffer row of each sample's block from the (K,) int32 rows of :attr:`keys` (-1 kept)."""
+        table = np.empty(self.n_cells, dtype=np.int32)  # only cells of keys are ever read
+        table[self.cells] = key_rows
+        return table[self.sample_cells].astype(np.int64)
+
+
+def _cells(blocks: np.ndarray, lo: np.ndarray, sy: int, sz: int) -> np.ndarray:
+    cells = (blocks[0] - np.int32(lo[0])).astype(np.int64) * (sy * sz)
+    cells += (blocks[1] - np.int32(lo[1])) * np.int64(sz)
+    cells += blocks[2] - np.int32(lo[2])
+    return cells
+
+
+def frame_blocks(sample_blocks: np.ndarray, band_blocks: np.ndarray) -> FrameBlocks | None:
+    """The union of the blocks (3, M) int32 of the label samples and (3, S) int32 of the truncation band (the
+    blocks the TSDF integrates), deduplicated with a mask over their bounding box; None if the box has more
+    than :data:`MAX_TABLE_CELLS` cells."""
+    both = (sample_blocks, band_blocks)
+    if not any(b.size for b in both):
+        return None
+    lo = np.min([b.min(axis=1) for b in both if b.size], axis=0).astype(np.int64)
+    hi = np.max([b.max(axis=1) for b in both if b.size], axis=0).astype(np.int64)
+    shape = hi - lo + 1
+    n_cells = int(np.prod(shape))
+    if n_cells > MAX_TABLE_CELLS:
+        return None
+    sy, sz = int(shape[1]), int(shape[2])
+    sample_cells = _cells(sample_blocks, lo, sy, sz)
+    mark = np.zeros(n_cells, dtype=bool)
+    mark[sample_cells] = True
+    mark[_cells(band_blocks, lo, sy, sz)] = True
+    cells = np.flatnonzero(mark)
+    x, rest = np.divmod(cells, sy * sz)
+    y, z = np.divmod(rest, sz)
+    keys = np.stack([x + lo[0], y + lo[1], z + lo[2]], axis=1).astype(np.int32)
+    return FrameBlocks(keys, cells, sample_cells, n_cells)
+
+
+def band_pixels(mask: np.ndarray, stride: int) -> np.ndarray:
+    """Flat indices of the valid pixels on a ``stride`` grid (rows and columns 0, stride, ...)."""
+    sub = np.zeros_like(mask)
+    sub[::stride, ::stride] = mask[::stride, ::stride]
+    return np.flatnonzero(sub)
+
+
+@dataclass(frozen=True)
+class Rays:
+    """Per-pixel ray slopes ``x = (u + 0.5 - cx) / fx``, ``y = (v + 0.5 - cy) / fy`` (float32) of one camera.
+
+    The values are computed exactly as the reference path does (float64, then rounded to float32), once per
+    camera instead of once per frame.
+    """
+
+    key: tuple[float, ...]
+    x: np.ndarray
+    y: np.ndarray
+
+    @staticmethod
+    def of_key(K: np.ndarray, width: int, height: int) -> tuple[float, ...]:
+        """What the slopes depend on: fx, fy, cx, cy, width, height."""
+        return (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), float(width), float(height))
+
+    @staticmethod
+    def of(K: np.ndarray, width: int, height: int) -> Rays:
+        key = Rays.of_key(K, width, height)
+        fx, fy, cx, cy = key[:4]
+        v, u = np.divmod(np.arange(width * height, dtype=np.int64), width)
+        x = ((u + np.float32(0.5 - cx)) * np.float32(1 / fx)).astype(np.float32)
+        y = ((v + np.float32(0.5 - cy)) * np.float32(1 / fy)).astype(np.float32)
+        return Rays(key, x, y)
+
+
+def band_offsets(band_voxels: float, voxel_m: float) -> np.ndarray:
+    """Depth offsets (n,) float64 of the samples across the band, one voxel apart (or closer), metres."""
+    n = max(1, int(np.ceil(band_voxels - 1e-6)))
+    return ((np.arange(n) + 0.5) / n - 0.5) * (band_voxels * voxel_m)
+
+
+def sample_voxels(x: np.ndarray, y: np.ndarray, z: np.ndarray, local_from_cam_vox: np.ndarray,
+                  offsets: np.ndarray) -> np.ndarray:
+    """(3, n P) int32 voxel indices of the samples (offset-major) of P pixels with ray slopes x, y and depth z.
+
+    ``local_from_cam_vox`` is the 4x4 local-from-camera transform with the translation in voxels and the
+    rotation divided by the voxel size (float32 arithmetic in the reference path's order).
+    """
+    R = local_from_cam_vox[:3, :3].astype(np.float32)
+    t = local_from_cam_vox[:3, 3].astype(np.float32)
+    p = len(z)
+    out = np.empty((3, len(offsets) * p), dtype=np.int32)
+    tmp = np.empty(p, dtype=np.float32)
+    zo = np.empty(p, dtype=np.float32)
+    for k in range(3):
+        d = x * R[k, 0]
+        d += y * R[k, 1]
+        d += R[k, 2]
+        for j, o in enumerate(offsets):
+            np.add(z, np.float32(o), out=zo)
+            np.multiply(zo, d, out=tmp)
+            tmp += t[k]
+            np.rint(tmp, out=tmp)
+            out[k, j * p:(j + 1) * p] = tmp
+    return out
+
+
+def split_blocks(vox: np.ndarray, res: int) -> tuple[np.ndarray, np.ndarray]:
+    """(3, M) int32 block keys and (M,) int32 offsets ``x + res * (y + res * z)`` inside the block of (3, M)
+    int32 voxel indices (floor division: negative indices belong to negative blocks)."""
+    shift = res.bit_length() - 1
+    if (1 << shift) == res:  # arithmetic shift and mask: the floor division and remainder of a power of two
+        block = vox >> shift
+        loc = vox & np.int32(res - 1)
+    else:
+        block = np.floor_divide(vox, res)
+        loc = vox - block * np.int32(res)
+    local = loc[0]
+    local += loc[1] * np.int32(res)
+    local += loc[2] * np.int32(res * res)
+    return block, local

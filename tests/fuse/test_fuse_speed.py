@@ -1,0 +1,95 @@
+"""The fast (frustum) label path of the TSDF: bit-identical to the reference path, and its pieces on hand cases."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cadalign.fuse import tsdf_labels
+from cadalign.fuse.config import FuseConfig
+from cadalign.fuse.inputs import FrameSource, open_source
+from cadalign.fuse.tsdf import SemanticTSDF
+from cadalign.fuse.tsdf_labels import band_offsets, band_pixels, frame_blocks, split_blocks
+
+
+@pytest.fixture(scope="module")
+def src(fuse_sim: Path) -> FrameSource:
+    return open_source(fuse_sim)
+
+
+def _sorted_state(m: SemanticTSDF) -> dict[str, np.ndarray]:
+    s = m.state()
+    order = np.lexsort(s["keys"].T)
+    return {k: v[order] for k, v in s.items()}
+
+
+def _fuse(src: FrameSource, cfg: FuseConfig) -> SemanticTSDF:
+    m = SemanticTSDF(cfg, src.n_classes)
+    for i in src.ids:
+        m.integrate(src.frame(i))
+    return m
+
+
+@pytest.mark.parametrize("res, stride", [(8, 1), (4, 1), (4, 2)])
+def test_frustum_labels_equal_the_reference_bit_for_bit(src: FrameSource, small_cfg: FuseConfig, res: int,
+                                                        stride: int) -> None:
+    # a small initial table: it grows (and moves every block) during the run, which the lookups must survive
+    cfg = dataclasses.replace(small_cfg, block_resolution=res, block_count=300, label_pixel_stride=stride)
+    fast = _fuse(src, cfg)
+    ref = _fuse(src, dataclasses.replace(cfg, label_lookup="reference"))
+    a, b = _sorted_state(fast), _sorted_state(ref)
+    assert a.keys() == b.keys()
+    for name in a:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    assert np.any(a["label"] != 0)  # labels were written at all
+
+
+def test_a_frame_spanning_too_many_blocks_falls_back_to_the_reference(src: FrameSource, small_cfg: FuseConfig,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    ref = _fuse(src, dataclasses.replace(small_cfg, label_lookup="reference"))
+    monkeypatch.setattr(tsdf_labels, "MAX_TABLE_CELLS", 8)
+    fallback = _fuse(src, small_cfg)
+    np.testing.assert_array_equal(_sorted_state(fallback)["label"], _sorted_state(ref)["label"])
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.integers(-(2**20), 2**20), min_size=3, max_size=30), st.integers(2, 16))
+def test_split_blocks_is_floor_division(values: list[int], res: int) -> None:
+    vox = np.array(values[: len(values) // 3 * 3], dtype=np.int32).reshape(3, -1)
+    block, local = split_blocks(vox, res)
+    np.testing.assert_array_equal(block, np.floor_divide(vox, res))
+    loc = vox - np.floor_divide(vox, res) * res
+    np.testing.assert_array_equal(local, loc[0] + res * (loc[1] + res * loc[2]))
+    assert local.min(initial=0) >= 0 and local.max(initial=0) < res**3
+
+
+def test_frame_blocks_union_and_rows_hand_case() -> None:
+    samples = np.array([[0, 0, -1, 0], [0, 0, 2, 0], [0, 1, 5, 0]], dtype=np.int32)  # (3, M): 3 distinct blocks
+    band = np.array([[0, 3], [0, 0], [1, 0]], dtype=np.int32)  # (3, S): block (0, 0, 1) is shared
+    plan = frame_blocks(samples, band)
+    assert plan is not None
+    keys = {tuple(k) for k in plan.keys.tolist()}
+    assert keys == {(0, 0, 0), (0, 0, 1), (-1, 2, 5), (3, 0, 0)} and len(plan.keys) == 4
+    rows = np.arange(100, 104, dtype=np.int32)  # the buffer row of each key, in plan.keys order
+    row_of = {tuple(k): r for k, r in zip(plan.keys.tolist(), rows.tolist(), strict=True)}
+    expect = [row_of[tuple(samples[:, j])] for j in range(samples.shape[1])]
+    np.testing.assert_array_equal(plan.sample_rows(rows), expect)
+
+
+def test_frame_blocks_refuses_a_huge_box(monkeypatch: pytest.MonkeyPatch) -> None:
+    far = np.array([[0, 1000], [0, 1000], [0, 1000]], dtype=np.int32)
+    assert frame_blocks(far, far[:, :1]) is None  # 1001^3 cells > MAX_TABLE_CELLS
+    assert frame_blocks(np.zeros((3, 0), np.int32), np.zeros((3, 0), np.int32)) is None
+
+
+def test_band_offsets_and_band_pixels() -> None:
+    np.testing.assert_allclose(band_offsets(2.0, 0.02), [-0.01, 0.01])
+    np.testing.assert_allclose(band_offsets(1.0, 0.02), [0.0])
+    mask = np.ones((5, 6), bool)
+    mask[0, 0] = False
+    np.testing.assert_array_equal(band_pixels(mask, 2), [2, 4, 12, 14, 16, 24, 26, 28])
