@@ -1,49 +1,122 @@
-"""Throughput of fusion (frames/s), for ``cadalign bench fuse``: frames are read first, then only
-``integrate`` (TSDF/surfels + the semantic update) is timed, per frame, wall clock and process CPU time."""
+"""Throughput of fusion (frames/s), for ``cadalign bench fuse`` and the lead's idle-machine runs.
+
+Frames are read first; then only ``integrate`` (TSDF/surfels + the semantic update) is timed, per frame, in
+wall-clock and process CPU time. The configuration under test and a *baseline* (by default the same
+configuration on the reference label path, i.e. the implementation before the frustum lookup) are fused
+frame by frame in alternation, so both see the same machine load and their ratio is meaningful on a shared
+machine even when the absolute numbers are not. The 1-minute load average before and after is recorded:
+with more runnable processes than cores, wall time says more about the neighbours than about the code,
+and CPU time per frame (which counts every thread of this process) is the steadier number.
+"""
 
 from __future__ import annotations
 
+import dataclasses
+import os
 import platform
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from cadalign.config import to_dict
+from cadalign.fuse.base import FuseFrame, SemanticMap
 from cadalign.fuse.config import FuseConfig
 from cadalign.fuse.inputs import open_source
 from cadalign.fuse.map_io import new_map
 from cadalign.io import write_json
 
 
-def bench_fuse(source: Path, cfg: FuseConfig, *, frames: int = 32, warmup: int = 2, out: Path | None = None) -> dict:
-    """Fuse the first ``frames`` frames of ``source`` (GT depth and labels) and time each ``integrate``.
+def baseline_of(cfg: FuseConfig) -> FuseConfig:
+    """The configuration the speed-up is measured against: ``cfg`` on the reference label path."""
+    return dataclasses.replace(cfg, label_lookup="reference")
 
-    Returns (and writes to ``out/bench_fuse.json`` when given) frames/s from the median and the mean wall time
-    per frame, the CPU time per frame (wall time inflated by other processes shows as wall >> CPU / threads),
-    the split between geometry and labels, and the image size.
+
+@dataclass
+class PathTiming:
+    """Per-frame times of one configuration (warm-up frames excluded)."""
+
+    wall_s: list[float] = field(default_factory=list)
+    cpu_s: list[float] = field(default_factory=list)
+    parts_s: dict[str, float] = field(default_factory=dict)
+    """Seconds per part (the map's ``seconds``: ``tsdf``/``labels`` or the surfel steps), summed."""
+
+    def summary(self) -> dict[str, float | dict[str, float]]:
+        """ms per frame (median, mean), frames/s (from both), CPU ms per frame (median), ms per part (mean)."""
+        wall, n = np.asarray(self.wall_s), max(len(self.wall_s), 1)
+        return {
+            "ms_per_frame_median": float(1000 * np.median(wall)), "ms_per_frame_mean": float(1000 * wall.mean()),
+            "frames_per_second_median": float(1 / np.median(wall)), "frames_per_second_mean": float(1 / wall.mean()),
+            "cpu_ms_per_frame_median": float(1000 * np.median(self.cpu_s)),
+            "ms_by_part": {k: 1000 * v / n for k, v in self.parts_s.items()},
+        }
+
+
+def time_interleaved(frames: list[FuseFrame], n_classes: int, cfgs: dict[str, FuseConfig], *,
+                     warmup: int = 2) -> tuple[dict[str, PathTiming], dict[str, SemanticMap]]:
+    """Fuse ``frames`` into one new map per configuration, alternating the configurations frame by frame
+    (and their order every frame); returns the timings (the first ``warmup`` frames untimed) and the maps."""
+    maps = {name: new_map(cfg, n_classes) for name, cfg in cfgs.items()}
+    timings = {name: PathTiming() for name in cfgs}
+    names = list(cfgs)
+    for k, frame in enumerate(frames):
+        for name in names if k % 2 == 0 else names[::-1]:
+            m = maps[name]
+            if k == warmup:
+                m.seconds = dict.fromkeys(m.seconds, 0.0)
+            t0, c0 = time.perf_counter(), time.process_time()
+            m.integrate(frame)
+            if k >= warmup:
+                timings[name].wall_s.append(time.perf_counter() - t0)
+                timings[name].cpu_s.append(time.process_time() - c0)
+    for name, m in maps.items():
+        timings[name].parts_s = dict(m.seconds) if len(frames) > warmup else {}
+    return timings, maps
+
+
+def load_average() -> float:
+    """The 1-minute load average (runnable processes), NaN where the platform has none."""
+    try:
+        return float(os.getloadavg()[0])
+    except OSError:
+        return float("nan")
+
+
+def _open3d_threads() -> int | None:
+    from cadalign.fuse.tsdf import require_open3d
+
+    o3d = require_open3d()
+    return int(o3d.utility.get_max_threads()) if hasattr(o3d.utility, "get_max_threads") else None
+
+
+def bench_fuse(source: Path, cfg: FuseConfig, *, frames: int = 32, warmup: int = 2,
+               baseline: FuseConfig | None = None, out: Path | None = None) -> dict:
+    """Fuse the first ``frames`` frames of ``source`` (GT depth and labels) with ``cfg`` and with ``baseline``
+    (default :func:`baseline_of` ``cfg``), interleaved, and time each ``integrate``.
+
+    Returns (and writes to ``out/bench_fuse.json`` when given) for both: ms per frame and frames/s (median and
+    mean wall time), CPU ms per frame, ms per part; the speed-up (baseline ms / ms, wall and CPU, medians);
+    the load average before and after; the CPU count, image size and both configs.
     """
+    baseline = baseline if baseline is not None else baseline_of(cfg)
     src = open_source(source, label_confidence=cfg.label_confidence, max_frames=frames + warmup)
     loaded = [src.frame(i) for i in src.ids]
-    m = new_map(cfg, src.n_classes)
-    wall, cpu = [], []
-    for k, frame in enumerate(loaded):
-        if k == warmup:
-            m.seconds = dict.fromkeys(m.seconds, 0.0)
-        t0, c0 = time.perf_counter(), time.process_time()
-        m.integrate(frame)
-        if k >= warmup:
-            wall.append(time.perf_counter() - t0)
-            cpu.append(time.process_time() - c0)
-    wall_a = np.array(wall)
+    load_before = load_average()
+    timings, _ = time_interleaved(loaded, src.n_classes, {"new": cfg, "baseline": baseline}, warmup=warmup)
+    new, base = timings["new"].summary(), timings["baseline"].summary()
     cam = loaded[0].camera
     result = {
-        "method": cfg.method, "voxel_m": cfg.voxel_m, "image": f"{cam.width}x{cam.height}", "frames_timed": len(wall),
-        "frames_per_second_median": float(1.0 / np.median(wall_a)),
-        "frames_per_second_mean": float(1.0 / wall_a.mean()),
-        "ms_per_frame_median": float(1000 * np.median(wall_a)), "cpu_ms_per_frame_median": float(1000 * np.median(cpu)),
-        "seconds_by_part": {k: v / max(len(wall), 1) for k, v in m.seconds.items()},
-        "config": to_dict(cfg), "source": str(src.scene.dir), "machine": platform.processor() or platform.machine(),
+        "method": cfg.method, "voxel_m": cfg.voxel_m, "image": f"{cam.width}x{cam.height}",
+        "frames_timed": len(timings["new"].wall_s), **new,
+        "seconds_by_part": {k: v / 1000 for k, v in new["ms_by_part"].items()},
+        "baseline": base,
+        "speedup_wall": base["ms_per_frame_median"] / new["ms_per_frame_median"],
+        "speedup_cpu": base["cpu_ms_per_frame_median"] / max(new["cpu_ms_per_frame_median"], 1e-9),
+        "load_average_before": load_before, "load_average_after": load_average(), "cpu_count": os.cpu_count(),
+        "open3d_threads": _open3d_threads(),
+        "config": to_dict(cfg), "baseline_config": to_dict(baseline), "source": str(src.scene.dir),
+        "machine": platform.processor() or platform.machine(),
     }
     if out is not None:
         write_json(Path(out) / "bench_fuse.json", result)

@@ -103,8 +103,25 @@ def test_bench_fuse(fuse_sim: Path, small_cfg: FuseConfig, tmp_path: Path) -> No
 
     r = bench_fuse(fuse_sim, small_cfg, frames=2, warmup=1, out=tmp_path)
     assert r["frames_timed"] == 2 and r["frames_per_second_median"] > 0 and r["image"] == "160x120"
-    assert set(r["seconds_by_part"]) == {"tsdf", "labels"}
-    assert read_json(tmp_path / "bench_fuse.json")["frames_timed"] == 2
+    assert set(r["seconds_by_part"]) == {"tsdf", "labels"} and set(r["baseline"]["ms_by_part"]) == {"tsdf", "labels"}
+    assert r["config"]["label_lookup"] == "frustum" and r["baseline_config"]["label_lookup"] == "reference"
+    assert r["speedup_wall"] > 0 and r["speedup_cpu"] > 0 and r["cpu_ms_per_frame_median"] > 0
+    assert r["load_average_before"] >= 0 and r["cpu_count"] >= 1
+    saved = read_json(tmp_path / "bench_fuse.json")
+    assert saved["frames_timed"] == 2 and saved["baseline"]["frames_per_second_median"] > 0
+
+
+def test_time_interleaved_gives_each_config_its_own_map(fuse_sim: Path, small_cfg: FuseConfig) -> None:
+    from cadalign.fuse.bench import time_interleaved
+    from cadalign.fuse.inputs import open_source
+
+    src = open_source(fuse_sim, max_frames=3)
+    frames = [src.frame(i) for i in src.ids]
+    coarse = dataclasses.replace(small_cfg, voxel_m=0.06)
+    timings, maps = time_interleaved(frames, src.n_classes, {"a": small_cfg, "b": coarse}, warmup=1)
+    assert [len(t.wall_s) for t in timings.values()] == [2, 2]
+    assert maps["a"].frames_integrated == maps["b"].frames_integrated == 3
+    assert maps["a"].n_blocks != maps["b"].n_blocks  # two separate maps, each with its own config
 
 
 def test_cli_help() -> None:
