@@ -211,3 +211,20 @@ def test_bench_sigint_then_rerun_keeps_finished_settings_and_equals_an_uninterru
         assert cut[k]["accuracy"] == ref[k]["accuracy"]
         assert {m: cut[k]["metrics"][m] for m in ("gap_m", "returns", "rays")} == \
             {m: ref[k]["metrics"][m] for m in ("gap_m", "returns", "rays")}
+
+
+@pytest.mark.slow
+def test_sfm_sigint_in_feature_extraction_then_rerun_completes(build_case: Path) -> None:
+    """``cadalign sfm``: SIGINT while COLMAP extracts features (its C++ threads are stopped), exit 130 within
+    seconds with no torn file; the re-run finishes the model. (SfM is not bitwise reproducible, so the result is
+    checked for completeness, not against another run's bytes.)"""
+    cmd = cadalign("sfm", "sim/frames", "--out", "sfm_cut", "--preset", "fast")
+    stopped = interrupt_when(cmd, build_case, lambda: (build_case / "sfm_cut" / "database.db").is_file())
+    assert stopped.returncode == 130 and INTERRUPT_NOTE in stopped.stderr, stopped.stderr[-2000:]
+    assert stopped.seconds_to_exit < 30
+    record_interrupt("sfm", "Ctrl-C (SIGINT) during feature extraction", stopped)
+    assert not (build_case / "sfm_cut" / "sfm_report.json").exists()
+    assert_no_torn_files(build_case / "sfm_cut")
+    run_to_end(cmd, build_case)
+    report = read_json(build_case / "sfm_cut" / "sfm_report.json")
+    assert len(read_json(build_case / "sfm_cut" / "cameras.json")["frames"]) == BUILD_FRAMES, report
