@@ -205,11 +205,13 @@ def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, ou
     """Evaluate the detector's, the refined and the fused poses against a BOP scene (eval.json/eval.md)."""
     from cadalign.data.torch_datasets import load_class_map
     from cadalign.eval.pose_eval import PoseEvalConfig, PosePrediction, evaluate_scene, load_bop_models, table_markdown
+    from cadalign.eval.pose_symmetry import warn_undeclared
 
     cmap = load_class_map(gt_scene)
     ids = frame_ids(gt_scene)
     label_of = {n: i for i, n in enumerate(cmap.names)}  # by class name: the detector's list may differ
     models = load_bop_models(models_dir_of(gt_scene))
+    undeclared = warn_undeclared({k: (m.points_m, m.diameter_m, m.symmetry) for k, m in models.items()})
     im_ids = [ids[n] for n in names if n in ids]
     if not im_ids:
         raise InputError(f"none of the {len(names)} frames is in the ground truth {gt_scene} (names like "
@@ -221,8 +223,12 @@ def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, ou
         rep = evaluate_scene(preds, gt_scene, models, cmap.names, cmap.class_of_obj, PoseEvalConfig(), im_ids)
         if which != "fused":
             rep.pop("matches")
+        rep["config"]["undeclared_symmetries"] = {str(k): v for k, v in undeclared.items()}
         reports[which] = rep
         md.append(f"## {which} poses\n\n" + table_markdown(rep))
+    if undeclared:
+        md.append("Models invariant to turns they do not declare (errors of those turns are counted): "
+                  + "; ".join(f"obj {k}: {', '.join(v)}" for k, v in undeclared.items()) + "\n")
     if out_dir is not None:
         write_json(out_dir / "eval.json", reports)
         write_text(out_dir / "eval.md", "\n".join(md))
