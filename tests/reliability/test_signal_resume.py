@@ -65,7 +65,7 @@ def _build_cmd(out: str) -> list[str]:
 
 
 def test_build_dataset_sigint_mid_render_then_rerun_equals_an_uninterrupted_build(build_case: Path) -> None:
-    """SIGINT once three frames are rendered: exit 130 within seconds, finished frames whole, no temp files;
+    """SIGINT once the first frame is rendered: exit 130 within seconds, finished frames whole, no temp files;
     the re-run reuses SfM (points3D.bin untouched), the alignment and the rendered frames (their records
     untouched), and the dataset is byte-identical to a build that was never interrupted.
 
@@ -74,14 +74,14 @@ def test_build_dataset_sigint_mid_render_then_rerun_equals_an_uninterrupted_buil
     of one SfM model differ in the last bits), and reusing them is exactly what a resumed build does."""
     shutil.copytree(build_case / "sfm", build_case / "cut" / "sfm")
     scene = build_case / "cut" / "dataset" / "all" / "000000"
-    stopped = interrupt_when(_build_cmd("cut"), build_case, lambda: (scene / "frames_json" / "000002.json").is_file())
+    stopped = interrupt_when(_build_cmd("cut"), build_case, lambda: (scene / "frames_json" / "000000.json").is_file())
     assert stopped.returncode == 130, stopped.stderr[-2000:]
-    assert stopped.seconds_to_exit < 20
+    assert stopped.seconds_to_exit < 30, stopped.seconds_to_exit  # ~1 s on an idle machine
     assert "interrupted:" in stopped.stderr and INTERRUPT_NOTE in stopped.stderr
     assert "Traceback" not in stopped.stderr
     record_interrupt("build-dataset", "Ctrl-C (SIGINT) while rendering frames", stopped)
     done = sorted((scene / "frames_json").glob("*.json"))
-    assert 3 <= len(done) < BUILD_FRAMES, "the signal did not land mid-render"
+    assert 1 <= len(done) < BUILD_FRAMES, f"the signal did not land mid-render: {len(done)} frames done"
     assert not (build_case / "cut" / "build_report.json").exists()
     assert_no_torn_files(build_case / "cut")
     for rec in done:  # a frame with a record has every file, whole
@@ -103,7 +103,7 @@ def test_build_dataset_sigint_mid_render_then_rerun_equals_an_uninterrupted_buil
     assert {p.name: p.stat().st_mtime_ns for p in done} == rec_stamps
     ref, cut = tree_digest(build_case / "ref" / "dataset"), tree_digest(build_case / "cut" / "dataset")
     assert len(ref) > 100 and sorted(ref) == sorted(cut)
-    assert [k for k in ref if ref[k] != cut[k]] == []
+    assert [k for k in ref if ref[k] != cut[k]] == [], f"interrupted after {len(done)} frames"
     assert read_json(build_case / "cut" / "build_report.json")["frames"] == BUILD_FRAMES
 
 
