@@ -178,7 +178,7 @@ def match_pairs(cfg: SfMConfig, database: Path, pairs: Sequence[tuple[str, str]]
                                verification_options=verification, device=_device())
 
 
-def _incremental_options(cfg: SfMConfig, image_names: list[str]) -> Any:
+def incremental_options(cfg: SfMConfig, image_names: list[str]) -> Any:
     import pycolmap
 
     mp = cfg.mapper
@@ -285,7 +285,7 @@ def _run_mapper(
     if kind == "incremental":
         ticker = _Ticker(progress, len(image_names))
         try:
-            opts = _incremental_options(cfg, image_names)
+            opts = incremental_options(cfg, image_names)
             models = pycolmap.incremental_mapping(database, images_dir, work_dir, opts, next_image_callback=ticker.tick)
         finally:
             ticker.close()

@@ -175,6 +175,12 @@ class MapperConfig:
     """Relative part of the break threshold: multiples of the median error of all consecutive pairs."""
     break_min_matches: int = bounded(50, ge=8)
     """Consecutive pairs with fewer verified matches are not checked."""
+    segment_frames: int = bounded(0, ge=0)
+    """Long surveys: map windows of this many consecutive frames separately and merge them into one model
+    (:mod:`cadalign.sfm.segments`); 0 maps all frames as one model. Mapping time grows faster than
+    linearly with the frames, and a weak stretch then hinges one segment, not the whole dive."""
+    segment_overlap: int = bounded(8, ge=3)
+    """Frames each segment shares with the next (>= 3; the Sim(3) that merges them is fitted on these)."""
     on_break: Literal["largest_piece", "keep_all"] = "largest_piece"
     """When every attempt has breaks: keep only the largest consistent piece of the sequence (its frames
     are reliable; the others are reported as dropped) or keep the whole, inconsistent model."""

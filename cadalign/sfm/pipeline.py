@@ -187,10 +187,40 @@ def _step_matches(cfg: SfMConfig, lay: Layout) -> dict[str, Any]:
 
 
 def _step_mapping(cfg: SfMConfig, lay: Layout, progress: Progress | None) -> dict[str, Any]:
-    """Map (with loop closure), check the model's consistency, and retry with the next seed while it has
-    breaks; each attempt starts from the matches as they were before any loop closure."""
+    """Map as one model or, for long surveys, in merged segments (``mapper.segment_frames``)."""
     names = _kept_names(lay)
     work = lay.root / "mapping_tmp"
+    mp = cfg.mapper
+    if not mp.segment_frames or len(names) <= mp.segment_frames:
+        return _map_with_attempts(cfg, lay, names, work, progress)
+    import pycolmap
+
+    from cadalign.sfm import segments
+
+    def map_one(sub: list[str], k: int) -> tuple[Any, dict[str, Any]]:
+        info = _map_with_attempts(cfg, lay, sub, work / f"segment_{k:03d}", progress)
+        return pycolmap.Reconstruction(str(lay.model)), info
+
+    def merge(models: list[Any]) -> tuple[Any, list[dict[str, Any]]]:
+        return segments.merge_models(models, lay.database, lay.images, work / "merged",
+                                     colmap.incremental_options(cfg, names))
+
+    merged, info = segments.map_in_segments(names, mp.segment_frames, mp.segment_overlap, map_one, merge)
+    cons = sequence_consistency(merged, lay.database, names, max_px=mp.break_px, max_ratio=mp.break_ratio,
+                                min_matches=mp.break_min_matches)
+    _write_model(merged, lay.model)
+    shutil.rmtree(work, ignore_errors=True)
+    reasons = colmap.unregistered_reasons(cfg, lay.database, names, [merged])
+    return {"mapper": "segments", "consistency": cons.to_dict(), **info, "unregistered": reasons,
+            "loop_pairs_verified": sum(seg["loop_pairs_verified"] for seg in info["segments"]),
+            "models": [{**model_stats(merged), "kept": True, "frames": [im.name for im in registered_images(merged)]}]}
+
+
+def _map_with_attempts(cfg: SfMConfig, lay: Layout, names: list[str], work: Path,
+                       progress: Progress | None) -> dict[str, Any]:
+    """Map ``names`` (with loop closure), check the model's consistency, and retry with the next seed while
+    it has breaks; each attempt starts from the matches as they were before any loop closure. Writes the
+    kept model to ``lay.model``."""
     pristine, kept_db = lay.root / "database.pre_loop.db", lay.root / "database.kept.db"
     shutil.copyfile(lay.database, pristine)
     best: tuple[tuple[int, int], list[Any], dict[str, Any]] | None = None
@@ -365,6 +395,7 @@ def _finish_report(lay: Layout, keep_gt: bool) -> None:
         "loop_pairs_verified": marks["mapping"]["loop_pairs_verified"],
         "consistency": marks["mapping"].get("consistency"),
         "mapping_attempts": marks["mapping"].get("attempts", []),
+        "segments": {k: marks["mapping"][k] for k in ("segments", "seams") if k in marks["mapping"]} or None,
         "refinement": {k: marks["refine"][k] for k in ("rounds", "before", "after")},
         "depth": marks["export"]["depth"],
         "seconds": {s: marks[s]["seconds"] for s in STEPS},
