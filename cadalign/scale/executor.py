@@ -16,6 +16,7 @@ be on storage that every node reaches under the same path.
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -124,7 +125,12 @@ def _ensure_ray(cfg: ExecutorConfig) -> bool:
     address = cfg.address or os.environ.get("RAY_ADDRESS") or None
     if address:
         log.info("connecting to the Ray cluster at %s", address)
-        ray.init(address=address, log_to_driver=False)
+        try:
+            ray.init(address=address, log_to_driver=False)
+        except (ConnectionError, TimeoutError, RuntimeError, ValueError) as exc:
+            raise ConfigError(f"cannot connect to the Ray cluster at {address!r} ({type(exc).__name__}: {exc}); "
+                              "check the address (ray://HEAD:10001 or HEAD:6379, or RAY_ADDRESS) and that the "
+                              "cluster is up, or use --executor local") from exc
     else:
         cpus = cfg.workers or os.cpu_count() or 1
         log.info("starting a local Ray instance with %d CPUs", cpus)
@@ -134,5 +140,14 @@ def _ensure_ray(cfg: ExecutorConfig) -> bool:
 
 
 def make_executor(cfg: ExecutorConfig) -> RayExecutor | None:
-    """The executor for ``cfg``: None for ``local`` (the builder renders in its own loop), else Ray's."""
-    return None if cfg.kind == "local" else RayExecutor(cfg)
+    """The executor for ``cfg``: None for ``local`` (the builder renders in its own loop), else Ray's.
+
+    Raises:
+        ConfigError: ``ray`` without Ray installed (checked before any work, without importing it).
+    """
+    if cfg.kind == "local":
+        return None
+    if importlib.util.find_spec("ray") is None:
+        raise ConfigError("--executor ray needs Ray, which is not installed: pip install 'cadalign[ray]' "
+                          "(or use --executor local)")
+    return RayExecutor(cfg)

@@ -40,6 +40,33 @@ def test_executor_config_refuses_bad_values(args: tuple, message: str) -> None:
         executor_config(*args)
 
 
+def test_ray_executor_without_ray_installed_is_refused_before_any_work(monkeypatch: pytest.MonkeyPatch) -> None:
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "ray" else real(name, *a))
+    with pytest.raises(ConfigError, match=r"needs Ray, which is not installed: pip install 'cadalign\[ray\]'"):
+        make_executor(executor_config("ray"))
+    assert make_executor(executor_config("local")) is None
+
+
+def test_unreachable_cluster_is_a_config_error_naming_the_address(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ray's own connection error (after its retries) becomes the project's error with the fix."""
+    ray = pytest.importorskip("ray")
+    from cadalign.scale.executor import _ensure_ray
+
+    def refuse(**kwargs: object) -> None:
+        raise ConnectionError(f"could not reach {kwargs['address']}")
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", refuse)
+    monkeypatch.setenv("RAY_ADDRESS", "head:6379")
+    with pytest.raises(ConfigError, match=r"cannot connect to the Ray cluster at 'head:6379' \(ConnectionError"):
+        _ensure_ray(ExecutorConfig("ray"))
+    with pytest.raises(ConfigError, match="'ray://other:10001'"):
+        _ensure_ray(ExecutorConfig("ray", address="ray://other:10001"))
+
+
 def test_ray_executor_refuses_a_local_config() -> None:
     with pytest.raises(ConfigError, match="kind='ray'"):
         RayExecutor(ExecutorConfig())
