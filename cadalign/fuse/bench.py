@@ -41,6 +41,8 @@ class PathTiming:
     cpu_s: list[float] = field(default_factory=list)
     parts_s: dict[str, float] = field(default_factory=dict)
     """Seconds per part (the map's ``seconds``: ``tsdf``/``labels`` or the surfel steps), summed."""
+    parts_cpu_s: dict[str, float] = field(default_factory=dict)
+    """Process CPU seconds per part where the map records them (``cpu_seconds``), summed."""
 
     def summary(self) -> dict[str, float | dict[str, float]]:
         """ms per frame (median, mean), frames/s (from both), CPU ms per frame (median), ms per part (mean)."""
@@ -50,6 +52,7 @@ class PathTiming:
             "frames_per_second_median": float(1 / np.median(wall)), "frames_per_second_mean": float(1 / wall.mean()),
             "cpu_ms_per_frame_median": float(1000 * np.median(self.cpu_s)),
             "ms_by_part": {k: 1000 * v / n for k, v in self.parts_s.items()},
+            "cpu_ms_by_part": {k: 1000 * v / n for k, v in self.parts_cpu_s.items()},
         }
 
 
@@ -65,6 +68,8 @@ def time_interleaved(frames: list[FuseFrame], n_classes: int, cfgs: dict[str, Fu
             m = maps[name]
             if k == warmup:
                 m.seconds = dict.fromkeys(m.seconds, 0.0)
+                if hasattr(m, "cpu_seconds"):
+                    m.cpu_seconds = dict.fromkeys(m.cpu_seconds, 0.0)
             t0, c0 = time.perf_counter(), time.process_time()
             m.integrate(frame)
             if k >= warmup:
@@ -72,6 +77,7 @@ def time_interleaved(frames: list[FuseFrame], n_classes: int, cfgs: dict[str, Fu
                 timings[name].cpu_s.append(time.process_time() - c0)
     for name, m in maps.items():
         timings[name].parts_s = dict(m.seconds) if len(frames) > warmup else {}
+        timings[name].parts_cpu_s = dict(getattr(m, "cpu_seconds", {})) if len(frames) > warmup else {}
     return timings, maps
 
 

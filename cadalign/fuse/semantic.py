@@ -20,8 +20,6 @@ initialisation pass.
 
 from __future__ import annotations
 
-from functools import reduce
-
 import numpy as np
 
 from cadalign.errors import InputError
@@ -39,7 +37,10 @@ def bayes_update(stored: np.ndarray, obs_log_probs: np.ndarray, log_floor: float
 
 def renormalise(post: np.ndarray, log_floor: float) -> np.ndarray:
     """In place: subtract each row's largest entry from an (N, C) float32 array, then floor it at ``log_floor``."""
-    post -= reduce(np.maximum, (post[:, c] for c in range(post.shape[1])))[:, None]
+    top = post[:, 0].copy()
+    for c in range(1, post.shape[1]):  # column by column into one buffer: no temporaries
+        np.maximum(top, post[:, c], out=top)
+    post -= top[:, None]
     return np.maximum(post, np.float32(log_floor), out=post)
 
 
@@ -48,6 +49,11 @@ def clamped_log_probs(probs: np.ndarray, min_prob: float) -> np.ndarray:
     p = np.fmax(np.asarray(probs, dtype=np.float32), np.float32(min_prob))  # fmax maps NaN to min_prob
     np.fmin(p, np.float32(1.0), out=p)
     return np.log(p, out=p)
+
+
+def take_rows(a: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """``a[keep]`` for a C-contiguous (N, C) array and an (N,) bool mask, moving whole rows at once."""
+    return _as_void(a)[keep].view(a.dtype).reshape(-1, a.shape[1])
 
 
 def gather_rows(table: np.ndarray, rows: np.ndarray) -> np.ndarray:

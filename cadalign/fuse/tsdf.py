@@ -34,7 +34,14 @@ from cadalign.fuse.base import (
     require_valid_depth,
 )
 from cadalign.fuse.config import FuseConfig
-from cadalign.fuse.semantic import bayes_update, clamped_log_probs, gather_rows, renormalise, scatter_rows
+from cadalign.fuse.semantic import (
+    bayes_update,
+    clamped_log_probs,
+    gather_rows,
+    renormalise,
+    scatter_rows,
+    take_rows,
+)
 from cadalign.fuse.tsdf_labels import (
     Rays,
     band_offsets,
@@ -78,6 +85,7 @@ class SemanticTSDF:
         self.origin = None if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
         self.frames_integrated = 0
         self.seconds = {"tsdf": 0.0, "labels": 0.0}
+        self.cpu_seconds = {"tsdf": 0.0, "labels": 0.0}  # process CPU time (all threads) per part
         self.res = int(cfg.block_resolution)
         self.vbg = self._new_grid(int(cfg.block_count))
         self._rays: Rays | None = None  # per-pixel ray slopes of the last camera (frustum label lookup)
@@ -109,7 +117,7 @@ class SemanticTSDF:
                                    self.n_classes)
         if self.origin is None:
             self.origin = origin_from_frame(frame, mask, cfg.voxel_m * self.res)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         depth = np.where(mask, frame.depth_m, 0).astype(np.float32)
         Kt = o3d.core.Tensor(frame.camera.K)
         E = o3d.core.Tensor(self._T_cam_from_local(frame))
@@ -126,15 +134,17 @@ class SemanticTSDF:
             rows = self.vbg.hashmap().find(coords)[0].numpy().astype(np.int64)
             weight = _view(self.vbg.attribute("weight"))
             weight[rows] = np.minimum(weight[rows], np.float32(cfg.weight_cap))
-        t1 = time.perf_counter()
-        plan = self._plan_frustum(frame, mask, coords.numpy()) if cfg.label_lookup == "frustum" else None
+        t1, c1 = time.perf_counter(), time.process_time()
+        plan = self._plan_frustum(frame, mask) if cfg.label_lookup == "frustum" else None
         if plan is not None:
             self._apply_labels(frame, *plan)
         else:
             self._update_labels(frame, mask)
-        t2 = time.perf_counter()
+        t2, c2 = time.perf_counter(), time.process_time()
         self.seconds["tsdf"] += t1 - t0
         self.seconds["labels"] += t2 - t1
+        self.cpu_seconds["tsdf"] += c1 - c0
+        self.cpu_seconds["labels"] += c2 - c1
         self.frames_integrated += 1
 
     def _activate(self, coords) -> None:  # noqa: ANN001 - an (N, 3) int32 open3d.core.Tensor
@@ -196,7 +206,7 @@ class SemanticTSDF:
         label = _view(self.vbg.attribute("label")).reshape(-1, self.n_classes)
         scatter_rows(label, flat, bayes_update(gather_rows(label, flat), obs, self.cfg.label_log_floor))
 
-    def _plan_frustum(self, frame: FuseFrame, mask: np.ndarray, open3d_keys: np.ndarray):  # noqa: ANN202
+    def _plan_frustum(self, frame: FuseFrame, mask: np.ndarray):  # noqa: ANN202
         """The label samples of :meth:`_surface_samples` (same voxels, same float32 arithmetic) with their voxel
         rows from one hash query per distinct block: flat pixel indices (P,), samples per pixel n, and the
         flat voxel row of each sample (n P,) (-1: its block was never allocated). None when the frame's
@@ -210,7 +220,7 @@ class SemanticTSDF:
         z = np.asarray(frame.depth_m, dtype=np.float32).reshape(-1)[pix]
         offsets = band_offsets(cfg.label_band_voxels, cfg.voxel_m)
         block, local = split_blocks(sample_voxels(self._rays.x[pix], self._rays.y[pix], z, T, offsets), self.res)
-        plan = frame_blocks(block, open3d_keys.T)
+        plan = frame_blocks(block)
         if plan is None:
             return None
         o3d = require_open3d()
@@ -225,20 +235,19 @@ class SemanticTSDF:
 
     def _apply_labels(self, frame: FuseFrame, pix: np.ndarray, n: int, flat: np.ndarray) -> None:
         """The Bayes update of the voxels ``flat`` (n P,) (offset-major samples of the P pixels ``pix``; -1 =
-        none), exactly as :meth:`_update_labels` does it."""
+        none), with the same values as :meth:`_update_labels` (rows are independent, so samples without a
+        voxel are computed along and dropped at the end, which saves compacting the observations)."""
         C = self.n_classes
         probs = np.asarray(frame.probs, dtype=np.float32).reshape(C, -1)
-        obs_pix = clamped_log_probs(probs[:, pix].T, self.cfg.label_min_prob)
+        obs_pix = np.ascontiguousarray(clamped_log_probs(np.take(probs, pix, axis=1), self.cfg.label_min_prob).T)
         label = _view(self.vbg.attribute("label")).reshape(-1, C)
-        if flat.min() >= 0:
-            post = gather_rows(label, flat)
-            post.reshape(n, len(pix), C)[...] += obs_pix
-        else:  # samples outside allocated blocks (rare: blocks cover the whole truncation band)
-            keep = np.flatnonzero(flat >= 0)
-            flat = flat[keep]
-            post = gather_rows(label, flat)
-            post += obs_pix[keep % len(pix)]
-        scatter_rows(label, flat, renormalise(post, self.cfg.label_log_floor))
+        post = gather_rows(label, flat)  # -1 reads the last row: a harmless dummy, never written back
+        post.reshape(n, len(pix), C)[...] += obs_pix
+        renormalise(post, self.cfg.label_log_floor)
+        if flat.min() < 0:  # samples outside allocated blocks (rare: blocks cover the whole truncation band)
+            keep = flat >= 0
+            flat, post = flat[keep], take_rows(post, keep)
+        scatter_rows(label, flat, post)
 
     def stored_at(self, points_local: np.ndarray) -> np.ndarray:
         """(N, C) stored relative log-probabilities of the voxel nearest to each local point (0 = uniform)."""

@@ -5,9 +5,9 @@ along its ray, one voxel apart, inside ``+-label_band/2`` of its depth, i.e. ``|
 
 - ``reference`` (the first implementation, kept as the benchmark baseline): the voxel index of every sample,
   then one Open3D hash-map query per sample (~400k a frame at 640x480) for its block.
-- ``frustum``: the samples' blocks and the blocks the TSDF integrates are merged into one set with a mask over
-  their bounding box (:func:`frame_blocks`), the hash map is asked once per distinct block (~10-50k), and a
-  dense table over the box gives every sample its buffer row with one array lookup. Per-camera ray slopes are
+- ``frustum``: the samples' blocks are deduplicated with a mask over their bounding box (:func:`frame_blocks`),
+  the hash map is asked once per distinct block (~10-30k), and a dense table over the box gives every
+  sample its buffer row with one array lookup. Per-camera ray slopes are
   computed once. The positions use the same float32 operations in the same order as the reference, so both
   paths write identical values (a test checks this bit for bit, across hash-map growth).
 """
@@ -53,16 +53,13 @@ def _cells(blocks: np.ndarray, lo: np.ndarray, sy: int, sz: int) -> np.ndarray:
     return cells
 
 
-def frame_blocks(sample_blocks: np.ndarray, band_blocks: np.ndarray) -> FrameBlocks | None:
-    """The union of the blocks (3, M) int32 of the label samples and (3, S) int32 of the truncation band (the
-    blocks the TSDF integrates), deduplicated with a mask over their bounding box; None if the box has more
-    than :data:`MAX_TABLE_CELLS` cells."""
-    both = (sample_blocks, band_blocks)
-    if not any(b.size for b in both):
+def frame_blocks(sample_blocks: np.ndarray) -> FrameBlocks | None:
+    """The distinct blocks of the label samples (3, M) int32, deduplicated with a mask over their bounding box;
+    None if there are none or the box has more than :data:`MAX_TABLE_CELLS` cells."""
+    if sample_blocks.size == 0:
         return None
-    lo = np.min([b.min(axis=1) for b in both if b.size], axis=0).astype(np.int64)
-    hi = np.max([b.max(axis=1) for b in both if b.size], axis=0).astype(np.int64)
-    shape = hi - lo + 1
+    lo = sample_blocks.min(axis=1).astype(np.int64)
+    shape = sample_blocks.max(axis=1).astype(np.int64) - lo + 1
     n_cells = int(np.prod(shape))
     if n_cells > MAX_TABLE_CELLS:
         return None
@@ -70,7 +67,6 @@ def frame_blocks(sample_blocks: np.ndarray, band_blocks: np.ndarray) -> FrameBlo
     sample_cells = _cells(sample_blocks, lo, sy, sz)
     mark = np.zeros(n_cells, dtype=bool)
     mark[sample_cells] = True
-    mark[_cells(band_blocks, lo, sy, sz)] = True
     cells = np.flatnonzero(mark)
     x, rest = np.divmod(cells, sy * sz)
     y, z = np.divmod(rest, sz)

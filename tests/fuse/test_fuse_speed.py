@@ -68,23 +68,21 @@ def test_split_blocks_is_floor_division(values: list[int], res: int) -> None:
     assert local.min(initial=0) >= 0 and local.max(initial=0) < res**3
 
 
-def test_frame_blocks_union_and_rows_hand_case() -> None:
-    samples = np.array([[0, 0, -1, 0], [0, 0, 2, 0], [0, 1, 5, 0]], dtype=np.int32)  # (3, M): 3 distinct blocks
-    band = np.array([[0, 3], [0, 0], [1, 0]], dtype=np.int32)  # (3, S): block (0, 0, 1) is shared
-    plan = frame_blocks(samples, band)
+def test_frame_blocks_dedupes_and_maps_rows_hand_case() -> None:
+    samples = np.array([[0, 0, -1, 0, 3], [0, 0, 2, 0, 0], [0, 1, 5, 0, 0]], dtype=np.int32)  # (3, M), 4 blocks
+    plan = frame_blocks(samples)
     assert plan is not None
     keys = {tuple(k) for k in plan.keys.tolist()}
     assert keys == {(0, 0, 0), (0, 0, 1), (-1, 2, 5), (3, 0, 0)} and len(plan.keys) == 4
-    rows = np.arange(100, 104, dtype=np.int32)  # the buffer row of each key, in plan.keys order
+    rows = np.array([100, -1, 102, 103], dtype=np.int32)  # the buffer row of each key (-1: not allocated)
     row_of = {tuple(k): r for k, r in zip(plan.keys.tolist(), rows.tolist(), strict=True)}
     expect = [row_of[tuple(samples[:, j])] for j in range(samples.shape[1])]
     np.testing.assert_array_equal(plan.sample_rows(rows), expect)
 
 
-def test_frame_blocks_refuses_a_huge_box(monkeypatch: pytest.MonkeyPatch) -> None:
-    far = np.array([[0, 1000], [0, 1000], [0, 1000]], dtype=np.int32)
-    assert frame_blocks(far, far[:, :1]) is None  # 1001^3 cells > MAX_TABLE_CELLS
-    assert frame_blocks(np.zeros((3, 0), np.int32), np.zeros((3, 0), np.int32)) is None
+def test_frame_blocks_refuses_a_huge_box_and_no_blocks() -> None:
+    assert frame_blocks(np.array([[0, 1000], [0, 1000], [0, 1000]], dtype=np.int32)) is None  # 1001^3 cells
+    assert frame_blocks(np.zeros((3, 0), np.int32)) is None
 
 
 def test_band_offsets_and_band_pixels() -> None:
