@@ -57,10 +57,6 @@ def local_build(scale_capture: tuple[Path, Path], tmp_path_factory: pytest.TempP
 
 
 @pytest.fixture(scope="session")
-def ddp_scene(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> Path:
-    """The BOP scene folder of a 6-frame effect-free 160x120 simulation (models in ../../models)."""
-    from cadalign.sim.run import SCENE_SUBDIR, simulate
-
-    root = tmp_path_factory.mktemp("ddp")
-    spec = write_tiny_scene(root / "tiny.toml", effects=[], frames=6)
-    return simulate(spec, root / "sim", video=False, contact_sheet=False) / SCENE_SUBDIR
+def ddp_scene(local_build: Path) -> Path:
+    """The dataset the DDP tests train on: the reference build (12 frames, 320x240, splits, models)."""
+    return local_build / "dataset"

@@ -3,8 +3,9 @@ with the same global batch.
 
 Exact equality holds for a model without batch statistics (the toy linear model). The seg and depth networks
 use BatchNorm, which under DDP normalises each rank's half batch (SyncBatchNorm is CUDA-only in torch), and the
-Mask R-CNN samples anchors and RoIs per process, so their curves agree within a tolerance: measured on this
-scene at lr 1e-3, step 1 within 0.6 % (seg) / 0.06 % (depth) / 0.7 % (pose) and 6 steps within 3.5 %.
+Mask R-CNN samples anchors and RoIs per process, so their curves agree within a tolerance. Measured at lr 1e-3 on the reference build of
+conftest (12 frames, 320x240): step 1 within 0.02 % (seg) / 0.3 % (depth) / 0.5 % (pose), 6 steps within 3 %;
+on a 6-frame 160x120 simulator scene: step 1 within 0.6 % / 0.06 % / 0.7 %, 6 steps within 3.5 %.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from cadalign.config import resolve
 from cadalign.train.loop import augment_seed
 
 LOOP = {"steps": 6, "batch_size": 2, "lr": 1e-3, "log_every": 1, "checkpoint_every": 2, "seed": 3}
-FIRST_TOL = {"seg": 0.02, "depth": 0.005, "pose": 0.02}
+FIRST_TOL = {"seg": 0.02, "depth": 0.01, "pose": 0.02}
 CURVE_TOL = 0.06
 
 
@@ -58,7 +59,7 @@ def test_augment_seed_differs_per_rank_and_keeps_rank0() -> None:
 
 def test_ddp_depth_interrupted_on_one_rank_resumes_to_the_single_process_curve(ddp_scene: Path,
                                                                               tmp_path: Path) -> None:
-    """One spawn (~15 s here, mostly process start): the toy model must match one process exactly; then the
+    """One spawn (~20 s here, mostly process start): the toy model must match one process exactly; then the
     depth trainer, with SIGTERM reaching rank 0 alone after step 3: both ranks stop there, rank 0 alone writes
     checkpoints, and the resumed run's curve matches one uninterrupted process."""
     from cadalign.train.depth import train_depth
