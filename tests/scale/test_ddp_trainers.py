@@ -3,9 +3,10 @@ with the same global batch.
 
 Exact equality holds for a model without batch statistics (the toy linear model). The seg and depth networks
 use BatchNorm, which under DDP normalises each rank's half batch (SyncBatchNorm is CUDA-only in torch), and the
-Mask R-CNN samples anchors and RoIs per process, so their curves agree within a tolerance. Measured at lr 1e-3 on the reference build of
-conftest (12 frames, 320x240): step 1 within 0.02 % (seg) / 0.3 % (depth) / 0.5 % (pose), 6 steps within 3 %;
-on a 6-frame 160x120 simulator scene: step 1 within 0.6 % / 0.06 % / 0.7 %, 6 steps within 3.5 %.
+Mask R-CNN samples anchors and RoIs per process, so their curves agree within a tolerance. Measured at lr 1e-3
+on the reference build of conftest (12 frames, 320x240): step 1 within 0.02 % (seg) / 0.3 % (depth) /
+0.5 % (pose), 6 steps within 3 %; on a 6-frame 160x120 simulator scene: step 1 within 0.6 % / 0.06 % / 0.7 %,
+6 steps within 3.5 %.
 """
 
 from __future__ import annotations
