@@ -4,7 +4,6 @@ finishes with a result byte-identical to an uninterrupted run (without redoing t
 
 from __future__ import annotations
 
-import json
 import shutil
 from pathlib import Path
 
@@ -114,7 +113,7 @@ dice_weight = 0.5
 base_channels = 4
 depth = 3
 [loop]
-steps = 24
+steps = 16
 batch_size = 2
 lr = 0.01
 checkpoint_every = 2
@@ -141,19 +140,16 @@ def test_train_seg_sigint_then_resume_equals_an_uninterrupted_run(tiny_bop: Path
     assert "interrupted (continue with --resume)" in stopped.stderr and "Traceback" not in stopped.stderr
     record_interrupt("train seg", "Ctrl-C (SIGINT) mid-training", stopped)
     cut_rows = read_json(tmp_path / "cut" / "metrics.json")["rows"]
-    assert 4 <= cut_rows[-1]["step"] < 24, "the signal did not land mid-training"
+    assert 4 <= cut_rows[-1]["step"] < 16, f"the signal did not land mid-training: {cut_rows[-1]['step']}"
     assert_no_torn_files(tmp_path / "cut")
     run_to_end(cmd("cut", "--resume"), tmp_path)
     full = [(r["step"], r["loss"]) for r in read_json(tmp_path / "full" / "metrics.json")["rows"]]
     res = [(r["step"], r["loss"]) for r in read_json(tmp_path / "cut" / "metrics.json")["rows"]]
-    assert [s for s, _ in full] == list(range(1, 25))
+    assert [s for s, _ in full] == list(range(1, 17))
     assert res == full  # exactly: the sample stream, augmentation and optimiser state are restored
     a = torch.load(tmp_path / "full/checkpoints/last.pt", map_location="cpu", weights_only=False)["model"]
     b = torch.load(tmp_path / "cut/checkpoints/last.pt", map_location="cpu", weights_only=False)["model"]
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
-    again = run_to_end(cmd("cut", "--resume"), tmp_path)  # finished: nothing more to do
-    assert json.loads((tmp_path / "cut" / "metrics.json").read_text())["rows"][-1]["step"] == 24
-    assert again.returncode == 0
 
 
 @pytest.mark.slow
