@@ -2,7 +2,7 @@
 
 Frames are read first; then only ``integrate`` (TSDF/surfels + the semantic update) is timed, per frame, in
 wall-clock and process CPU time. The configuration under test and a *baseline* (by default the same
-configuration on the reference label path, i.e. the implementation before the frustum lookup) are fused
+configuration with the speed knobs of the first implementation, see :func:`baseline_of`) are fused
 frame by frame in alternation, so both see the same machine load and their ratio is meaningful on a shared
 machine even when the absolute numbers are not. The 1-minute load average before and after is recorded:
 with more runnable processes than cores, wall time says more about the neighbours than about the code,
@@ -29,8 +29,12 @@ from cadalign.io import write_json
 
 
 def baseline_of(cfg: FuseConfig) -> FuseConfig:
-    """The configuration the speed-up is measured against: ``cfg`` on the reference label path."""
-    return dataclasses.replace(cfg, label_lookup="reference")
+    """The configuration the speed-up is measured against: ``cfg`` with every speed knob back at the first
+    implementation (reference label path, 8^3 blocks, colour on every frame); the initial block count is
+    scaled with the block area so both tables hold about the same surface."""
+    scale = (cfg.block_resolution / 8) ** 2
+    return dataclasses.replace(cfg, label_lookup="reference", block_resolution=8, color_every=1,
+                               block_count=max(16, round(cfg.block_count * scale)))
 
 
 @dataclass

@@ -122,14 +122,19 @@ class SemanticTSDF:
         Kt = o3d.core.Tensor(frame.camera.K)
         E = o3d.core.Tensor(self._T_cam_from_local(frame))
         dimg = o3d.t.geometry.Image(o3d.core.Tensor(depth))
-        rgb = frame.rgb if frame.rgb is not None else np.full((*depth.shape, 3), 128, np.uint8)
-        cimg = o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(rgb, dtype=np.float32) / 255.0))
+        color = self.frames_integrated % cfg.color_every == 0
+        if color:
+            rgb = frame.rgb if frame.rgb is not None else np.full((*depth.shape, 3), 128, np.uint8)
+            cimg = o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(rgb, dtype=np.float32) / 255.0))
         dmax, mult = float(cfg.depth_max_m), float(cfg.trunc_voxels)
         capped = self.frames_integrated + 1 > cfg.weight_cap  # weights grow by <= 1 a frame: nothing to cap before
         coords = self.vbg.compute_unique_block_coordinates(dimg, Kt, E, 1.0, dmax, mult)
         self._activate(coords)
         # integrate() activates the blocks again and may grow (rehash) the table: look rows up after it
-        self.vbg.integrate(coords, dimg, cimg, Kt, E, 1.0, dmax, mult)
+        if color:
+            self.vbg.integrate(coords, dimg, cimg, Kt, E, 1.0, dmax, mult)
+        else:
+            self.vbg.integrate(coords, dimg, Kt, E, 1.0, dmax, mult)
         if capped:
             rows = self.vbg.hashmap().find(coords)[0].numpy().astype(np.int64)
             weight = _view(self.vbg.attribute("weight"))

@@ -91,3 +91,21 @@ def test_band_offsets_and_band_pixels() -> None:
     mask = np.ones((5, 6), bool)
     mask[0, 0] = False
     np.testing.assert_array_equal(band_pixels(mask, 2), [2, 4, 12, 14, 16, 24, 26, 28])
+
+
+def test_color_every_skips_colour_only(src: FrameSource, small_cfg: FuseConfig) -> None:
+    every = _sorted_state(_fuse(src, small_cfg))
+    sparse = _sorted_state(_fuse(src, dataclasses.replace(small_cfg, color_every=3)))
+    for name in ("keys", "tsdf", "weight", "label"):
+        np.testing.assert_array_equal(sparse[name], every[name], err_msg=name)
+    assert not np.array_equal(sparse["color"], every["color"])
+    # still an average of observed colours (Open3D keeps them on a 0-255 scale)
+    assert sparse["color"].min() >= 0 and sparse["color"].max() <= 255 + 1e-3 and sparse["color"].max() > 1
+
+
+def test_realtime_preset_is_a_valid_tsdf_config() -> None:
+    from cadalign.fuse.config import PRESETS
+
+    rt = PRESETS["realtime"]
+    assert rt.method == "tsdf" and rt.voxel_m == 0.02 and rt.block_resolution == 4 and rt.color_every > 1
+    assert rt.label_lookup == "frustum" and rt.trunc_voxels == PRESETS["default"].trunc_voxels
