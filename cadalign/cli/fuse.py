@@ -21,7 +21,7 @@ def command(
                                             help="A `cadalign train depth` run (for --depth pred)."),
     voxel: float | None = typer.Option(None, "--voxel", min=1e-4, help="Voxel size in metres (preset: 0.02)."),
     method: str | None = typer.Option(None, "--method", help="tsdf | surfel (preset: tsdf)."),
-    preset: str = typer.Option("default", "--preset", help="default | fast | fine | surfel."),
+    preset: str = typer.Option("default", "--preset", help="default | fast | fine | realtime | surfel."),
     config: Path | None = typer.Option(None, "--config", help="TOML/YAML with overrides of the preset."),
     split: str | None = typer.Option(None, "--split", help="Only this split of a built dataset (train/val/test)."),
     max_frames: int | None = typer.Option(None, "--max-frames", min=1, help="Fuse only the first N frames."),
