@@ -201,17 +201,8 @@ def _inside_solid(spec: ObjectSpec, p_world: np.ndarray) -> np.ndarray:
     return in_z & (np.sum((p[:, :2] / (size[:2] / 2)) ** 2, axis=1) < 1)
 
 
-def check_camera_clearance(spec: SceneSpec, source: str = "<scene>", max_frames: int = 2000) -> None:
-    """Refuse trajectories that put the camera under the seabed or inside a solid procedural part.
-
-    Cheap and conservative: camera centres of every frame (at most ``max_frames`` evenly spaced
-    ones for very long clips) against the seabed plane (z = 0) and the exact volumes of procedural
-    boxes and cylinders; the other parts (CAD meshes, frames, valves) are checked against their meshes by
-    :func:`check_mesh_clearance` once they are loaded (:func:`cadalign.sim.scene.build_scene`).
-
-    Raises:
-        ConfigError: naming the file, the first offending frame, its position and the fix.
-    """
+def _camera_centres(spec: SceneSpec, source: str, max_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """(frame indices (K,), camera centres (K, 3)) of at most ``max_frames`` evenly spaced frames."""
     from cadalign.sim.trajectory import pose_at
 
     traj = spec.trajectory
@@ -223,6 +214,21 @@ def check_camera_clearance(spec: SceneSpec, source: str = "<scene>", max_frames:
         raise ConfigError(
             f"{source}: [trajectory] gives no valid camera pose ({exc}); move 'center' or the path"
         ) from exc
+    return ks, eyes
+
+
+def check_camera_clearance(spec: SceneSpec, source: str = "<scene>", max_frames: int = 2000) -> None:
+    """Refuse trajectories that put the camera under the seabed or inside a solid procedural part.
+
+    Cheap and conservative: camera centres of every frame (at most ``max_frames`` evenly spaced
+    ones for very long clips) against the seabed plane (z = 0) and the exact volumes of procedural
+    boxes and cylinders; the other parts (CAD meshes, frames, valves) are checked against their meshes by
+    :func:`check_mesh_clearance` once they are loaded (:func:`cadalign.sim.scene.build_scene`).
+
+    Raises:
+        ConfigError: naming the file, the first offending frame, its position and the fix.
+    """
+    ks, eyes = _camera_centres(spec, source, max_frames)
     if spec.seabed is not None and np.any(eyes[:, 2] <= 0):
         i = int(np.flatnonzero(eyes[:, 2] <= 0)[0])
         raise ConfigError(f"{source}: the camera of frame {ks[i]} is under the seabed (z = {eyes[i, 2]:.3g} m); "
@@ -251,11 +257,8 @@ def check_mesh_clearance(spec: SceneSpec, meshes: Sequence[tuple[np.ndarray, np.
         ConfigError: naming the file, the first offending frame, its position, the object and the fix.
     """
     from cadalign.cad.inside import inside_mesh
-    from cadalign.sim.trajectory import pose_at
 
-    traj = spec.trajectory
-    ks = np.unique(np.linspace(0, traj.frames - 1, min(traj.frames, max_frames)).round().astype(int))
-    eyes = np.array([pose_at(traj, k / traj.fps, spec.seed).t for k in ks])  # finite: check_camera_clearance ran
+    ks, eyes = _camera_centres(spec, source, max_frames)
     for o, (vertices, faces) in zip(spec.objects, meshes, strict=True):
         if o.source in ("procedural:box", "procedural:cylinder"):
             continue
