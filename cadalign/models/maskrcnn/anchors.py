@@ -22,15 +22,21 @@ def cell_anchors(size: float, ratios: Sequence[float], dtype: torch.dtype = torc
     return torch.stack([-w / 2, -h / 2, w / 2, h / 2], 1)
 
 
-def grid_anchors(feat_hw: tuple[int, int], stride: int, size: float, ratios: Sequence[float],
+def grid_anchors(feat_hw: tuple[int, int], stride: int, size: float | Sequence[float], ratios: Sequence[float],
                  device: torch.device | str = "cpu") -> Tensor:
-    """``(H * W * A, 4)`` xyxy anchors of one level with a ``feat_hw`` feature map."""
+    """``(H * W * A, 4)`` xyxy anchors of one level with a ``feat_hw`` feature map.
+
+    ``size`` may be several sizes (scales within the level, RetinaNet's ``2^(k/3)``): ``A = sizes x ratios``,
+    size-major, ratios fastest.
+    """
     h, w = feat_hw
     ys = (torch.arange(h, dtype=torch.float32, device=device) + 0.5) * stride
     xs = (torch.arange(w, dtype=torch.float32, device=device) + 0.5) * stride
     cy, cx = torch.meshgrid(ys, xs, indexing="ij")
     shifts = torch.stack([cx, cy, cx, cy], -1).reshape(-1, 1, 4)
-    return (shifts + cell_anchors(size, ratios).to(device)[None]).reshape(-1, 4)
+    sizes = [float(size)] if isinstance(size, (int, float)) else [float(v) for v in size]
+    cell = torch.cat([cell_anchors(v, ratios) for v in sizes]).to(device)
+    return (shifts + cell[None]).reshape(-1, 4)
 
 
 def flatten_level(x: Tensor, k: int) -> Tensor:

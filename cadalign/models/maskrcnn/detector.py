@@ -59,6 +59,14 @@ class MaskRCNNConfig:
     """Anchor side (px at ``input_hw``) on P2..P6."""
     anchor_ratios: tuple[float, ...] = (0.5, 1.0, 2.0)
     """Anchor aspect ratios h / w."""
+    anchor_scales: tuple[float, ...] = (1.0,)
+    """Multipliers of each level's anchor size, e.g. ``(1, 2^(1/3), 2^(2/3))`` (RetinaNet's three scales per
+    octave): parts of 5-20 px fall between one-size levels and match no anchor at the RPN's IoU."""
+    rpn_fg_iou: float = bounded(0.7, gt=0, le=1)
+    """Anchors overlapping a ground-truth box at least this much are RPN positives (each box also claims its
+    best anchor). 0.7 is for COCO-sized objects; a stride-4 grid gives a 10 px part no anchor that close."""
+    rpn_bg_iou: float = bounded(0.3, ge=0, le=1)
+    """Anchors overlapping every ground-truth box less than this are RPN negatives."""
     rpn_pre_nms_train: int = bounded(2000, ge=1)
     """Top-scoring anchors per level kept before NMS (training)."""
     rpn_post_nms_train: int = bounded(1000, ge=1)
@@ -95,6 +103,10 @@ class MaskRCNNConfig:
             raise ValueError(f"depth must be 18, 34 or 50, got {self.depth}")
         if len(self.anchor_sizes) != len(STRIDES):
             raise ValueError(f"anchor_sizes needs {len(STRIDES)} values (P2..P6), got {len(self.anchor_sizes)}")
+        if self.rpn_bg_iou > self.rpn_fg_iou:
+            raise ValueError(f"rpn_bg_iou {self.rpn_bg_iou} must not exceed rpn_fg_iou {self.rpn_fg_iou}")
+        if not self.anchor_scales or min(self.anchor_scales) <= 0:
+            raise ValueError(f"anchor_scales must be positive multipliers, got {self.anchor_scales}")
         if min(self.input_hw) < 32:
             raise ValueError(f"input_hw must be at least 32 x 32, got {self.input_hw}")
 
@@ -130,7 +142,8 @@ class MaskRCNNPose(nn.Module):
         c = cfg.fpn_channels
         self.rpn = RPN(c, RPNSettings(tuple(cfg.anchor_sizes), tuple(cfg.anchor_ratios), STRIDES,
                                       cfg.rpn_pre_nms_train, cfg.rpn_post_nms_train, cfg.rpn_pre_nms_test,
-                                      cfg.rpn_post_nms_test, batch_per_image=cfg.rpn_batch_per_image))
+                                      cfg.rpn_post_nms_test, fg_iou=cfg.rpn_fg_iou, bg_iou=cfg.rpn_bg_iou,
+                                      batch_per_image=cfg.rpn_batch_per_image, scales=tuple(cfg.anchor_scales)))
         self.box_pool = MultiScaleRoIAlign(7, cfg.sampling_ratio)
         self.mask_pool = MultiScaleRoIAlign(14, cfg.sampling_ratio)
         self.box_head = BoxHead(c, 7, cfg.box_rep, n)

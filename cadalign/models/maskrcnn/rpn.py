@@ -65,6 +65,7 @@ class RPNSettings:
     batch_per_image: int = 256
     pos_fraction: float = 0.5
     min_size: float = 1e-3
+    scales: tuple[float, ...] = (1.0,)
 
 
 class RPN(nn.Module):
@@ -73,7 +74,7 @@ class RPN(nn.Module):
     def __init__(self, channels: int, s: RPNSettings) -> None:
         super().__init__()
         self.s = s
-        a = len(s.ratios)
+        a = len(s.ratios) * len(s.scales)
         self.conv = nn.Conv2d(channels, channels, 3, padding=1)
         self.cls = nn.Conv2d(channels, a, 1)
         self.box = nn.Conv2d(channels, 4 * a, 1)
@@ -89,7 +90,8 @@ class RPN(nn.Module):
             t = F.relu(self.conv(f))
             logits.append(flatten_level(self.cls(t), 1).squeeze(-1))
             deltas.append(flatten_level(self.box(t), 4))
-            anchors.append(grid_anchors(tuple(f.shape[-2:]), stride, size, self.s.ratios, f.device))
+            sizes = [size * k for k in self.s.scales]
+            anchors.append(grid_anchors(tuple(f.shape[-2:]), stride, sizes, self.s.ratios, f.device))
             counts.append(anchors[-1].shape[0])
         logit, delta, anc = torch.cat(logits, 1), torch.cat(deltas, 1), torch.cat(anchors, 0)
         proposals = self._proposals(logit.detach(), delta.detach(), anc, counts, image_hw)
