@@ -61,7 +61,7 @@ def test_multi_scale_rpn_trains_and_infers():
               "R": torch.eye(3)[None], "t": torch.tensor([[0.0, 0, 3]]), "K": torch.eye(3),
               "obj_ids": torch.tensor([1])}
     losses = model(torch.rand(1, 3, 48, 64), [target])
-    assert np.isfinite([float(v) for v in losses.values()]).all() and float(losses["rpn_box"]) > 0
+    assert np.isfinite([float(v.detach()) for v in losses.values()]).all() and float(losses["rpn_box"].detach()) > 0
     model.eval()
     out = model(torch.rand(1, 3, 48, 64))
     assert out[0]["boxes"].shape[1] == 4
