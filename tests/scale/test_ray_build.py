@@ -128,3 +128,39 @@ def test_errors_in_the_code_are_not_retried(local_build: Path, scale_capture: tu
     with pytest.raises(FileNotFoundError, match="frame 0 source missing"):
         _build(local_build, scale_capture, tmp_path / "ray_err", executor)
     assert len([p for p in calls.iterdir() if p.name.startswith("0_")]) == 1
+
+
+HEAD = """
+import os, sys
+import ray
+ray.init(num_cpus=2, include_dashboard=False, object_store_memory=200 * 2**20, log_to_driver=False)
+print(ray.get_runtime_context().gcs_address, flush=True)
+sys.stdin.read()  # keep the instance up until the test closes our stdin
+ray.shutdown()
+"""
+
+
+@pytest.mark.slow
+def test_cli_connects_to_a_running_cluster_by_address(local_build: Path, scale_capture: tuple[Path, Path],
+                                                      tmp_path: Path, quiet_ray_env: None) -> None:
+    """A Ray instance owned by another process (a one-node "cluster"): ``--ray-address`` connects to it, the
+    frames are rendered by its workers, the CLI disconnects and leaves it running (slow: two Ray starts)."""
+    import subprocess
+    import sys
+
+    assert not ray.is_initialized()
+    head = subprocess.Popen([sys.executable, "-c", HEAD], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        address = head.stdout.readline().strip()  # type: ignore[union-attr]
+        assert ":" in address, address
+        spec, sim = scale_capture
+        out = fresh_out(local_build, tmp_path / "cluster")
+        res = CliRunner().invoke(app, ["build-dataset", str(sim / "frames"), "--cad", str(spec), "--out", str(out),
+                                       "--preset", "fast", "--init", str(local_build / "picks.json"),
+                                       "--executor", "ray", "--ray-address", address])
+        assert res.exit_code == 0, res.output
+        assert not ray.is_initialized() and head.poll() is None
+        assert dataset_bytes(out) == dataset_bytes(local_build)
+    finally:
+        head.communicate(input="", timeout=60)
+    assert head.returncode == 0
