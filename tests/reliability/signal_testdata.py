@@ -28,7 +28,7 @@ class Stopped:
     returncode: int
     stderr: str
     seconds_to_exit: float
-    """From SIGINT to the process's exit."""
+    """From the signal to the process's exit."""
 
 
 def cadalign(*args: str | Path) -> list[str]:
@@ -51,8 +51,8 @@ def run_to_end(cmd: list[str], cwd: Path, timeout: float = 300) -> subprocess.Co
 
 
 def interrupt_when(cmd: list[str], cwd: Path, ready: Callable[[], bool], *, timeout: float = 300,
-                   poll_s: float = 0.005) -> Stopped:
-    """Start ``cmd``, wait until ``ready()`` holds, send SIGINT (``os.kill``) and wait for the exit.
+                   poll_s: float = 0.005, sig: int = signal.SIGINT) -> Stopped:
+    """Start ``cmd``, wait until ``ready()`` holds, send ``sig`` (``os.kill``; SIGINT = Ctrl-C) and wait for the exit.
 
     Fails if the command ends before ``ready()`` holds (nothing was interrupted) or does not exit within
     60 s of the signal.
@@ -70,7 +70,7 @@ def interrupt_when(cmd: list[str], cwd: Path, ready: Callable[[], bool], *, time
                 raise AssertionError(f"{' '.join(cmd)}: the point to interrupt it was not reached in {timeout} s")
             time.sleep(poll_s)
         t0 = time.monotonic()
-        os.kill(p.pid, signal.SIGINT)
+        os.kill(p.pid, sig)
         _, err = p.communicate(timeout=60)
         return Stopped(p.returncode, err, time.monotonic() - t0)
     finally:
