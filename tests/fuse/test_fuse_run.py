@@ -142,3 +142,16 @@ def test_cli_end_to_end(fuse_sim: Path, tmp_path: Path) -> None:
     assert bad.exit_code == 1 and "method" in bad.output
     bad = CliRunner().invoke(app, ["fuse", str(fuse_sim), "--out", str(tmp_path / "y"), "--ids", "3-5"])
     assert bad.exit_code == 2 and "A:B" in bad.output
+
+
+def test_bench_fuse_sweep_measures_new_and_old_in_one_run(fuse_sim: Path) -> None:
+    from cadalign.eval.bench_stages import fuse_measure
+    from cadalign.fuse.inputs import open_source
+
+    src = open_source(fuse_sim, max_frames=2)
+    shared = (src, [src.frame(i) for i in src.ids])
+    met = fuse_measure(shared, {"voxel_m": 0.06, "preset": "realtime"}, seed=0)
+    assert met["ms_per_frame"] > 0 and met["old_ms_per_frame"] > 0 and met["speedup_vs_old"] > 0
+    assert met["ms_tsdf"] > 0 and met["ms_labels"] > 0 and met["cpu_ms_per_frame"] > 0
+    assert met["speedup_cpu_vs_old"] > 0 and met["load_average"] >= 0
+    assert 0 < met["chamfer_m"] < 0.1 and met["label_accuracy"] > 0.5
