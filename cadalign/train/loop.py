@@ -48,7 +48,7 @@ from cadalign.train.checkpoint import (
 log = logging.getLogger(__name__)
 
 __all__ = ["LoopConfig", "StepFn", "TrainResult", "augment_seed", "check_finite_batch", "is_main_rank",
-           "stream_indices", "train_loop"]
+           "rank_device", "stream_indices", "train_loop"]
 
 
 @dataclass(frozen=True)
@@ -134,6 +134,12 @@ def _to_device(x: Any, device: torch.device) -> Any:
     if isinstance(x, list):
         return [_to_device(v, device) for v in x]
     return x
+
+
+def rank_device(device: str, local_rank: int) -> str:
+    """The device of a DDP rank: a bare ``cuda`` becomes ``cuda:<LOCAL_RANK>`` (one GPU per rank on a node);
+    an explicit index or another device type is kept."""
+    return f"cuda:{local_rank}" if device == "cuda" else device
 
 
 def _dist_setup(device: str) -> tuple[int, int]:
@@ -279,7 +285,9 @@ def train_loop(model: nn.Module, step_fn: StepFn, dataset: Dataset, cfg: LoopCon
     rank, world = _dist_setup(device)
     if cfg.batch_size % world:
         raise ConfigError(f"batch_size {cfg.batch_size} must be a multiple of the {world} DDP ranks")
-    dev = torch.device(device)
+    dev = torch.device(rank_device(device, int(os.environ.get("LOCAL_RANK", rank))) if world > 1 else device)
+    if world > 1 and dev.type == "cuda":
+        torch.cuda.set_device(dev)  # bare "cuda" elsewhere (val, pose eval) then means this rank's GPU
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed % 2**32)
     model.to(dev)

@@ -17,7 +17,7 @@ import ddp_testutils as U
 import pytest
 
 from cadalign.config import resolve
-from cadalign.train.loop import augment_seed
+from cadalign.train.loop import augment_seed, rank_device
 
 LOOP = {"steps": 6, "batch_size": 2, "lr": 1e-3, "log_every": 1, "checkpoint_every": 2, "seed": 3}
 FIRST_TOL = {"seg": 0.02, "depth": 0.01, "pose": 0.02}
@@ -56,6 +56,11 @@ def test_augment_seed_differs_per_rank_and_keeps_rank0() -> None:
     assert augment_seed(3, 5, 0) == 3 * 7_919 + 5 * 104_729 + 1  # the single-process seed, unchanged
     seeds = {augment_seed(3, s, r) for s in range(50) for r in range(4)}
     assert len(seeds) == 200
+
+
+def test_each_rank_gets_its_own_gpu_and_cpu_stays_cpu() -> None:
+    assert [rank_device("cuda", r) for r in range(3)] == ["cuda:0", "cuda:1", "cuda:2"]
+    assert rank_device("cuda:3", 1) == "cuda:3" and rank_device("cpu", 1) == "cpu"
 
 
 def test_ddp_depth_interrupted_on_one_rank_resumes_to_the_single_process_curve(ddp_scene: Path,
