@@ -52,7 +52,7 @@ def user_errors() -> Iterator[None]:
     except CadalignError as exc:
         console.print(f"[bold red]error:[/] {exc}")
         raise typer.Exit(code=1) from None
-    except KeyboardInterrupt:
-        console.print("[bold yellow]interrupted:[/] finished work is kept on disk; "
-                      "re-run the same command to resume")
+    except KeyboardInterrupt as exc:  # Ctrl-C has no message; a stage that stops itself may give one
+        why = str(exc) or "finished work is kept on disk; re-run the same command to resume"
+        console.print(f"[bold yellow]interrupted:[/] {why}")
         raise typer.Exit(code=130) from None

@@ -39,3 +39,25 @@ def test_sim_camera_inside_an_object(tmp_path: Path) -> None:
     scene = write_tiny_scene(tmp_path / "s.toml", effects=[], frames=2)
     scene.write_text(scene.read_text().replace("radius_m = 3.2\nheight_m = 1.6", "radius_m = 0.2\nheight_m = 0.5"))
     _fails_readably(["sim", str(scene), "--out", str(tmp_path / "o")], "inside object 'block'")
+
+
+def test_ctrl_c_is_a_one_line_note_and_exit_130() -> None:
+    """KeyboardInterrupt inside a command (Ctrl-C, or a stage that stops itself with a reason) -> exit 130 and
+    one line: the reason if the stage gave one, else how to resume; never a traceback."""
+    import typer
+
+    from cadalign.cli.common import user_errors
+
+    mini = typer.Typer()
+
+    @mini.command()
+    def work(reason: str = "") -> None:
+        with user_errors():
+            raise KeyboardInterrupt(reason) if reason else KeyboardInterrupt
+
+    res = runner.invoke(mini, [])
+    assert res.exit_code == 130 and res.output.strip() == (
+        "interrupted: finished work is kept on disk; re-run the same command to resume")
+    res = runner.invoke(mini, ["--reason", "training interrupted at step 3; re-run the demo to resume"])
+    assert res.exit_code == 130 and res.output.strip() == (
+        "interrupted: training interrupted at step 3; re-run the demo to resume")
