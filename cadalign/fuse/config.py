@@ -53,6 +53,9 @@ class FuseConfig:
     """How the label update finds the voxel of each sample: ``frustum`` looks its block up in a dense table of
     the blocks this frame touched (fast); ``reference`` asks Open3D's hash map once per sample (the first
     implementation, the baseline of ``bench_fuse``). Both update the same voxels with the same values."""
+    label_threads: int = bounded(2, ge=1)
+    """Threads for the frustum label update (NumPy releases the GIL, so they use separate cores); the result
+    is the same for any number. 1 = none (on a machine already busy, threads only add hand-over cost)."""
     label_pixel_stride: int = bounded(1, ge=1)
     """Use every n-th pixel (in both directions) for the label update (speed knob; 1 = every pixel)."""
     pred_depth_foreground_only: bool = True

@@ -34,22 +34,9 @@ from cadalign.fuse.base import (
     require_valid_depth,
 )
 from cadalign.fuse.config import FuseConfig
-from cadalign.fuse.semantic import (
-    bayes_update,
-    clamped_log_probs,
-    gather_rows,
-    renormalise,
-    scatter_rows,
-    take_rows,
-)
-from cadalign.fuse.tsdf_labels import (
-    Rays,
-    band_offsets,
-    band_pixels,
-    frame_blocks,
-    sample_voxels,
-    split_blocks,
-)
+from cadalign.fuse.semantic import bayes_update, clamped_log_probs, gather_rows, scatter_rows
+from cadalign.fuse.tsdf_frustum import FrustumLabeler
+from cadalign.fuse.tsdf_labels import Rays, band_offsets, band_pixels
 from cadalign.types import Rigid3
 
 log = logging.getLogger(__name__)
@@ -89,6 +76,7 @@ class SemanticTSDF:
         self.res = int(cfg.block_resolution)
         self.vbg = self._new_grid(int(cfg.block_count))
         self._rays: Rays | None = None  # per-pixel ray slopes of the last camera (frustum label lookup)
+        self._labeler = FrustumLabeler(cfg.label_threads)
 
     def _new_grid(self, capacity: int):  # -> o3d.t.geometry.VoxelBlockGrid
         o3d = require_open3d()
@@ -140,10 +128,7 @@ class SemanticTSDF:
             weight = _view(self.vbg.attribute("weight"))
             weight[rows] = np.minimum(weight[rows], np.float32(cfg.weight_cap))
         t1, c1 = time.perf_counter(), time.process_time()
-        plan = self._plan_frustum(frame, mask) if cfg.label_lookup == "frustum" else None
-        if plan is not None:
-            self._apply_labels(frame, *plan)
-        else:
+        if cfg.label_lookup != "frustum" or not self._update_labels_frustum(frame, mask):
             self._update_labels(frame, mask)
         t2, c2 = time.perf_counter(), time.process_time()
         self.seconds["tsdf"] += t1 - t0
@@ -211,48 +196,27 @@ class SemanticTSDF:
         label = _view(self.vbg.attribute("label")).reshape(-1, self.n_classes)
         scatter_rows(label, flat, bayes_update(gather_rows(label, flat), obs, self.cfg.label_log_floor))
 
-    def _plan_frustum(self, frame: FuseFrame, mask: np.ndarray):  # noqa: ANN202
-        """The label samples of :meth:`_surface_samples` (same voxels, same float32 arithmetic) with their voxel
-        rows from one hash query per distinct block: flat pixel indices (P,), samples per pixel n, and the
-        flat voxel row of each sample (n P,) (-1: its block was never allocated). None when the frame's
-        blocks span too big a box (the reference path then does the update)."""
+    def _update_labels_frustum(self, frame: FuseFrame, mask: np.ndarray) -> bool:
+        """The label update of :meth:`_update_labels` (same voxels, same values) through the frustum path;
+        False (nothing done) when the frame's blocks span too big a box."""
         cfg, cam = self.cfg, frame.camera
         pix = band_pixels(mask, cfg.label_pixel_stride) if cfg.label_pixel_stride > 1 else np.flatnonzero(mask)
         if self._rays is None or self._rays.key != Rays.of_key(cam.K, cam.width, cam.height):
             self._rays = Rays.of(cam.K, cam.width, cam.height)
         T = np.linalg.inv(self._T_cam_from_local(frame))
         T[:3] /= cfg.voxel_m
-        z = np.asarray(frame.depth_m, dtype=np.float32).reshape(-1)[pix]
-        offsets = band_offsets(cfg.label_band_voxels, cfg.voxel_m)
-        block, local = split_blocks(sample_voxels(self._rays.x[pix], self._rays.y[pix], z, T, offsets), self.res)
-        plan = frame_blocks(block)
-        if plan is None:
-            return None
         o3d = require_open3d()
-        buf, found = self.vbg.hashmap().find(o3d.core.Tensor.from_numpy(plan.keys))
-        rows = np.where(found.numpy(), buf.numpy().astype(np.int32), -1)
-        flat = plan.sample_rows(rows)
-        ok = flat >= 0
-        flat *= self.res**3
-        flat += local
-        flat[~ok] = -1
-        return pix, len(offsets), flat
 
-    def _apply_labels(self, frame: FuseFrame, pix: np.ndarray, n: int, flat: np.ndarray) -> None:
-        """The Bayes update of the voxels ``flat`` (n P,) (offset-major samples of the P pixels ``pix``; -1 =
-        none), with the same values as :meth:`_update_labels` (rows are independent, so samples without a
-        voxel are computed along and dropped at the end, which saves compacting the observations)."""
-        C = self.n_classes
-        probs = np.asarray(frame.probs, dtype=np.float32).reshape(C, -1)
-        obs_pix = np.ascontiguousarray(clamped_log_probs(np.take(probs, pix, axis=1), self.cfg.label_min_prob).T)
-        label = _view(self.vbg.attribute("label")).reshape(-1, C)
-        post = gather_rows(label, flat)  # -1 reads the last row: a harmless dummy, never written back
-        post.reshape(n, len(pix), C)[...] += obs_pix
-        renormalise(post, self.cfg.label_log_floor)
-        if flat.min() < 0:  # samples outside allocated blocks (rare: blocks cover the whole truncation band)
-            keep = flat >= 0
-            flat, post = flat[keep], take_rows(post, keep)
-        scatter_rows(label, flat, post)
+        def find_rows(keys: np.ndarray) -> np.ndarray:
+            buf, found = self.vbg.hashmap().find(o3d.core.Tensor.from_numpy(keys))
+            return np.where(found.numpy(), buf.numpy().astype(np.int32), -1)
+
+        return self._labeler.update(
+            _view(self.vbg.attribute("label")).reshape(-1, self.n_classes),
+            np.asarray(frame.probs, dtype=np.float32).reshape(self.n_classes, -1), pix, (self._rays.x, self._rays.y),
+            np.asarray(frame.depth_m, dtype=np.float32).reshape(-1), T,
+            band_offsets(cfg.label_band_voxels, cfg.voxel_m), self.res, cfg.label_min_prob, cfg.label_log_floor,
+            find_rows)
 
     def stored_at(self, points_local: np.ndarray) -> np.ndarray:
         """(N, C) stored relative log-probabilities of the voxel nearest to each local point (0 = uniform)."""

@@ -5,9 +5,9 @@ along its ray, one voxel apart, inside ``+-label_band/2`` of its depth, i.e. ``|
 
 - ``reference`` (the first implementation, kept as the benchmark baseline): the voxel index of every sample,
   then one Open3D hash-map query per sample (~400k a frame at 640x480) for its block.
-- ``frustum``: the samples' blocks are deduplicated with a mask over their bounding box (:func:`frame_blocks`),
-  the hash map is asked once per distinct block (~10-30k), and a dense table over the box gives every
-  sample its buffer row with one array lookup. Per-camera ray slopes are
+- ``frustum`` (:mod:`cadalign.fuse.tsdf_frustum`): the samples' blocks are deduplicated with a mask over
+  their bounding box (cells: :func:`block_cells`), the hash map is asked once per distinct block (~10-30k),
+  and a dense table over the box gives every sample its buffer row with one array lookup. Per-camera ray slopes are
   computed once. The positions use the same float32 operations in the same order as the reference, so both
   paths write identical values (a test checks this bit for bit, across hash-map growth).
 """
@@ -23,55 +23,22 @@ MAX_TABLE_CELLS = 1 << 25
 cells, 160 MB); a frame seeing further falls back to the reference path."""
 
 
-@dataclass(frozen=True)
-class FrameBlocks:
-    """The blocks one frame integrates, and the block of each label sample, as cells of one box of blocks.
-
-    Attributes:
-        keys: (K, 3) int32 block keys to integrate, sorted by cell.
-        cells: (K,) int64 cell of each key in the box (x-major, ``(x * sy + y) * sz + z``).
-        sample_cells: (M,) int64 cell of each label sample's block.
-        n_cells: number of cells in the box.
-    """
-
-    keys: np.ndarray
-    cells: np.ndarray
-    sample_cells: np.ndarray
-    n_cells: int
-
-    def sample_rows(self, key_rows: np.ndarray) -> np.ndarray:
-        """(M,) int64 buffer row of each sample's block from the (K,) int32 rows of :attr:`keys` (-1 kept)."""
-        table = np.empty(self.n_cells, dtype=np.int32)  # only cells of keys are ever read
-        table[self.cells] = key_rows
-        return table[self.sample_cells].astype(np.int64)
-
-
-def _cells(blocks: np.ndarray, lo: np.ndarray, sy: int, sz: int) -> np.ndarray:
+def block_cells(blocks: np.ndarray, lo: np.ndarray, shape: np.ndarray) -> np.ndarray:
+    """(M,) int64 cell of (3, M) int32 block keys in the box ``lo`` (3,), ``shape`` (3,) (x-major:
+    ``(x * sy + y) * sz + z`` relative to ``lo``)."""
+    sy, sz = int(shape[1]), int(shape[2])
     cells = (blocks[0] - np.int32(lo[0])).astype(np.int64) * (sy * sz)
     cells += (blocks[1] - np.int32(lo[1])) * np.int64(sz)
     cells += blocks[2] - np.int32(lo[2])
     return cells
 
 
-def frame_blocks(sample_blocks: np.ndarray) -> FrameBlocks | None:
-    """The distinct blocks of the label samples (3, M) int32, deduplicated with a mask over their bounding box;
-    None if there are none or the box has more than :data:`MAX_TABLE_CELLS` cells."""
-    if sample_blocks.size == 0:
-        return None
-    lo = sample_blocks.min(axis=1).astype(np.int64)
-    shape = sample_blocks.max(axis=1).astype(np.int64) - lo + 1
-    n_cells = int(np.prod(shape))
-    if n_cells > MAX_TABLE_CELLS:
-        return None
+def keys_of_cells(cells: np.ndarray, lo: np.ndarray, shape: np.ndarray) -> np.ndarray:
+    """(K, 3) int32 block keys of (K,) int64 cells of the box (the inverse of :func:`block_cells`)."""
     sy, sz = int(shape[1]), int(shape[2])
-    sample_cells = _cells(sample_blocks, lo, sy, sz)
-    mark = np.zeros(n_cells, dtype=bool)
-    mark[sample_cells] = True
-    cells = np.flatnonzero(mark)
     x, rest = np.divmod(cells, sy * sz)
     y, z = np.divmod(rest, sz)
-    keys = np.stack([x + lo[0], y + lo[1], z + lo[2]], axis=1).astype(np.int32)
-    return FrameBlocks(keys, cells, sample_cells, n_cells)
+    return np.stack([x + lo[0], y + lo[1], z + lo[2]], axis=1).astype(np.int32)
 
 
 def band_pixels(mask: np.ndarray, stride: int) -> np.ndarray:

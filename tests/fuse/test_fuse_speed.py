@@ -10,11 +10,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cadalign.fuse import tsdf_labels
+from cadalign.fuse import tsdf_frustum, tsdf_labels
 from cadalign.fuse.config import FuseConfig
 from cadalign.fuse.inputs import FrameSource, open_source
 from cadalign.fuse.tsdf import SemanticTSDF
-from cadalign.fuse.tsdf_labels import band_offsets, band_pixels, frame_blocks, split_blocks
+from cadalign.fuse.tsdf_frustum import segments
+from cadalign.fuse.tsdf_labels import band_offsets, band_pixels, block_cells, keys_of_cells, split_blocks
 
 
 @pytest.fixture(scope="module")
@@ -35,11 +36,14 @@ def _fuse(src: FrameSource, cfg: FuseConfig) -> SemanticTSDF:
     return m
 
 
-@pytest.mark.parametrize("res, stride", [(8, 1), (4, 1), (4, 2)])
+@pytest.mark.parametrize("res, stride, threads", [(8, 1, 1), (4, 1, 2), (4, 2, 3)])
 def test_frustum_labels_equal_the_reference_bit_for_bit(src: FrameSource, small_cfg: FuseConfig, res: int,
-                                                        stride: int) -> None:
+                                                        stride: int, threads: int,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(tsdf_frustum, "MIN_SAMPLES_PER_THREAD", 1000)  # the tiny frames use the threads too
     # a small initial table: it grows (and moves every block) during the run, which the lookups must survive
-    cfg = dataclasses.replace(small_cfg, block_resolution=res, block_count=300, label_pixel_stride=stride)
+    cfg = dataclasses.replace(small_cfg, block_resolution=res, block_count=300, label_pixel_stride=stride,
+                              label_threads=threads)
     fast = _fuse(src, cfg)
     ref = _fuse(src, dataclasses.replace(cfg, label_lookup="reference"))
     a, b = _sorted_state(fast), _sorted_state(ref)
@@ -68,21 +72,22 @@ def test_split_blocks_is_floor_division(values: list[int], res: int) -> None:
     assert local.min(initial=0) >= 0 and local.max(initial=0) < res**3
 
 
-def test_frame_blocks_dedupes_and_maps_rows_hand_case() -> None:
-    samples = np.array([[0, 0, -1, 0, 3], [0, 0, 2, 0, 0], [0, 1, 5, 0, 0]], dtype=np.int32)  # (3, M), 4 blocks
-    plan = frame_blocks(samples)
-    assert plan is not None
-    keys = {tuple(k) for k in plan.keys.tolist()}
-    assert keys == {(0, 0, 0), (0, 0, 1), (-1, 2, 5), (3, 0, 0)} and len(plan.keys) == 4
-    rows = np.array([100, -1, 102, 103], dtype=np.int32)  # the buffer row of each key (-1: not allocated)
-    row_of = {tuple(k): r for k, r in zip(plan.keys.tolist(), rows.tolist(), strict=True)}
-    expect = [row_of[tuple(samples[:, j])] for j in range(samples.shape[1])]
-    np.testing.assert_array_equal(plan.sample_rows(rows), expect)
+def test_block_cells_round_trip_hand_case() -> None:
+    blocks = np.array([[0, 0, -1, 3], [0, 0, 2, 0], [0, 1, 5, 0]], dtype=np.int32)  # (3, M)
+    lo, shape = np.array([-1, 0, 0]), np.array([5, 3, 6])
+    cells = block_cells(blocks, lo, shape)
+    np.testing.assert_array_equal(cells, [(1 * 3 + 0) * 6 + 0, (1 * 3 + 0) * 6 + 1, (0 * 3 + 2) * 6 + 5, 4 * 3 * 6])
+    np.testing.assert_array_equal(keys_of_cells(cells, lo, shape), blocks.T)
 
 
-def test_frame_blocks_refuses_a_huge_box_and_no_blocks() -> None:
-    assert frame_blocks(np.array([[0, 1000], [0, 1000], [0, 1000]], dtype=np.int32)) is None  # 1001^3 cells
-    assert frame_blocks(np.zeros((3, 0), np.int32)) is None
+@pytest.mark.parametrize("n, p, parts", [(2, 10, 2), (1, 7, 2), (3, 5, 2), (2, 4, 3), (2, 3, 1)])
+def test_segments_cover_the_samples_once_in_order(n: int, p: int, parts: int) -> None:
+    runs = segments(n, p, parts)
+    assert len(runs) == parts
+    flat = [j * p + q for run in runs for j, p0, p1 in run for q in range(p0, p1)]
+    assert flat == list(range(n * p))
+    sizes = [sum(p1 - p0 for _, p0, p1 in run) for run in runs]
+    assert max(sizes) - min(sizes) <= 1
 
 
 def test_band_offsets_and_band_pixels() -> None:
