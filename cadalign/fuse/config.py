@@ -30,7 +30,9 @@ class FuseConfig:
     weight_cap: float = bounded(64.0, ge=1)
     """TSDF weights (frames averaged) and surfel confidences are capped here, so the map keeps adapting."""
     block_resolution: int = bounded(8, ge=2, le=16)
-    """Voxels per side of one TSDF block (8: 4 is faster but loses more marching-cubes cells at block borders)."""
+    """Voxels per side of one TSDF block. 4 makes Open3D's integration ~40% cheaper at 2 cm (fewer voxels away
+    from the surface are visited) but Open3D picks blocks from every 4th pixel only, so small blocks miss
+    some surface: 95.9% instead of 96.3% of the default scene's CAD within 2 cm."""
     block_count: int = bounded(50000, ge=16)
     """Initial hash map capacity in blocks (8^3 blocks take ~18 kB each). Open3D grows it when full, but a
     growth costs seconds (a rehash and copy of every block), so size it for the scene."""
