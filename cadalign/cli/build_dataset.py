@@ -26,8 +26,9 @@ def command(
     ray_address: str | None = typer.Option(None, "--ray-address",
                                            help="Ray cluster address (e.g. ray://head:10001); default: $RAY_ADDRESS, "
                                            "else a Ray instance started on this machine. Needs --executor ray."),
-    workers: int | None = typer.Option(None, "--workers", help="Ray: tasks running at once (local Ray: its CPUs); "
-                                       "default: all CPUs of the machine or cluster."),
+    workers: int | None = typer.Option(None, "--workers",
+                                       help="Ray: most tasks in flight at once (a local Ray instance also gets this "
+                                       "many CPUs); default: all CPUs (local), 2 tasks per CPU in flight."),
 ) -> None:
     """Frames -> SfM -> CAD alignment (Sim3) -> per-frame CAD depth, normals, masks, poses -> BOP dataset."""
     from cadalign.build_dataset import build_dataset

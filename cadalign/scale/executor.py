@@ -4,9 +4,9 @@
 :class:`~cadalign.scale.frames.FrameJob` to Ray tasks: the meshes and camera models go into the object store
 once (``ray.put``), each task builds its ray-casting scene once and writes its frames straight to the
 dataset folder, and returns only the frame ids it wrote, so the driver's memory stays bounded by the number
-of tasks in flight (``2 x workers``), not by the length of the video. A task whose worker dies (killed,
-out of memory, node lost) is retried by Ray (``max_retries``); the retry skips the frames whose record is
-on disk and rewrites the others completely (see :mod:`cadalign.scale.frames`), so the result is the same
+of tasks in flight (``--workers``, default 2 per CPU), not by the length of the video. A task whose worker
+dies (killed, out of memory, node lost) is retried by Ray (``max_retries``); the retry skips the frames whose
+record is on disk and rewrites the others completely (see :mod:`cadalign.scale.frames`), so the result is the same
 files as an uninterrupted or a local build. Errors raised by the code (a bad input) are not retried.
 
 Cluster use: ``address`` (or the ``RAY_ADDRESS`` environment variable) names a running cluster, e.g.
@@ -41,8 +41,8 @@ class ExecutorConfig:
     """Ray cluster address (``ray://head:10001``, ``head:6379`` or ``auto``); None: ``RAY_ADDRESS`` if set,
     else a Ray instance started on this machine for the build and stopped after it."""
     workers: int | None = bounded(None, ge=1)
-    """Local Ray: worker CPUs (tasks running at once); cluster: cap on tasks running at once.
-    None: every CPU of this machine / of the cluster."""
+    """Local Ray: its CPUs; both local and cluster: the most tasks in flight (queued or running) at once.
+    None: every CPU of this machine for a local instance, and 2 tasks per CPU of the Ray instance in flight."""
     frames_per_task: int = bounded(4, ge=1)
     """Frames per Ray task: each task builds its ray-casting scene once (~0.2 s for the default scene)."""
     max_retries: int = bounded(3, ge=0)
@@ -94,16 +94,16 @@ class RayExecutor:
     def _run(self, ray: Any, jobs: Sequence[FrameJob], shared: FrameShared, progress: Progress | None) -> list[int]:
         work = chunks(jobs, self.cfg.frames_per_task)
         cpus = int(ray.cluster_resources().get("CPU", 1))
-        slots = self.cfg.workers or cpus
+        window = self.cfg.workers or 2 * cpus  # tasks in flight: an explicit cap, else 2 per CPU (none idles)
         task = ray.remote(num_cpus=1, max_retries=self.cfg.max_retries, retry_exceptions=False)(self.chunk_fn)
         shared_ref = ray.put(shared)
-        log.info("ray: %d frames in %d tasks, %d at a time", len(jobs), len(work), slots)
+        log.info("ray: %d frames in %d tasks, at most %d in flight on %d CPUs", len(jobs), len(work), window, cpus)
 
         def completed() -> Iterator[list[int]]:
             pending: list[Any] = []
             for chunk in work:
                 pending.append(task.remote(chunk, shared_ref))
-                if len(pending) >= 2 * slots:  # bounded: at most 2 x slots tasks queued or running
+                if len(pending) >= window:  # bounded: the driver holds at most `window` task references
                     ready, pending = ray.wait(pending, num_returns=1)
                     yield ray.get(ready[0])
             while pending:

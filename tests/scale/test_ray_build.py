@@ -1,5 +1,8 @@
 """``build-dataset --executor ray`` on local Ray (2 worker CPUs) writes the same bytes as the local build,
-also when a worker process is killed in the middle of a frame (Ray retries its task)."""
+also when a worker process is killed in the middle of a frame (Ray retries its task).
+
+The tests that need no running Ray come first: the module's Ray instance (``ray_two_cpus``) lives from the
+first test that uses it to the end of the module."""
 
 from __future__ import annotations
 
@@ -58,6 +61,42 @@ def test_cli_ray_executor_starts_and_stops_its_own_ray(local_build: Path, scale_
     assert not ray.is_initialized()
     _cli_build(local_build, scale_capture, tmp_path / "cli")
     assert not ray.is_initialized()
+
+
+HEAD = """
+import os, sys
+import ray
+ray.init(num_cpus=2, include_dashboard=False, object_store_memory=200 * 2**20, log_to_driver=False)
+print(ray.get_runtime_context().gcs_address, flush=True)
+sys.stdin.read()  # keep the instance up until the test closes our stdin
+ray.shutdown()
+"""
+
+
+@pytest.mark.slow
+def test_cli_connects_to_a_running_cluster_by_address(local_build: Path, scale_capture: tuple[Path, Path],
+                                                      tmp_path: Path, quiet_ray_env: None) -> None:
+    """A Ray instance owned by another process (a one-node "cluster"): ``--ray-address`` connects to it, the
+    frames are rendered by its workers, the CLI disconnects and leaves it running (slow: two Ray starts)."""
+    import subprocess
+    import sys
+
+    assert not ray.is_initialized()
+    head = subprocess.Popen([sys.executable, "-c", HEAD], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        address = head.stdout.readline().strip()  # type: ignore[union-attr]
+        assert ":" in address, address
+        spec, sim = scale_capture
+        out = fresh_out(local_build, tmp_path / "cluster")
+        res = CliRunner().invoke(app, ["build-dataset", str(sim / "frames"), "--cad", str(spec), "--out", str(out),
+                                       "--preset", "fast", "--init", str(local_build / "picks.json"),
+                                       "--executor", "ray", "--ray-address", address])
+        assert res.exit_code == 0, res.output
+        assert not ray.is_initialized() and head.poll() is None
+        assert dataset_bytes(out) == dataset_bytes(local_build)
+    finally:
+        head.communicate(input="", timeout=60)
+    assert head.returncode == 0
 
 
 def test_cli_ray_executor_uses_the_running_ray(local_build: Path, scale_capture: tuple[Path, Path], tmp_path: Path,
@@ -129,38 +168,3 @@ def test_errors_in_the_code_are_not_retried(local_build: Path, scale_capture: tu
         _build(local_build, scale_capture, tmp_path / "ray_err", executor)
     assert len([p for p in calls.iterdir() if p.name.startswith("0_")]) == 1
 
-
-HEAD = """
-import os, sys
-import ray
-ray.init(num_cpus=2, include_dashboard=False, object_store_memory=200 * 2**20, log_to_driver=False)
-print(ray.get_runtime_context().gcs_address, flush=True)
-sys.stdin.read()  # keep the instance up until the test closes our stdin
-ray.shutdown()
-"""
-
-
-@pytest.mark.slow
-def test_cli_connects_to_a_running_cluster_by_address(local_build: Path, scale_capture: tuple[Path, Path],
-                                                      tmp_path: Path, quiet_ray_env: None) -> None:
-    """A Ray instance owned by another process (a one-node "cluster"): ``--ray-address`` connects to it, the
-    frames are rendered by its workers, the CLI disconnects and leaves it running (slow: two Ray starts)."""
-    import subprocess
-    import sys
-
-    assert not ray.is_initialized()
-    head = subprocess.Popen([sys.executable, "-c", HEAD], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    try:
-        address = head.stdout.readline().strip()  # type: ignore[union-attr]
-        assert ":" in address, address
-        spec, sim = scale_capture
-        out = fresh_out(local_build, tmp_path / "cluster")
-        res = CliRunner().invoke(app, ["build-dataset", str(sim / "frames"), "--cad", str(spec), "--out", str(out),
-                                       "--preset", "fast", "--init", str(local_build / "picks.json"),
-                                       "--executor", "ray", "--ray-address", address])
-        assert res.exit_code == 0, res.output
-        assert not ray.is_initialized() and head.poll() is None
-        assert dataset_bytes(out) == dataset_bytes(local_build)
-    finally:
-        head.communicate(input="", timeout=60)
-    assert head.returncode == 0
