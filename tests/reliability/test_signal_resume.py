@@ -251,3 +251,32 @@ def test_build_dataset_killed_mid_render_then_rerun_equals_an_uninterrupted_buil
     cut = tree_digest(build_case / "kill" / "dataset", skip=stale)
     assert sorted(ref) == sorted(cut)
     assert [k for k in ref if ref[k] != cut[k]] == [], f"killed after {len(done)} frames"
+
+
+@pytest.mark.slow
+def test_infer_sigint_leaves_no_partial_output_and_rerun_equals_an_uninterrupted_run(tmp_path: Path,
+                                                                                      shared_data: Path) -> None:
+    """``cadalign infer`` (oracle detector, ICP on simulated depth): its outputs are written through temp files and
+    the temporal fusion is sequential, so SIGINT once it has opened them (the temp poses file exists) leaves no
+    poses.jsonl/overlay.mp4 and no temp file, and
+    the re-run (from the start) writes the same poses.jsonl as an uninterrupted run."""
+    from cadalign.sim.run import simulate
+
+    write_tiny_scene(tmp_path / "tiny.toml", effects=[], frames=8)
+    simulate(tmp_path / "tiny.toml", tmp_path / "sim", video=False, contact_sheet=False)
+
+    def cmd(out: str) -> list[str]:
+        return cadalign("infer", "sim/frames", "--oracle-gt", "sim", "--cad", "tiny.toml", "--depth", "sim",
+                        "--preset", "fast", "--out", out)
+
+    run_to_end(cmd("ref"), tmp_path)
+    stopped = interrupt_when(cmd("cut"), tmp_path, lambda: any((tmp_path / "cut").glob(".poses.jsonl.*")))
+    assert stopped.returncode == 130 and INTERRUPT_NOTE in stopped.stderr, stopped.stderr[-2000:]
+    assert stopped.seconds_to_exit < 30, stopped.seconds_to_exit
+    record_interrupt("infer", "Ctrl-C (SIGINT) while processing the video", stopped)
+    left = sorted(p.name for p in (tmp_path / "cut").iterdir())
+    assert "poses.jsonl" not in left and "overlay.mp4" not in left and "timings.json" not in left, left
+    assert not [n for n in left if ".tmp" in n], left
+    run_to_end(cmd("cut"), tmp_path)
+    assert (tmp_path / "cut" / "poses.jsonl").read_bytes() == (tmp_path / "ref" / "poses.jsonl").read_bytes()
+    assert len((tmp_path / "ref" / "poses.jsonl").read_text().splitlines()) >= 8
