@@ -44,7 +44,9 @@ def fuse(source: FrameSource, cfg: FuseConfig, *, m: SemanticMap | None = None, 
          checkpoint_every: int = 50) -> tuple[SemanticMap, MapMeta, float]:
     """Integrate the frames of ``source`` not yet in ``meta`` into ``m`` (a new map when None).
 
-    Returns the map, its metadata and the seconds spent in ``integrate`` (frame reading excluded).
+    Returns the map, its metadata and the seconds spent in ``integrate`` (frame reading excluded). A
+    KeyboardInterrupt (Ctrl-C) between frames first writes a checkpoint, so no fused frame is lost; one during a
+    frame's integration does not (the map may hold part of that frame), and the last checkpoint stands.
     """
     m = m if m is not None else new_map(cfg, source.n_classes)
     meta = meta if meta is not None else MapMeta(source.classes.names, [], str(source.scene.dir))
@@ -55,14 +57,22 @@ def fuse(source: FrameSource, cfg: FuseConfig, *, m: SemanticMap | None = None, 
     todo = [i for i in source.ids if i not in done]
     seconds = 0.0
     items = progress(todo, "fusing", len(todo)) if progress else todo
-    for n, im_id in enumerate(items, start=1):
-        frame = source.frame(im_id)
-        t0 = time.perf_counter()
-        m.integrate(frame)
-        seconds += time.perf_counter() - t0
-        meta.frame_ids.append(int(im_id))
-        if checkpoint is not None and n % checkpoint_every == 0:
+    busy = False  # True while a frame is being integrated: the map may then hold part of it
+    try:
+        for n, im_id in enumerate(items, start=1):
+            frame = source.frame(im_id)
+            t0 = time.perf_counter()
+            busy = True
+            m.integrate(frame)
+            meta.frame_ids.append(int(im_id))
+            busy = False
+            seconds += time.perf_counter() - t0
+            if checkpoint is not None and n % checkpoint_every == 0:
+                checkpoint(m, meta)
+    except KeyboardInterrupt:
+        if checkpoint is not None and not busy:  # Ctrl-C between frames: keep every frame fused so far
             checkpoint(m, meta)
+        raise
     return m, meta, seconds
 
 

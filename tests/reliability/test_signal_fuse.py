@@ -1,6 +1,6 @@
-"""Fusion stopped by a real SIGINT (``os.kill`` of this process while a frame is read) resumes from its last
-checkpoint and ends with the same map as an uninterrupted run. In-process: the fusion CLI checkpoints every 50
-frames, more than a test scene has, so the checkpoint interval is shrunk through the library call."""
+"""Fusion stopped by a real SIGINT (``os.kill`` of this process) keeps every fully fused frame and ends, after a
+re-run, with the same map as an uninterrupted run. In-process, so the signal can be timed to a frame (the CLI
+gives no outside sign of which frame it is fusing)."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from cadalign.fuse.config import FuseConfig
 from cadalign.fuse.inputs import FrameSource
 from cadalign.fuse.map_io import load_map, read_ply
 from cadalign.fuse.run import REPORT, run
+from cadalign.fuse.tsdf import SemanticTSDF
 from cadalign.io import read_json
 
 CFG = FuseConfig(voxel_m=0.04, block_count=2000, depth_max_m=12.0)
@@ -30,29 +31,35 @@ def sim6(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> Path:
     return simulate(scene, root / "sim", video=False, contact_sheet=False)
 
 
-def test_fuse_sigint_resumes_from_its_checkpoint_to_the_uninterrupted_map(sim6: Path, tmp_path: Path,
-                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
-    """SIGINT while the 5th frame is read (checkpoint every 2 frames): KeyboardInterrupt, map.npz holds the 4
-    checkpointed frames and loads; the re-run fuses the other 2 and the map's arrays are bitwise those of an
-    uninterrupted run (same frames in the same order from the same state)."""
-    ref = run(CFG, sim6, tmp_path / "ref", with_eval=False, checkpoint_every=2)
-    real_frame = FrameSource.frame
-    reads = {"n": 0}
+@pytest.mark.parametrize("where", ["read", "integrate"])
+def test_fuse_sigint_resumes_to_the_uninterrupted_map(where: str, sim6: Path, tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """SIGINT to this process on the 5th frame, with the CLI's checkpoint interval (50 frames, so no periodic
+    checkpoint yet). While the frame is read (between integrations), the 4 fused frames are checkpointed before
+    the KeyboardInterrupt propagates; during its integration nothing is written (the map may hold part of it).
+    Either way the re-run ends with map arrays bitwise equal to an uninterrupted run's and the same mesh."""
+    ref = run(CFG, sim6, tmp_path / "ref", with_eval=False)
+    cls, name = (FrameSource, "frame") if where == "read" else (SemanticTSDF, "integrate")
+    real = getattr(cls, name)
+    calls = {"n": 0}
 
-    def frame_then_ctrl_c(self: FrameSource, im_id: int):  # noqa: ANN202 - test double
-        reads["n"] += 1
-        if reads["n"] == 5:
-            os.kill(os.getpid(), signal.SIGINT)  # delivered as KeyboardInterrupt at the next bytecode
-        return real_frame(self, im_id)
+    def ctrl_c_on_the_fifth(self, *args):  # noqa: ANN001, ANN202 - test double
+        calls["n"] += 1
+        if calls["n"] == 5:
+            os.kill(os.getpid(), signal.SIGINT)  # a real signal: KeyboardInterrupt at the next bytecode
+        return real(self, *args)
 
-    monkeypatch.setattr(FrameSource, "frame", frame_then_ctrl_c)
+    monkeypatch.setattr(cls, name, ctrl_c_on_the_fifth)
     with pytest.raises(KeyboardInterrupt):
-        run(CFG, sim6, tmp_path / "cut", with_eval=False, checkpoint_every=2)
-    assert not (tmp_path / "cut" / REPORT).exists()
-    assert load_map(tmp_path / "cut" / "map.npz")[1].frame_ids == [0, 1, 2, 3]
-    monkeypatch.setattr(FrameSource, "frame", real_frame)
-    run(CFG, sim6, tmp_path / "cut", with_eval=False, checkpoint_every=2)
-    assert read_json(tmp_path / "cut" / REPORT)["timing"]["frames"] == 2
+        run(CFG, sim6, tmp_path / "cut", with_eval=False)
+    assert calls["n"] == 5 and not (tmp_path / "cut" / REPORT).exists()
+    if where == "read":
+        assert load_map(tmp_path / "cut" / "map.npz")[1].frame_ids == [0, 1, 2, 3]
+    else:
+        assert not (tmp_path / "cut" / "map.npz").exists()
+    monkeypatch.setattr(cls, name, real)
+    run(CFG, sim6, tmp_path / "cut", with_eval=False)
+    assert read_json(tmp_path / "cut" / REPORT)["timing"]["frames"] == (2 if where == "read" else 6)
     (a, meta_a), (b, meta_b) = load_map(ref / "map.npz"), load_map(tmp_path / "cut" / "map.npz")
     assert meta_a.frame_ids == meta_b.frame_ids == list(range(6))
     sa, sb = a.state(), b.state()
