@@ -3,14 +3,19 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
 from cadalign.cli.common import console, track, user_errors
 
+if TYPE_CHECKING:
+    from cadalign.scale.executor import ExecutorConfig
+
 
 def command(
-    source: Path = typer.Argument(..., help="ROV video file or a folder of frames."),
+    source: Path = typer.Argument(..., help="ROV video file or a folder of frames; or a jobs file (TOML/YAML of "
+                                  "[[video]] entries, see docs/scaling.md) to build many videos into OUT/<name>/."),
     cad: Path = typer.Option(..., "--cad", help="Scene spec (TOML/YAML: parts, poses, classes) or one CAD mesh."),
     out: Path = typer.Option(..., "--out", help="Output folder (sfm/, align/, dataset/, build_report.*)."),
     preset: str = typer.Option("balanced", "--preset", help="fast | balanced | accurate (SfM and alignment)."),
@@ -33,9 +38,36 @@ def command(
     """Frames -> SfM -> CAD alignment (Sim3) -> per-frame CAD depth, normals, masks, poses -> BOP dataset."""
     from cadalign.build_dataset import build_dataset
     from cadalign.scale import executor_config, make_executor
+    from cadalign.scale.videos import JOBS_SUFFIXES
 
     with user_errors():
-        runner = make_executor(executor_config(executor, ray_address, workers))
+        cfg = executor_config(executor, ray_address, workers)
+        if source.suffix.lower() in JOBS_SUFFIXES and source.is_file():
+            _many(source, cad, out, preset, init, gt, cad_unit, calib, overwrite, cfg)
+            return
+        runner = make_executor(cfg)
         out_dir = build_dataset(source, cad, out, preset=preset, picks=init, gt=gt, cad_unit=cad_unit,
                                 calib=calib, overwrite=overwrite, progress=track, executor=runner)
     console.print(f"[green]dataset written to {out_dir / 'dataset'}; report {out_dir / 'build_report.html'}[/]")
+
+
+def _many(jobs_file: Path, cad: Path, out: Path, preset: str, init: Path | None, gt: Path | None,
+          cad_unit: str | None, calib: Path | None, overwrite: bool, cfg: ExecutorConfig) -> None:
+    """Build every video of a jobs file; exit 1 when any failed (the others are kept)."""
+    from cadalign.errors import ConfigError
+    from cadalign.scale import make_executor
+    from cadalign.scale.videos import REPORT, build_videos, read_jobs
+
+    if init is not None or gt is not None:
+        raise ConfigError(f"--init and --gt belong to one video: put them as init = / gt = under its [[video]] in "
+                          f"{jobs_file}")
+    jobs = read_jobs(jobs_file, cad=cad, calib=calib, cad_unit=cad_unit)
+    make_executor(cfg)  # refuses ray when it is not installed, before any work
+    results = build_videos(jobs, out, cfg, preset=preset, overwrite=overwrite, progress=track)
+    for r in results:
+        console.print(f"{'[green]ok' if r.ok else '[red]failed'}[/] {r.name}: "
+                      f"{f'{r.frames} frames in {r.out}' if r.ok else r.error}")
+    failed = [r.name for r in results if not r.ok]
+    console.print(f"{len(results) - len(failed)}/{len(results)} videos built; report {out / REPORT}")
+    if failed:
+        raise typer.Exit(code=1)

@@ -83,7 +83,7 @@ class RayExecutor:
 
         if not jobs:
             return []
-        started = _ensure_ray(self.cfg)
+        started = ensure_ray(self.cfg)
         try:
             done = self._run(ray, jobs, shared, progress)
         finally:
@@ -98,25 +98,28 @@ class RayExecutor:
         task = ray.remote(num_cpus=1, max_retries=self.cfg.max_retries, retry_exceptions=False)(self.chunk_fn)
         shared_ref = ray.put(shared)
         log.info("ray: %d frames in %d tasks, at most %d in flight on %d CPUs", len(jobs), len(work), window, cpus)
-
-        def completed() -> Iterator[list[int]]:
-            pending: list[Any] = []
-            for chunk in work:
-                pending.append(task.remote(chunk, shared_ref))
-                if len(pending) >= window:  # bounded: the driver holds at most `window` task references
-                    ready, pending = ray.wait(pending, num_returns=1)
-                    yield ray.get(ready[0])
-            while pending:
-                ready, pending = ray.wait(pending, num_returns=1)
-                yield ray.get(ready[0])
-
+        completed = ray_map(ray, task, [(chunk, shared_ref) for chunk in work], window)
         done: list[int] = []
-        for ids in progress(completed(), "render (ray)", len(work)) if progress else completed():
+        for ids in progress(completed, "render (ray)", len(work)) if progress else completed:
             done.extend(ids)
         return done
 
 
-def _ensure_ray(cfg: ExecutorConfig) -> bool:
+def ray_map(ray: Any, task: Any, args: Sequence[tuple], window: int) -> Iterator[Any]:
+    """Results of ``task.remote(*a)`` for each ``a`` in ``args``, in completion order, with at most ``window``
+    tasks in flight (the driver holds at most ``window`` references and results at a time)."""
+    pending: list[Any] = []
+    for a in args:
+        pending.append(task.remote(*a))
+        if len(pending) >= window:
+            ready, pending = ray.wait(pending, num_returns=1)
+            yield ray.get(ready[0])
+    while pending:
+        ready, pending = ray.wait(pending, num_returns=1)
+        yield ray.get(ready[0])
+
+
+def ensure_ray(cfg: ExecutorConfig) -> bool:
     """Connect to (or start) Ray; True when this call started it (the caller then shuts it down)."""
     import ray
 

@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scale_testdata import dataset_bytes, fresh_out
+from scale_testdata import dataset_bytes, fresh_out, jobs_args, write_jobs
 from typer.testing import CliRunner
 
 from cadalign.cli.main import app
 from cadalign.errors import ConfigError
+from cadalign.io import read_json
 from cadalign.scale import ExecutorConfig, RayExecutor, executor_config, make_executor
 from cadalign.scale.executor import chunks
 from cadalign.scale.frames import CameraModel
@@ -53,7 +54,7 @@ def test_ray_executor_without_ray_installed_is_refused_before_any_work(monkeypat
 def test_unreachable_cluster_is_a_config_error_naming_the_address(monkeypatch: pytest.MonkeyPatch) -> None:
     """Ray's own connection error (after its retries) becomes the project's error with the fix."""
     ray = pytest.importorskip("ray")
-    from cadalign.scale.executor import _ensure_ray
+    from cadalign.scale.executor import ensure_ray
 
     def refuse(**kwargs: object) -> None:
         raise ConnectionError(f"could not reach {kwargs['address']}")
@@ -62,9 +63,9 @@ def test_unreachable_cluster_is_a_config_error_naming_the_address(monkeypatch: p
     monkeypatch.setattr(ray, "init", refuse)
     monkeypatch.setenv("RAY_ADDRESS", "head:6379")
     with pytest.raises(ConfigError, match=r"cannot connect to the Ray cluster at 'head:6379' \(ConnectionError"):
-        _ensure_ray(ExecutorConfig("ray"))
+        ensure_ray(ExecutorConfig("ray"))
     with pytest.raises(ConfigError, match="'ray://other:10001'"):
-        _ensure_ray(ExecutorConfig("ray", address="ray://other:10001"))
+        ensure_ray(ExecutorConfig("ray", address="ray://other:10001"))
 
 
 def test_ray_executor_refuses_a_local_config() -> None:
@@ -127,3 +128,52 @@ def test_local_build_does_not_import_ray(local_build: Path, scale_capture: tuple
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stdout.strip().splitlines()[-1] == "NO_RAY"
     assert dataset_bytes(out) == dataset_bytes(local_build)
+
+
+def test_read_jobs_resolves_paths_defaults_and_names(tmp_path: Path) -> None:
+    from cadalign.scale.videos import VideoJob, read_jobs
+
+    jobs = write_jobs(tmp_path / "jobs.toml", [{"source": "dives/d1.mp4", "init": "p1.json"},
+                                               {"source": "/abs/d2", "name": "second", "cad": "other.ply",
+                                                "cad_unit": "mm"}])
+    got = read_jobs(jobs, cad=tmp_path / "scene.toml", calib=tmp_path / "cal.json")
+    assert got == [VideoJob("d1", tmp_path / "dives" / "d1.mp4", tmp_path / "scene.toml", tmp_path / "p1.json",
+                            tmp_path / "cal.json"),
+                   VideoJob("second", Path("/abs/d2"), tmp_path / "other.ply", None, tmp_path / "cal.json", None, "mm")]
+
+
+@pytest.mark.parametrize(("entries", "message"), [
+    ([{"source": "a.mp4", "picks": "p.json"}], r"unknown keys \['picks'\]"),
+    ([{"name": "x"}], "no 'source'"),
+    ([{"source": "x/a.mp4"}, {"source": "y/a.mp4"}], r"same folder \['a'\]"),
+    ([], "expected only \\[\\[video\\]\\] entries"),
+])
+def test_read_jobs_refuses_bad_files(tmp_path: Path, entries: list, message: str) -> None:
+    from cadalign.scale.videos import read_jobs
+
+    jobs = write_jobs(tmp_path / "jobs.toml", entries)
+    with pytest.raises(ConfigError, match=message):
+        read_jobs(jobs, cad=tmp_path / "scene.toml")
+    with pytest.raises(ConfigError, match="no 'cad' and no --cad"):
+        read_jobs(write_jobs(tmp_path / "j2.toml", [{"source": "a.mp4"}]))
+
+
+def test_local_jobs_build_keeps_going_past_a_failed_video(local_build: Path, scale_capture: tuple[Path, Path],
+                                                          tmp_path: Path) -> None:
+    """Two videos, one with a missing source: the good one is built (reference bytes), the bad one is
+    reported, and the command exits 1; --init belongs in the jobs file."""
+    spec, sim = scale_capture
+    root = tmp_path / "root"
+    fresh_out(local_build, root / "good")
+    jobs = write_jobs(tmp_path / "jobs.toml", [
+        {"source": str(sim / "frames"), "name": "good", "init": str(local_build / "picks.json")},
+        {"source": str(tmp_path / "missing.mp4")}])
+    res = CliRunner().invoke(app, jobs_args(jobs, spec, root, "--init", str(local_build / "picks.json")))
+    assert res.exit_code == 1 and "--init and --gt belong to one video" in res.output
+    res = CliRunner().invoke(app, jobs_args(jobs, spec, root))
+    assert res.exit_code == 1, res.output
+    assert "1/2 videos built" in " ".join(res.output.split())
+    report = read_json(root / "videos_report.json")
+    assert report["failed"] == ["missing"] and "input not found" in report["videos"][1]["error"]
+    assert report["videos"][0] == {"name": "good", "out": str(root / "good"), "ok": True, "frames": 12, "error": None}
+    assert dataset_bytes(root / "good") == dataset_bytes(local_build)

@@ -12,7 +12,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import pytest
-from scale_testdata import dataset_bytes, fresh_out
+from scale_testdata import dataset_bytes, fresh_out, write_jobs
 from typer.testing import CliRunner
 
 from cadalign.cli.main import app
@@ -168,3 +168,31 @@ def test_errors_in_the_code_are_not_retried(local_build: Path, scale_capture: tu
         _build(local_build, scale_capture, tmp_path / "ray_err", executor)
     assert len([p for p in calls.iterdir() if p.name.startswith("0_")]) == 1
 
+
+
+def test_many_videos_one_ray_task_each(local_build: Path, scale_capture: tuple[Path, Path], tmp_path: Path,
+                                       ray_two_cpus: None) -> None:
+    """Two videos of a jobs file: each is built in a Ray worker (not this process) into ROOT/<name>/, with
+    the reference bytes, and the report lists both."""
+    from cadalign.scale.videos import VideoJob, VideoResult, build_one, build_videos, read_jobs
+
+    spec, sim = scale_capture
+    root, pids = tmp_path / "root", tmp_path / "pids"
+    pids.mkdir()
+    for name in ("a", "b"):
+        fresh_out(local_build, root / name)
+    jobs = read_jobs(write_jobs(tmp_path / "jobs.toml", [
+        {"source": str(sim / "frames"), "name": n, "init": str(local_build / "picks.json")} for n in ("a", "b")]),
+        cad=spec)
+
+    def traced(job: VideoJob, root: Path, preset: str, overwrite: bool) -> VideoResult:
+        (pids / f"{job.name}_{os.getpid()}").touch()
+        return build_one(job, root, preset, overwrite)
+
+    results = build_videos(jobs, root, ExecutorConfig("ray"), preset="fast", build_fn=traced)
+    assert [(r.name, r.ok, r.frames) for r in results] == [("a", True, 12), ("b", True, 12)]
+    assert {p.name.split("_")[0] for p in pids.iterdir()} == {"a", "b"}
+    assert all(int(p.name.split("_")[1]) != os.getpid() for p in pids.iterdir())
+    assert read_json(root / "videos_report.json")["failed"] == []
+    for name in ("a", "b"):
+        assert dataset_bytes(root / name) == dataset_bytes(local_build)
