@@ -15,7 +15,7 @@ if TYPE_CHECKING:
 
 def command(
     source: Path = typer.Argument(..., help="ROV video file or a folder of frames; or a jobs file (TOML/YAML of "
-                                  "[[video]] entries, see docs/scaling.md) to build many videos into OUT/<name>/."),
+                                  "\\[\\[video]] entries, see docs/scaling.md) to build many videos into OUT/<name>/."),
     cad: Path = typer.Option(..., "--cad", help="Scene spec (TOML/YAML: parts, poses, classes) or one CAD mesh."),
     out: Path = typer.Option(..., "--out", help="Output folder (sfm/, align/, dataset/, build_report.*)."),
     preset: str = typer.Option("balanced", "--preset", help="fast | balanced | accurate (SfM and alignment)."),
