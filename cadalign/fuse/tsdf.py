@@ -49,6 +49,9 @@ from cadalign.types import Rigid3
 log = logging.getLogger(__name__)
 MIN_OPEN3D = (0, 17)
 ATTRS = ("tsdf", "weight", "color", "label")
+SPARSE_DEPTH_FRACTION = 0.25
+"""Below this fraction of valid pixels a depth map counts as sparse (SfM depth): Open3D's block selection looks
+at every 4th pixel only and would skip most of its points, so blocks are picked around every valid point."""
 
 
 def require_open3d():  # -> module
@@ -123,7 +126,7 @@ class SemanticTSDF:
             cimg = o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(rgb, dtype=np.float32) / 255.0))
         dmax, mult = float(cfg.depth_max_m), float(cfg.trunc_voxels)
         capped = self.frames_integrated + 1 > cfg.weight_cap  # weights grow by <= 1 a frame: nothing to cap before
-        coords = self.vbg.compute_unique_block_coordinates(dimg, Kt, E, 1.0, dmax, mult)
+        coords = self._touched_blocks(frame, mask, dimg, Kt, E)
         self._activate(coords)
         # integrate() activates the blocks again and may grow (rehash) the table: look rows up after it
         if color:
@@ -143,6 +146,24 @@ class SemanticTSDF:
         self.cpu_seconds["tsdf"] += c1 - c0
         self.cpu_seconds["labels"] += c2 - c1
         self.frames_integrated += 1
+
+    def _touched_blocks(self, frame: FuseFrame, mask: np.ndarray, dimg, Kt, E):  # noqa: ANN001, ANN202 - o3d
+        """(N, 3) int32 keys of the blocks this frame integrates: Open3D's own selection (rays of every 4th
+        pixel, +-trunc) for dense depth; for sparse depth, or when no valid pixel lies on that grid, every
+        block within the truncation of a valid point (Open3D would otherwise skip them or fail)."""
+        o3d = require_open3d()
+        cfg = self.cfg
+        if mask.mean() >= SPARSE_DEPTH_FRACTION and mask[::4, ::4].any():
+            return self.vbg.compute_unique_block_coordinates(dimg, Kt, E, 1.0, float(cfg.depth_max_m),
+                                                             float(cfg.trunc_voxels))
+        v, u = np.nonzero(mask)
+        z = np.asarray(frame.depth_m, dtype=np.float64)[v, u]
+        cam = frame.camera
+        pc = np.stack([(u + 0.5 - cam.cx) / cam.fx * z, (v + 0.5 - cam.cy) / cam.fy * z, z], axis=1)
+        T = np.linalg.inv(self._T_cam_from_local(frame))
+        pts = (pc @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+        pcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(pts))
+        return self.vbg.compute_unique_block_coordinates(pcd, float(cfg.trunc_voxels))
 
     def _activate(self, coords) -> None:  # noqa: ANN001 - an (N, 3) int32 open3d.core.Tensor
         """Insert the blocks; fresh ones start empty and uniform whatever the allocator left there."""
@@ -194,6 +215,8 @@ class SemanticTSDF:
 
     def _update_labels(self, frame: FuseFrame, mask: np.ndarray) -> None:
         vox, pix, n = self._surface_samples(frame, mask)
+        if len(pix) == 0:  # label_pixel_stride left no valid pixel
+            return
         flat, ok = self._flat_index(vox)
         probs = np.asarray(frame.probs, dtype=np.float32).reshape(self.n_classes, -1)
         obs_pix = clamped_log_probs(probs[:, pix].T, self.cfg.label_min_prob)
@@ -208,6 +231,8 @@ class SemanticTSDF:
         False (nothing done) when the frame's blocks span too big a box."""
         cfg, cam = self.cfg, frame.camera
         pix = band_pixels(mask, cfg.label_pixel_stride) if cfg.label_pixel_stride > 1 else np.flatnonzero(mask)
+        if len(pix) == 0:  # label_pixel_stride left no valid pixel
+            return True
         if self._rays is None or self._rays.key != Rays.of_key(cam.K, cam.width, cam.height):
             self._rays = Rays.of(cam.K, cam.width, cam.height)
         T = np.linalg.inv(self._T_cam_from_local(frame))

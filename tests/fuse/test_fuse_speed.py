@@ -116,3 +116,26 @@ def test_realtime_preset_is_a_valid_tsdf_config() -> None:
     # the default scene's 64 frames need ~196k 4^3 blocks: no table growth (seconds each) on the way
     assert rt.label_pixel_stride == 2 and rt.block_count >= 200_000
     assert rt.label_lookup == "frustum" and rt.trunc_voxels == PRESETS["default"].trunc_voxels
+
+
+@pytest.mark.parametrize("lookup", ["frustum", "reference"])
+def test_sparse_depth_off_open3d_grid_is_fused(lookup: str) -> None:
+    """SfM-like depth: a few valid pixels, none on Open3D's every-4th-pixel grid (Open3D alone raised
+    'No block is touched' and skipped such points); every point gets blocks and its label."""
+    from cadalign.fuse.base import FuseFrame
+    from cadalign.types import Camera, Rigid3
+
+    size = 32
+    cam = Camera(np.array([[size, 0, size / 2], [0, size, size / 2], [0, 0, 1]]), size, size)
+    depth = np.zeros((size, size), np.float32)
+    v, u = np.array([1, 5, 9, 13, 27]), np.array([3, 7, 14, 22, 30])  # off the 4-pixel grid
+    depth[v, u] = 1.013
+    probs = np.full((3, size, size), 0.0005, np.float32)
+    probs[2] = 0.999
+    m = SemanticTSDF(FuseConfig(voxel_m=0.05, block_count=64, label_lookup=lookup), 3)
+    m.integrate(FuseFrame(depth, probs, cam, Rigid3()))
+    assert m.n_blocks > 0
+    label = m.state()["label"].reshape(-1, 3)
+    labelled = label[(label != 0).any(axis=1)]
+    # two samples (one voxel apart along the ray) per valid pixel, each in its own voxel, all saying class 2
+    assert len(labelled) == 2 * len(u) and np.all(labelled.argmax(axis=1) == 2)
