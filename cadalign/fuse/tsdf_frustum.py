@@ -67,62 +67,75 @@ class FrustumLabeler:
         local-from-camera with voxel units; ``find_rows`` maps (K, 3) int32 block keys to (K,) int32 buffer
         rows (-1: not allocated).
         """
-        p, n, C = len(pix), len(offsets), label.shape[1]
-        parts = min(self.threads, max(1, n * p // MIN_SAMPLES_PER_THREAD))
-        runs = segments(n, p, parts)
-        block = np.empty((3, n * p), dtype=np.int32)
-        local = np.empty(n * p, dtype=np.int32)
-        obs = np.empty((p, C), dtype=np.float32)
-
-        def voxels(i: int) -> tuple[np.ndarray, np.ndarray]:
-            for j, p0, p1 in runs[i]:
-                pp = pix[p0:p1]
-                vox = sample_voxels(rays[0][pp], rays[1][pp], depth[pp], T_vox, offsets[j:j + 1])
-                block[:, j * p + p0:j * p + p1], local[j * p + p0:j * p + p1] = split_blocks(vox, res)
-            q0, q1 = p * i // parts, p * (i + 1) // parts
-            obs[q0:q1] = clamped_log_probs(np.take(probs, pix[q0:q1], axis=1), min_prob).T
-            mine = np.concatenate([block[:, j * p + p0:j * p + p1] for j, p0, p1 in runs[i]], axis=1)
-            return mine.min(axis=1), mine.max(axis=1)
-
-        ranges = self._map(voxels, list(range(parts)))
+        parts = min(self.threads, max(1, len(offsets) * len(pix) // MIN_SAMPLES_PER_THREAD))
+        w = _LabelPass(label, probs, pix, rays, depth, T_vox, offsets, res, min_prob, log_floor, parts)
+        ranges = self._map(w.voxels, list(range(parts)))
         lo = np.min([r[0] for r in ranges], axis=0).astype(np.int64)
         shape = np.max([r[1] for r in ranges], axis=0).astype(np.int64) - lo + 1
         n_cells = int(np.prod(shape))
         if n_cells > tsdf_labels.MAX_TABLE_CELLS:
             return False
-        cells = np.empty(n * p, dtype=np.int64)
-
-        def to_cells(i: int) -> None:
-            for j, p0, p1 in runs[i]:
-                s = slice(j * p + p0, j * p + p1)
-                cells[s] = tsdf_labels.block_cells(block[:, s], lo, shape)
-
-        self._map(to_cells, list(range(parts)))
+        self._map(lambda i: w.to_cells(i, lo, shape), list(range(parts)))
         mark = np.zeros(n_cells, dtype=bool)
-        mark[cells] = True
+        mark[w.cells] = True
         key_cells = np.flatnonzero(mark)
         table = np.empty(n_cells, dtype=np.int32)  # only cells of keys are ever read
         table[key_cells] = find_rows(tsdf_labels.keys_of_cells(key_cells, lo, shape))
-        flat = np.empty(n * p, dtype=np.int64)
-        post = np.empty((n * p, C), dtype=np.float32)
-
-        def bayes(i: int) -> bool:
-            missing = False
-            for j, p0, p1 in runs[i]:
-                s = slice(j * p + p0, j * p + p1)
-                rows = table[cells[s]]
-                np.multiply(rows, res**3, out=flat[s], dtype=np.int64)
-                flat[s] += local[s]
-                if rows.min() < 0:
-                    flat[s][rows < 0] = -1
-                    missing = True
-                post[s] = gather_rows(label, flat[s])  # -1 reads the last row: a dummy, never written back
-                post[s] += obs[p0:p1]
-                renormalise(post[s], log_floor)
-            return missing
-
-        if any(self._map(bayes, list(range(parts)))):  # samples outside allocated blocks (rare)
+        flat, post = w.flat, w.post
+        if any(self._map(lambda i: w.bayes(i, table), list(range(parts)))):  # samples outside blocks (rare)
             keep = flat >= 0
             flat, post = flat[keep], take_rows(post, keep)
         scatter_rows(label, flat, post)
         return True
+
+
+class _LabelPass:
+    """One frame's label update: inputs, the shared per-sample arrays, and the work of run ``i``."""
+
+    def __init__(self, label: np.ndarray, probs: np.ndarray, pix: np.ndarray, rays: tuple[np.ndarray, np.ndarray],
+                 depth: np.ndarray, T_vox: np.ndarray, offsets: np.ndarray, res: int, min_prob: float,
+                 log_floor: float, parts: int) -> None:
+        self.label, self.probs, self.pix, self.rays, self.depth = label, probs, pix, rays, depth
+        self.T_vox, self.offsets, self.res, self.min_prob, self.log_floor = T_vox, offsets, res, min_prob, log_floor
+        self.p, self.parts = len(pix), parts
+        self.runs = segments(len(offsets), self.p, parts)
+        m = len(offsets) * self.p
+        self.block = np.empty((3, m), dtype=np.int32)
+        self.local = np.empty(m, dtype=np.int32)
+        self.obs = np.empty((self.p, label.shape[1]), dtype=np.float32)
+        self.cells = np.empty(m, dtype=np.int64)
+        self.flat = np.empty(m, dtype=np.int64)
+        self.post = np.empty((m, label.shape[1]), dtype=np.float32)
+
+    def _slices(self, i: int) -> list[tuple[slice, int, int]]:
+        return [(slice(j * self.p + p0, j * self.p + p1), p0, p1) for j, p0, p1 in self.runs[i]]
+
+    def voxels(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Blocks and in-block offsets of run ``i``'s samples, its share of the observations; block key range."""
+        for (s, p0, p1), (j, _, _) in zip(self._slices(i), self.runs[i], strict=True):
+            pp = self.pix[p0:p1]
+            vox = sample_voxels(self.rays[0][pp], self.rays[1][pp], self.depth[pp], self.T_vox, self.offsets[j:j + 1])
+            self.block[:, s], self.local[s] = split_blocks(vox, self.res)
+        q0, q1 = self.p * i // self.parts, self.p * (i + 1) // self.parts
+        self.obs[q0:q1] = clamped_log_probs(np.take(self.probs, self.pix[q0:q1], axis=1), self.min_prob).T
+        mine = np.concatenate([self.block[:, s] for s, _, _ in self._slices(i)], axis=1)
+        return mine.min(axis=1), mine.max(axis=1)
+
+    def to_cells(self, i: int, lo: np.ndarray, shape: np.ndarray) -> None:
+        for s, _, _ in self._slices(i):
+            self.cells[s] = tsdf_labels.block_cells(self.block[:, s], lo, shape)
+
+    def bayes(self, i: int, table: np.ndarray) -> bool:
+        """Voxel rows and updated values of run ``i``'s samples; True if some sample has no voxel (-1)."""
+        missing = False
+        for s, p0, p1 in self._slices(i):
+            rows = table[self.cells[s]]
+            np.multiply(rows, self.res**3, out=self.flat[s], dtype=np.int64)
+            self.flat[s] += self.local[s]
+            if rows.min() < 0:
+                self.flat[s][rows < 0] = -1
+                missing = True
+            self.post[s] = gather_rows(self.label, self.flat[s])  # -1 reads the last row: a dummy, never written
+            self.post[s] += self.obs[p0:p1]
+            renormalise(self.post[s], self.log_floor)
+        return missing
