@@ -71,9 +71,10 @@ class RefineConfig:
     min_step: float = bounded(1e-6, ge=0)
     """Stop when the update's rotation (rad) and translation / diameter both fall below this."""
     depth_init: bool = True
-    """Before ICP, slide the pose along its viewing ray so the median depth of the model's camera-facing surface
-    matches the median masked depth. A network's translation error is mostly depth (the box size at a few pixels
-    is off by 10 %, i.e. ~1 m at 10 m), far beyond ICP's gate and its prior on the detector's pose."""
+    """Before ICP, slide the pose along its viewing ray by the median offset between the masked depth and the
+    model's visible surface, when that is more than ICP's narrow gate (``icp_max_corr`` diameters). A network's
+    translation error is mostly depth (the box size at a few pixels is off by 10 %, i.e. ~1 m at 10 m), far
+    beyond ICP's gate and its prior on the detector's pose."""
     seed: int = 0
     """Seed of the point subsampling."""
 
@@ -327,17 +328,44 @@ def masked_depth_points(depth_m: np.ndarray, mask: np.ndarray, K: np.ndarray, ma
     return np.stack([x, y, z], axis=1)
 
 
-def depth_along_ray(geom: ModelGeometry, T: Rigid3, Q: np.ndarray) -> Rigid3:
-    """``T`` moved along the ray through its origin so the median depth of its camera-facing surface samples
-    equals the median depth of the observed points ``Q (N, 3)`` (camera frame, metres)."""
+def depth_along_ray(geom: ModelGeometry, T: Rigid3, K: np.ndarray, depth_m: np.ndarray, mask: np.ndarray,
+                    min_shift: float = 0.0, iters: int = 3) -> Rigid3:
+    """``T`` moved along the ray through its origin by the median depth offset between the observed depth and the
+    model's visible surface (a z-buffer of its camera-facing samples) over the mask's pixels, repeated ``iters``
+    times (at a wrong depth the model's pixels meet other parts of the surface, so one step is approximate).
+
+    A first shift below ``min_shift`` (metres) is not applied: small errors are ICP's job.
+    """
+    for i in range(iters):
+        dz = _depth_offset(geom, T, K, depth_m, mask)
+        if dz is None or (i == 0 and abs(dz) < min_shift):
+            return T
+        # moving the origin by s * t changes every depth by about s * t_z (the part is small against its distance)
+        T = Rigid3(T.R, T.t * (1.0 + dz / T.t[2]))
+    return T
+
+
+def _depth_offset(geom: ModelGeometry, T: Rigid3, K: np.ndarray, depth_m: np.ndarray, mask: np.ndarray
+                  ) -> float | None:
+    """Median (observed depth - model front-surface depth) over the mask pixels the model covers; None if too few."""
     p_c = T.apply(geom.samples)
     n_c = geom.sample_normals @ T.R.T
-    facing = np.einsum("ij,ij->i", n_c, p_c) < 0
-    if not facing.any() or T.t[2] <= 0:
-        return T
-    dz = float(np.median(Q[:, 2]) - np.median(p_c[facing, 2]))
-    # moving the origin by s * t changes every depth by about s * t_z (the part is small against its distance)
-    return Rigid3(T.R, T.t * (1.0 + dz / T.t[2]))
+    p_c = p_c[(np.einsum("ij,ij->i", n_c, p_c) < 0) & (p_c[:, 2] > 1e-6)]
+    if len(p_c) == 0 or T.t[2] <= 0:
+        return None
+    h, w = mask.shape
+    u = np.floor(K[0, 0] * p_c[:, 0] / p_c[:, 2] + K[0, 2]).astype(np.int64)
+    v = np.floor(K[1, 1] * p_c[:, 1] / p_c[:, 2] + K[1, 2]).astype(np.int64)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    u, v, z = u[inside], v[inside], p_c[inside, 2]
+    seen = mask[v, u] & np.isfinite(depth_m[v, u]) & (depth_m[v, u] > 0)
+    if seen.sum() < 6:
+        return None
+    pix = v[seen] * w + u[seen]
+    zbuf = np.full(h * w, np.inf)
+    np.minimum.at(zbuf, pix, z[seen])  # the model's own front surface: self-occluded samples drop out
+    front = np.unique(pix)
+    return float(np.median(depth_m.reshape(-1)[front] - zbuf[front]))
 
 
 def refine_depth_icp(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, depth_m: np.ndarray, mask: np.ndarray,
@@ -352,7 +380,8 @@ def refine_depth_icp(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, depth_m
     if len(Q) < cfg.min_depth_points or n == 0:
         return T_init, 0, []
     if cfg.depth_init:
-        T_init = depth_along_ray(geom, T_init, Q)
+        T_init = depth_along_ray(geom, T_init, np.asarray(K, float), depth_m, np.asarray(mask, bool),
+                                 cfg.icp_max_corr * geom.diameter_m)
     T, costs, done = T_init, [], 0
     for _ in range(n):
         q_obj = T.inverse().apply(Q)
