@@ -31,8 +31,16 @@ def sim6(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> Path:
     return simulate(scene, root / "sim", video=False, contact_sheet=False)
 
 
+@pytest.fixture()
+def sigint_raises():
+    """SIGINT -> KeyboardInterrupt, as in an interactive run: pytest-xdist workers ignore SIGINT."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
 @pytest.mark.parametrize("where", ["read", "integrate"])
-def test_fuse_sigint_resumes_to_the_uninterrupted_map(where: str, sim6: Path, tmp_path: Path,
+def test_fuse_sigint_resumes_to_the_uninterrupted_map(where: str, sim6: Path, tmp_path: Path, sigint_raises: None,
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     """SIGINT to this process on the 5th frame, with the CLI's checkpoint interval (50 frames, so no periodic
     checkpoint yet). While the frame is read (between integrations), the 4 fused frames are checkpointed before
