@@ -75,6 +75,10 @@ class RefineConfig:
     model's visible surface, when that is more than ICP's narrow gate (``icp_max_corr`` diameters). A network's
     translation error is mostly depth (the box size at a few pixels is off by 10 %, i.e. ~1 m at 10 m), far
     beyond ICP's gate and its prior on the detector's pose."""
+    yaw_hypotheses: int = bounded(1, ge=1)
+    """Depth ICP restarts from the pose turned about the model's z axis by multiples of 360 deg / n, keeping the
+    best depth fit (1 = the detector's pose only). Upright parts (valves on a frame) are mostly wrong in yaw
+    by more than ICP's basin when a network is unsure."""
     seed: int = 0
     """Seed of the point subsampling."""
 
@@ -421,8 +425,31 @@ def refine(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, mask: np.ndarray,
     if cfg.method in ("silhouette", "both"):
         T, iters["silhouette"], costs["silhouette"] = refine_silhouette(geom, T, K, mask, cfg)
     if cfg.method in ("depth", "both") and depth_m is not None:
-        T, iters["depth"], costs["depth"] = refine_depth_icp(geom, T, K, depth_m, mask, cfg)
+        T, iters["depth"], costs["depth"] = _icp_yaw_hypotheses(geom, T, K, depth_m, mask, cfg)
     return RefineResult(T, iters, costs, time.perf_counter() - t0)
+
+
+def depth_fit(geom: ModelGeometry, T: Rigid3, Q: np.ndarray) -> float:
+    """Mean distance (m) of the observed points ``Q (N, 3)`` to the model surface at ``T``, each capped at
+    0.1 diameters (occluders and background in the mask count, but only so much)."""
+    d = geom.tree.query(T.inverse().apply(Q))[0]
+    return float(np.mean(np.minimum(d, 0.1 * geom.diameter_m)))
+
+
+def _icp_yaw_hypotheses(geom: ModelGeometry, T0: Rigid3, K: np.ndarray, depth_m: np.ndarray, mask: np.ndarray,
+                        cfg: RefineConfig) -> tuple[Rigid3, int, list[float]]:
+    best = refine_depth_icp(geom, T0, K, depth_m, mask, cfg)
+    if cfg.yaw_hypotheses <= 1 or best[1] == 0:
+        return best
+    Q = masked_depth_points(depth_m, mask, np.asarray(K, float), cfg.max_depth_points, np.random.default_rng(cfg.seed))
+    score = depth_fit(geom, best[0], Q)
+    for k in range(1, cfg.yaw_hypotheses):
+        yaw = axis_angle_to_matrix(np.array([0.0, 0.0, 2 * np.pi * k / cfg.yaw_hypotheses]))
+        cand = refine_depth_icp(geom, Rigid3(T0.R @ yaw, T0.t), K, depth_m, mask, cfg)
+        s = depth_fit(geom, cand[0], Q)
+        if s < score:
+            best, score = cand, s
+    return best
 
 
 def silhouette_iou(geom: ModelGeometry, T: Rigid3, K: np.ndarray, mask: np.ndarray) -> float:

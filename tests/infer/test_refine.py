@@ -122,3 +122,18 @@ def test_depth_init_recovers_a_depth_error_icp_alone_cannot(valve_view, scale: f
     with_init, _, _ = refine_depth_icp(geom, T0, K, view.depth_m, view.mask, RefineConfig())
     assert translation_error_m(with_init.t, T_gt.t) < 0.01
     assert translation_error_m(with_init.t, T_gt.t) < 0.2 * translation_error_m(without.t, T_gt.t)
+
+
+def test_yaw_hypotheses_recover_a_quarter_turn_icp_alone_cannot(valve_view) -> None:
+    from cadalign.cad.symmetry import Symmetry
+    from cadalign.geometry import axis_angle_to_matrix
+
+    model, geom, view = valve_view
+    T_gt = view.T_cam_from_obj
+    T0 = Rigid3(T_gt.R @ axis_angle_to_matrix(np.array([0.0, 0.0, np.radians(85.0)])), T_gt.t + [0.0, 0.0, 0.02])
+    half = Symmetry.cyclic((0.0, 0.0, 1.0), 2)  # the procedural valve is invariant to a half turn about z
+    one = refine(geom, T0, view.camera.K, view.mask, RefineConfig(method="depth"), view.depth_m).T_cam_from_obj
+    four = refine(geom, T0, view.camera.K, view.mask, RefineConfig(method="depth", yaw_hypotheses=4),
+                  view.depth_m).T_cam_from_obj
+    assert rotation_error_deg(one.R, T_gt.R, half) > 20
+    assert rotation_error_deg(four.R, T_gt.R, half) < 1 and translation_error_m(four.t, T_gt.t) < 0.005
