@@ -90,7 +90,8 @@ PRESETS: dict[str, RefineConfig] = {
     "none": RefineConfig(method="none"),
     "fast": RefineConfig(silhouette_iters=5, depth_iters=5, max_contour_points=200, max_depth_points=600),
     "balanced": RefineConfig(),
-    "accurate": RefineConfig(silhouette_iters=30, depth_iters=20, max_contour_points=800, max_depth_points=4000),
+    "accurate": RefineConfig(silhouette_iters=30, depth_iters=20, max_contour_points=800, max_depth_points=4000,
+                             yaw_hypotheses=4),
 }
 
 
