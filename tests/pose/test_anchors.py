@@ -65,3 +65,18 @@ def test_multi_scale_rpn_trains_and_infers():
     model.eval()
     out = model(torch.rand(1, 3, 48, 64))
     assert out[0]["boxes"].shape[1] == 4
+
+
+def test_training_pose_configs_resolve():
+    from pathlib import Path
+
+    from cadalign.config import resolve
+    from cadalign.train.pose import PRESETS, PoseTrainConfig
+
+    files = sorted((Path(__file__).resolve().parents[2] / "training").glob("pose_*.toml"))
+    assert len(files) >= 4
+    for f in files:
+        cfg = resolve(PoseTrainConfig, PRESETS, "fast", f)
+        assert cfg.model.pose in ("thesis", "improved")
+        if cfg.crop_hw is not None:
+            assert cfg.crop_hw[0] <= cfg.model.input_hw[0] and cfg.crop_hw[1] <= cfg.model.input_hw[1]
