@@ -60,9 +60,14 @@ class SegTrainConfig:
     """Focal-loss exponent on the cross-entropy (0 = plain cross-entropy)."""
 
 
+# fast: full-resolution 240x320 windows, 70% of them centred on a small-class pixel (hot stabs most often),
+# square-root median-frequency weights capped at 2 plus Dice 1.0. The thesis-style weights (cap 10) over-predict
+# valves 2.6x on the built default scene; weights of 1 under-predict them; this mix is calibrated (~1.0x).
+# 1400 steps at ~0.8 CPU-s each on one thread of the shared 2-core machine: <= 20 CPU-minutes.
 PRESETS: dict[str, SegTrainConfig] = {
-    "fast": SegTrainConfig(model=ResUNetConfig(base_channels=12), scale=1.0, patch=(240, 320),
-                           loop=LoopConfig(steps=800, batch_size=4, lr=3e-3, checkpoint_every=100, log_every=10)),
+    "fast": SegTrainConfig(model=ResUNetConfig(base_channels=12), scale=1.0, patch=(240, 320), focus_prob=0.7,
+                           focus_power=0.5, class_weight_power=0.5, max_class_weight=2.0, dice_weight=1.0,
+                           loop=LoopConfig(steps=1400, batch_size=4, lr=3e-3, checkpoint_every=100, log_every=10)),
     "balanced": SegTrainConfig(model=ResUNetConfig(base_channels=32), scale=1.0, patch=(240, 320),
                                loop=LoopConfig(steps=3000, batch_size=8, lr=2e-3, checkpoint_every=250, log_every=25)),
     "accurate": SegTrainConfig(model=ResUNetConfig(base_channels=48), scale=1.0, val_every=1000,
