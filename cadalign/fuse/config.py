@@ -33,9 +33,11 @@ class FuseConfig:
     """Voxels per side of one TSDF block. 4 makes Open3D's integration ~40% cheaper at 2 cm (fewer voxels away
     from the surface are visited) but Open3D picks blocks from every 4th pixel only, so small blocks miss
     some surface: 95.9% instead of 96.3% of the default scene's CAD within 2 cm."""
-    block_count: int = bounded(50000, ge=16)
-    """Initial hash map capacity in blocks (8^3 blocks take ~18 kB each). Open3D grows it when full, but a
-    growth costs seconds (a rehash and copy of every block), so size it for the scene."""
+    block_count: int = bounded(70000, ge=16)
+    """Initial hash map capacity in blocks (8^3 blocks take ~18 kB each, allocated up front: 1.3 GB). Open3D
+    doubles it as soon as the blocks held plus one frame's blocks exceed it, and that stalls one frame for
+    seconds (10 s measured at 50000: a rehash and copy of every block), so size it for the scene: the default
+    scene ends at 50k 8^3 blocks after 64 frames and touches ~12k a frame."""
     color_every: int = bounded(1, ge=1)
     """TSDF only: integrate colour on every n-th frame (depth and labels on every frame). Colour is about a
     third of Open3D's TSDF time at 640x480; with n > 1 a voxel's colour is still a weighted average of the
