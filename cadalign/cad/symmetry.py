@@ -23,7 +23,8 @@ from cadalign.errors import InputError
 SymmetryKind = Literal["none", "discrete", "continuous"]
 
 #: Names accepted by :meth:`Symmetry.from_name` (the scene spec's ``symmetry`` values).
-SYMMETRY_NAMES = ("none", "continuous_x", "continuous_y", "continuous_z", "discrete_z2", "discrete_z4")
+SYMMETRY_NAMES = ("none", "continuous_x", "continuous_y", "continuous_z", "discrete_x2", "discrete_y2", "discrete_z2",
+                  "discrete_x4", "discrete_y4", "discrete_z4")
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
@@ -138,7 +139,8 @@ class Symmetry:
 
     @staticmethod
     def from_name(name: str) -> Symmetry:
-        """Parse a spec name: ``none``, ``continuous_{x,y,z}``, ``discrete_z2``, ``discrete_z4``.
+        """Parse a spec name: ``none``, ``continuous_{x,y,z}``, ``discrete_{x,y,z}{2,4}`` (half or quarter
+        turns about a model axis).
 
         Axes pass through the model origin.
         """
@@ -146,8 +148,8 @@ class Symmetry:
             return Symmetry.none()
         if name.startswith("continuous_") and name[-1] in _AXES and len(name) == len("continuous_x"):
             return Symmetry.continuous(_AXES[name[-1]])
-        if name in ("discrete_z2", "discrete_z4"):
-            return Symmetry.cyclic(_AXES["z"], int(name[-1]))
+        if name in SYMMETRY_NAMES and name.startswith("discrete_"):
+            return Symmetry.cyclic(_AXES[name[-2]], int(name[-1]))
         raise InputError(f"unknown symmetry name {name!r}; allowed: {', '.join(SYMMETRY_NAMES)}")
 
     def discretize(self, n: int = 36) -> list[np.ndarray]:

@@ -122,7 +122,8 @@ class ObjectSpec:
     texture: TextureName = "painted_steel"
     size_m: tuple[float, float, float] | None = None
     """Procedural parts: bounding size (x, y, z) in metres; None = the part's default."""
-    symmetry: Literal["none", "continuous_z", "continuous_x", "continuous_y", "discrete_z2", "discrete_z4"] = "none"
+    symmetry: Literal["none", "continuous_z", "continuous_x", "continuous_y", "discrete_x2", "discrete_y2",
+                      "discrete_z2", "discrete_x4", "discrete_y4", "discrete_z4"] = "none"
     """Symmetry of the part in its own frame (BOP symmetries are derived from it)."""
 
 
