@@ -130,6 +130,16 @@ def test_discrete_and_combined_symmetries() -> None:
     assert Symmetry.discrete_from([flip.ravel()]).discrete[0].shape == (4, 4)
 
 
+@pytest.mark.parametrize(("name", "half_turn"), [("discrete_x2", [1.0, -1.0, -1.0]),
+                                               ("discrete_y2", [-1.0, 1.0, -1.0]),
+                                               ("discrete_z2", [-1.0, -1.0, 1.0])])
+def test_half_turns_about_each_axis(name: str, half_turn: list[float]) -> None:
+    Ts = Symmetry.from_name(name).discretize()
+    assert len(Ts) == 2
+    np.testing.assert_allclose(Ts[1][:3, :3], np.diag(half_turn), atol=1e-12)
+    assert len(Symmetry.from_name(name[:-1] + "4").discretize()) == 4
+
+
 @pytest.mark.parametrize("make,match", [
     (lambda: Symmetry("continuous"), "needs an axis"),
     (lambda: Symmetry("discrete"), "at least one"),
