@@ -70,3 +70,22 @@ def write_tiny_scene(path: Path, *, effects: list[str], frames: int = 4) -> Path
     """Write the tiny scene TOML with the given effect list; returns its path."""
     path.write_text(TINY_SCENE.format(effects=repr(list(effects)).replace("'", '"'), frames=frames))
     return path
+
+
+def write_picks_from_truth(sfm_dir: Path, sim: Path, path: Path, noise_m: float = 0.02) -> Path:
+    """A picks file (``--init``) of four CAD corners of the tiny block scenes and where the SfM model in
+    ``sfm_dir`` puts them, from the simulation's true cameras, with ``noise_m`` of seeded noise on the
+    CAD side (as a user's clicks would have)."""
+    import numpy as np
+
+    from cadalign.eval.dataset_eval import true_cad_from_sfm
+    from cadalign.io import read_json, write_json
+
+    true = true_cad_from_sfm(read_json(sfm_dir / "cameras.json")["frames"],
+                             read_json(sim / "gt" / "sim" / "000000" / "cameras.json")["frames"])
+    cad_pts = np.array([[1.0, 0.7, 1.2], [-1.0, -0.7, 1.2], [1.0, -0.7, 0.0], [-1.0, 0.7, 0.0]])
+    clicked = cad_pts + np.random.default_rng(0).normal(0, noise_m, cad_pts.shape) if noise_m else cad_pts
+    sfm_pts = true.inverse().apply(clicked)
+    pairs = [{"sfm": s.tolist(), "cad_m": c.tolist()} for s, c in zip(sfm_pts, cad_pts, strict=True)]
+    write_json(path, {"pairs": pairs})
+    return path

@@ -12,11 +12,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from sim_testdata import write_tiny_scene
+from sim_testdata import write_picks_from_truth, write_tiny_scene
 
 from cadalign.data.bop import BopScene
 from cadalign.errors import AlignmentError
-from cadalign.io import read_image, read_json, write_json
+from cadalign.io import read_image, read_json
 
 
 @pytest.fixture(scope="module")
@@ -41,19 +41,12 @@ def capture(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> tupl
 @pytest.fixture(scope="module")
 def built(capture: tuple[Path, Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
     from cadalign.build_dataset import build_dataset
-    from cadalign.eval.dataset_eval import true_cad_from_sfm
     from cadalign.sfm import PRESETS, run
 
     spec, sim = capture
     out = tmp_path_factory.mktemp("build")
     sfm_dir = run(PRESETS["fast"], sim / "frames", out / "sfm")  # build_dataset reuses this
-    true = true_cad_from_sfm(read_json(sfm_dir / "cameras.json")["frames"],
-                             read_json(sim / "gt" / "sim" / "000000" / "cameras.json")["frames"])
-    cad_pts = np.array([[1.0, 0.7, 1.2], [-1.0, -0.7, 1.2], [1.0, -0.7, 0.0], [-1.0, 0.7, 0.0]])
-    noisy = cad_pts + np.random.default_rng(0).normal(0, 0.02, cad_pts.shape)
-    sfm_pts = true.inverse().apply(noisy)
-    write_json(out / "picks.json", {"pairs": [{"sfm": s.tolist(), "cad_m": c.tolist()}
-                                              for s, c in zip(sfm_pts, cad_pts, strict=True)]})
+    write_picks_from_truth(sfm_dir, sim, out / "picks.json")
     return build_dataset(sim / "frames", spec, out, preset="fast", picks=out / "picks.json", gt=sim)
 
 

@@ -8,7 +8,6 @@ import shutil
 import signal
 from pathlib import Path
 
-import numpy as np
 import pytest
 from signal_testdata import (
     INTERRUPT_NOTE,
@@ -19,10 +18,10 @@ from signal_testdata import (
     run_to_end,
     tree_digest,
 )
-from sim_testdata import write_tiny_scene
+from sim_testdata import write_picks_from_truth, write_tiny_scene
 
 from cadalign.errors import InputError
-from cadalign.io import read_json, write_json
+from cadalign.io import read_json
 
 BUILD_SCENE_EDITS = (  # the capture of tests/build: a closer orbit round a bigger block (SfM points on it)
     ("width = 160", "width = 320"), ("height = 120", "height = 240"), ("speed_mps = 0.5", "speed_mps = 0.3"),
@@ -39,7 +38,6 @@ def build_case(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> P
     """A 12-frame 320x240 capture, its SfM (run once: pycolmap is not bitwise deterministic across runs, so
     both builds share it) and picks for the coarse alignment, in one folder: ``tiny.toml``, ``sim/``,
     ``picks.json``, ``sfm/``."""
-    from cadalign.eval.dataset_eval import true_cad_from_sfm
     from cadalign.sfm import PRESETS, run
     from cadalign.sim.run import simulate
 
@@ -51,11 +49,7 @@ def build_case(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> P
     spec.write_text(text)
     sim = simulate(spec, root / "sim", video=False, contact_sheet=False)
     sfm_dir = run(PRESETS["fast"], sim / "frames", root / "sfm")
-    true = true_cad_from_sfm(read_json(sfm_dir / "cameras.json")["frames"],
-                             read_json(sim / "gt" / "sim" / "000000" / "cameras.json")["frames"])
-    cad_pts = np.array([[1.0, 0.7, 1.2], [-1.0, -0.7, 1.2], [1.0, -0.7, 0.0], [-1.0, 0.7, 0.0]])
-    write_json(root / "picks.json", {"pairs": [{"sfm": s.tolist(), "cad_m": c.tolist()}
-                                               for s, c in zip(true.inverse().apply(cad_pts), cad_pts, strict=True)]})
+    write_picks_from_truth(sfm_dir, sim, root / "picks.json", noise_m=0.0)
     return root
 
 

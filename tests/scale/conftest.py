@@ -8,11 +8,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pytest
-from sim_testdata import write_tiny_scene
-
-from cadalign.io import read_json, write_json
+from sim_testdata import write_picks_from_truth, write_tiny_scene
 
 EDITS = (("width = 160", "width = 320"), ("height = 120", "height = 240"), ("speed_mps = 0.5", "speed_mps = 0.3"),
          ("radius_m = 3.2", "radius_m = 3.0"), ("size_m = [1.2, 0.8, 0.6]", "size_m = [2.0, 1.4, 1.2]"),
@@ -40,19 +37,12 @@ def scale_capture(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -
 def local_build(scale_capture: tuple[Path, Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
     """OUT of ``build_dataset(..., executor=None)`` (sfm/, align/, dataset/, picks.json)."""
     from cadalign.build_dataset import build_dataset
-    from cadalign.eval.dataset_eval import true_cad_from_sfm
     from cadalign.sfm import PRESETS, run
 
     spec, sim = scale_capture
     out = tmp_path_factory.mktemp("local_build")
     sfm_dir = run(PRESETS["fast"], sim / "frames", out / "sfm")
-    true = true_cad_from_sfm(read_json(sfm_dir / "cameras.json")["frames"],
-                             read_json(sim / "gt" / "sim" / "000000" / "cameras.json")["frames"])
-    cad_pts = np.array([[1.0, 0.7, 1.2], [-1.0, -0.7, 1.2], [1.0, -0.7, 0.0], [-1.0, 0.7, 0.0]])
-    noisy = cad_pts + np.random.default_rng(0).normal(0, 0.02, cad_pts.shape)
-    sfm_pts = true.inverse().apply(noisy)
-    write_json(out / "picks.json", {"pairs": [{"sfm": s.tolist(), "cad_m": c.tolist()}
-                                              for s, c in zip(sfm_pts, cad_pts, strict=True)]})
+    write_picks_from_truth(sfm_dir, sim, out / "picks.json")
     return build_dataset(sim / "frames", spec, out, preset="fast", picks=out / "picks.json")
 
 
