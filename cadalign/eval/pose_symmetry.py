@@ -15,21 +15,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cadalign.cad.symmetry import Symmetry
+from cadalign.cad.symmetry import Symmetry, axis_angle_matrix
 
 log = logging.getLogger(__name__)
 
 
-def _axis_rotation(axis: str, deg: float) -> np.ndarray:
-    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
-    i = "xyz".index(axis)
-    j, k = (i + 1) % 3, (i + 2) % 3
-    R = np.eye(3)
-    R[j, j], R[j, k], R[k, j], R[k, k] = c, -s, s, c
-    return R
-
-
-CANDIDATES: dict[str, np.ndarray] = {f"R{a}{d}": _axis_rotation(a, d) for a in "xyz" for d in (180, 90)}
+CANDIDATES: dict[str, np.ndarray] = {f"R{a}{d}": axis_angle_matrix(np.eye(3)["xyz".index(a)], np.radians(d))
+                                      for a in "xyz" for d in (180, 90)}
 """Candidate symmetries: half and quarter turns about the model's x, y and z axes (through its origin)."""
 
 

@@ -192,14 +192,13 @@ def _step_mapping(cfg: SfMConfig, lay: Layout, progress: Progress | None) -> dic
     work = lay.root / "mapping_tmp"
     mp = cfg.mapper
     if not mp.segment_frames or len(names) <= mp.segment_frames:
-        return _map_with_attempts(cfg, lay, names, work, progress)
-    import pycolmap
-
+        model, info = _map_with_attempts(cfg, lay, names, work, progress)
+        _write_model(model, lay.model)
+        return info
     from cadalign.sfm import segments
 
     def map_one(sub: list[str], k: int) -> tuple[Any, dict[str, Any]]:
-        info = _map_with_attempts(cfg, lay, sub, work / f"segment_{k:03d}", progress)
-        return pycolmap.Reconstruction(str(lay.model)), info
+        return _map_with_attempts(cfg, lay, sub, work / f"segment_{k:03d}", progress)
 
     def merge(models: list[Any]) -> tuple[Any, list[dict[str, Any]]]:
         return segments.merge_models(models, lay.database, lay.images, work / "merged",
@@ -217,10 +216,10 @@ def _step_mapping(cfg: SfMConfig, lay: Layout, progress: Progress | None) -> dic
 
 
 def _map_with_attempts(cfg: SfMConfig, lay: Layout, names: list[str], work: Path,
-                       progress: Progress | None) -> dict[str, Any]:
+                       progress: Progress | None) -> tuple[Any, dict[str, Any]]:
     """Map ``names`` (with loop closure), check the model's consistency, and retry with the next seed while
-    it has breaks; each attempt starts from the matches as they were before any loop closure. Writes the
-    kept model to ``lay.model``."""
+    it has breaks; each attempt starts from the matches as they were before any loop closure. Returns the
+    kept model and what was done."""
     pristine, kept_db = lay.root / "database.pre_loop.db", lay.root / "database.kept.db"
     shutil.copyfile(lay.database, pristine)
     best: tuple[tuple[int, int], list[Any], dict[str, Any]] | None = None
@@ -257,7 +256,6 @@ def _map_with_attempts(cfg: SfMConfig, lay: Layout, names: list[str], work: Path
                                         max_ratio=cfg.mapper.break_ratio, min_matches=cfg.mapper.break_min_matches)
             dropped = keep_largest_piece(models[0], names, cons)
             log.warning("kept the largest consistent piece: %d frames dropped", len(dropped))
-    _write_model(models[0], lay.model)
     shutil.rmtree(work, ignore_errors=True)
     if len(models) > 1:
         log.warning("SfM produced %d disconnected models (%s frames); keeping the largest",
@@ -268,7 +266,7 @@ def _map_with_attempts(cfg: SfMConfig, lay: Layout, names: list[str], work: Path
     info["models"] = [{**model_stats(r), "kept": k == 0, "frames": [im.name for im in registered_images(r)]}
                       for k, r in enumerate(models)]
     info["unregistered"] = reasons
-    return info
+    return models[0], info
 
 
 def _map_once(cfg: SfMConfig, lay: Layout, names: list[str], work: Path,
