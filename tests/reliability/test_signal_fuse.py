@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +55,9 @@ def test_fuse_sigint_resumes_to_the_uninterrupted_map(where: str, sim6: Path, tm
     def ctrl_c_on_the_fifth(self, *args):  # noqa: ANN001, ANN202 - test double
         calls["n"] += 1
         if calls["n"] == 5:
-            os.kill(os.getpid(), signal.SIGINT)  # a real signal: KeyboardInterrupt at the next bytecode
+            os.kill(os.getpid(), signal.SIGINT)  # a real signal
+            for _ in range(400):  # the handler runs here, not later inside a C call of another thread's step
+                time.sleep(0.005)
         return real(self, *args)
 
     monkeypatch.setattr(cls, name, ctrl_c_on_the_fifth)
