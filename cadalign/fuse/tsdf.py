@@ -304,9 +304,14 @@ class SemanticTSDF:
         return self._labelled(pcd, None)
 
     def state(self) -> dict[str, np.ndarray]:
-        """The active blocks as arrays (``keys`` (B, 3) int32 and one array per attribute) for saving."""
+        """The active blocks as arrays (``keys`` (B, 3) int32 and one array per attribute) for saving.
+
+        Blocks are in lexicographic key order: Open3D's hash map inserts blocks from parallel threads, so its
+        buffer order can differ between two runs over the same frames; sorting makes equal maps equal arrays."""
         hm = self.vbg.hashmap()
         buf = hm.active_buf_indices().numpy().astype(np.int64)
+        keys = hm.key_tensor().numpy()[buf]
+        buf = buf[np.lexsort(keys.T[::-1])]
         out = {"keys": hm.key_tensor().numpy()[buf].copy()}
         for name in ATTRS:
             out[name] = self.vbg.attribute(name).numpy()[buf].copy()
