@@ -1,9 +1,10 @@
 """Training the Mask R-CNN + pose network on a BOP dataset (``cadalign train pose``).
 
 ``run(cfg, dataset, out_dir)`` trains with the shared loop (:mod:`cadalign.train.loop`) and then scores
-the held-out frames (val + test, never used in training; ``eval_heldout.json``, at the images' own resolution:
-detection precision/recall/F1 at IoU 0.5, mask IoU, translation and
-rotation errors of the matched detections, per class). The dataset is a ``cadalign build-dataset`` folder
+the held-out frames (val + test, never used in training; ``eval_heldout.json``, at the images' own resolution,
+scored by :func:`cadalign.eval.pose_eval.evaluate_scene` with the rules of ``cadalign eval pose``: detection
+precision/recall/F1 at IoU 0.5, mask IoU, translation and rotation errors, BOP recalls, per class).
+The dataset is a ``cadalign build-dataset`` folder
 (``splits.json``, ``models/``) or one BOP scene folder (e.g. the simulator's ``gt/sim/000000``, models in
 ``../../models``), with the same frame selection as the dense trainers (:func:`cadalign.train.data.select`).
 
@@ -208,7 +209,7 @@ def make_augment(cfg: AugmentConfig, crop_hw: tuple[int, int] | None = None, cro
 
 def extra_state(cfg: PoseTrainConfig, classes: tuple[str, ...]) -> dict:
     """The identity saved with each checkpoint (checked on resume and by ``load_pose_model``)."""
-    return {"model": MODEL_KIND, "classes": list(classes), "model_config": to_dict(cfg.model)}
+    return {"model": MODEL_KIND, "classes": list(classes), "model_config": cfg.model}
 
 
 def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = False, overwrite: bool = False,
@@ -221,10 +222,8 @@ def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = Fa
         InputError: the dataset or its models are missing.
     """
     ds = locate_dataset(dataset)
-    record = to_dict(cfg)
-    record["loop"].pop("steps")  # a resumed run may extend the number of steps
-    prepare_stage_dir(out_dir, "train_pose", {"config": record, "dataset": str(Path(dataset).resolve())},
-                      overwrite=overwrite)
+    prepare_stage_dir(out_dir, "train_pose", {"config": cfg, "dataset": str(Path(dataset).resolve())},
+                      overwrite=overwrite, ignore=("config.loop.steps",))  # a resumed run may extend the steps
     if overwrite and not resume and (Path(out_dir) / "checkpoints").is_dir():
         shutil.rmtree(Path(out_dir) / "checkpoints")
     write_json(Path(out_dir) / "train_config.json", {"config": to_dict(cfg), "dataset": str(dataset),
@@ -247,10 +246,7 @@ def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = Fa
         from cadalign.train.pose_eval import evaluate
 
         model.eval()
-        syms = {k: [T[:3, :3] for T in o.symmetry.discretize(cfg.loss.continuous_samples)]
-                for k, o in geometry.items()}
-        report = evaluate(model, DetectionPoseDataset(ds.scene_dir, held_out), cfg.eval_score_thresh, syms)
-        report["ids"] = held_out
+        report = evaluate(model, ds.scene_dir, held_out, ds.models_dir, cfg.eval_score_thresh)
         write_json(Path(out_dir) / "eval_heldout.json", report)
         log.info("held-out frames: %s", report["summary"])
     return result
