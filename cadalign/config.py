@@ -270,6 +270,105 @@ def to_dict(cfg: Any) -> Any:
     return cfg
 
 
+def config_fingerprint_dict(cfg: Any) -> Any:
+    """The part of a config that decides whether two runs are the same: :func:`to_dict` (JSON types only)
+    without the dataclass fields whose value equals the field's default, recursively for nested configs.
+
+    Adding a field with a default thus leaves the view, and the fingerprint, of every existing config
+    unchanged, so results and checkpoints made before the field existed stay valid, while a non-default
+    value still counts. Plain mappings and sequences are walked (their dataclass members reduced); other
+    values pass through. Stage manifests and training checkpoints compare configs through this one view.
+
+    Example:
+        >>> from dataclasses import dataclass
+        >>> @dataclass(frozen=True)
+        ... class ICP:
+        ...     max_iters: int = 50
+        ...     tol: float = 1e-6
+        >>> config_fingerprint_dict({"icp": ICP(max_iters=10), "source": "a.ply"})
+        {'icp': {'max_iters': 10}, 'source': 'a.ply'}
+    """
+    return stored_fingerprint_dict(to_dict(cfg), cfg)
+
+
+def stored_fingerprint_dict(stored: Any, like: Any) -> Any:
+    """:func:`config_fingerprint_dict` of a config read back from disk.
+
+    ``stored`` is the :func:`to_dict` form written by a run, possibly by an older version that lacked some
+    fields; ``like`` is the config it is compared with, which says which keys are dataclass fields and what
+    their defaults are. A stored key that is no longer a field is kept (it counts as a difference), and a
+    nested config whose fields are all at their defaults is dropped when its default is that same config.
+    """
+    return _plain(_reduce(stored, like, _MISSING))
+
+
+def config_differences(stored: Any, cfg: Any) -> list[str]:
+    """Dotted key paths where a stored config (to_dict form) and ``cfg`` differ, fields at defaults aside.
+
+    Empty when a run made with ``stored`` may be reused or resumed under ``cfg``.
+    """
+    a, b = _flatten(stored_fingerprint_dict(stored, cfg)), _flatten(config_fingerprint_dict(cfg))
+    keys = {k for k in set(a) | set(b) if a.get(k, _MISSING) != b.get(k, _MISSING)}
+    return sorted(k for k in keys if not any(o.startswith(k + ".") for o in keys))  # the deepest keys only
+
+
+def _reduce(stored: Any, like: Any, ref: Any) -> Any:
+    """``stored`` without its default-valued dataclass fields; ``ref`` is the default instance of ``like``
+    (a nested config's defaults come from its parent's default), or ``_MISSING`` for the class defaults."""
+    if dataclasses.is_dataclass(like) and not isinstance(like, type) and isinstance(stored, Mapping):
+        fields = {f.name: f for f in dataclasses.fields(like)}
+        same_ref = ref is not _MISSING and type(ref) is type(like)
+        out: dict[str, Any] = {}
+        for key, value in stored.items():
+            f = fields.get(key)
+            if f is None:  # a field this version does not have: it counts
+                out[key] = value
+                continue
+            default = getattr(ref, key) if same_ref else _field_default(f)
+            sub = getattr(like, key)
+            if dataclasses.is_dataclass(sub) and isinstance(value, Mapping):
+                reduced = _reduce(value, sub, default)
+                if reduced or type(default) is not type(sub):  # {} differs from a None default
+                    out[key] = reduced
+            elif default is _MISSING or _plain(value) != _plain(to_dict(default)):
+                out[key] = _reduce(value, sub, _MISSING)
+        return out
+    if isinstance(like, Mapping) and isinstance(stored, Mapping):
+        return {k: _reduce(v, like[k], _MISSING) if k in like else v for k, v in stored.items()}
+    if isinstance(like, (list, tuple)) and isinstance(stored, (list, tuple)) and len(like) == len(stored):
+        return [_reduce(s, x, _MISSING) for s, x in zip(stored, like, strict=True)]
+    return stored
+
+
+def _field_default(f: dataclasses.Field) -> Any:
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return _MISSING
+
+
+def _plain(obj: Any) -> Any:
+    """JSON types only (tuples as lists, arrays as lists, paths as strings), so stored and live values compare."""
+    return json.loads(json.dumps(to_dict(obj), sort_keys=True, default=_json_value))
+
+
+def _json_value(obj: Any) -> Any:
+    if isinstance(obj, (np.ndarray, np.generic)):
+        return obj.tolist()
+    return repr(obj)
+
+
+def _flatten(obj: Any, prefix: str = "") -> dict[str, Any]:
+    """Leaves of nested mappings by dotted key path; an empty mapping is a leaf (except at the top)."""
+    if isinstance(obj, Mapping) and (obj or not prefix):
+        out: dict[str, Any] = {}
+        for k, v in obj.items():
+            out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out
+    return {prefix: obj}
+
+
 def resolve(
     cls: type[T],
     presets: Mapping[str, T] | None = None,

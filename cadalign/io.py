@@ -13,13 +13,14 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from cadalign._version import __version__
+from cadalign.config import config_differences, config_fingerprint_dict, to_dict
 from cadalign.errors import ConfigError, InputError
 
 MANIFEST_NAME = "cadalign_stage.json"
@@ -130,29 +131,55 @@ def fingerprint(obj: Any) -> str:
     return hashlib.sha256(blob).hexdigest()[:16]
 
 
-def prepare_stage_dir(out_dir: Path, stage: str, config: dict[str, Any], *, overwrite: bool = False) -> bool:
+def prepare_stage_dir(out_dir: Path, stage: str, config: Any, *, overwrite: bool = False,
+                      ignore: Collection[str] = ()) -> bool:
     """Claim ``out_dir`` for a stage run with ``config``.
+
+    ``config`` is a config dataclass or a mapping that may hold config dataclasses (e.g.
+    ``{"sfm": cfg, "source": ...}``); it is stored in full (:func:`cadalign.config.to_dict`), and compared
+    through :func:`cadalign.config.config_fingerprint_dict`: a field at its default does not count, so a run
+    made before a defaulted field existed is still the same config. Pass the dataclasses themselves, not their
+    ``to_dict`` form, to get that (a plain dict has no defaults to compare with).
 
     Returns True when outputs of an identical config already exist there (the
     caller may reuse finished work). A directory made with a *different*
     config is refused unless ``overwrite`` is set, so results never silently
-    mix two configurations.
+    mix two configurations. ``ignore`` names dotted key paths of ``config`` that a re-run may change
+    (``config.loop.steps`` of a training run that may be extended): stored, but neither fingerprinted nor
+    compared.
 
     Raises:
         ConfigError: the directory holds results of another config or stage.
     """
     out_dir = Path(out_dir)
     manifest_path = out_dir / MANIFEST_NAME
-    record = {"stage": stage, "config": config, "version": __version__, "fingerprint": fingerprint(config)}
+    record = {"stage": stage, "config": to_dict(config), "version": __version__,
+              "fingerprint": fingerprint(_without(config_fingerprint_dict(config), ignore))}
     if manifest_path.exists() and not overwrite:
         old = read_json(manifest_path)
-        if old.get("stage") != stage or old.get("fingerprint") != record["fingerprint"]:
+        differs = [] if old.get("fingerprint") == record["fingerprint"] else [
+            k for k in config_differences(old.get("config"), config) if k not in ignore]
+        if old.get("stage") != stage or differs:
+            keys = f", differs in: {', '.join(differs[:8])}{' ...' if len(differs) > 8 else ''}" if differs else ""
             raise ConfigError(
                 f"{out_dir} holds '{old.get('stage')}' results made with another config "
-                f"(fingerprint {old.get('fingerprint')} vs {record['fingerprint']}); "
+                f"(fingerprint {old.get('fingerprint')} vs {record['fingerprint']}{keys}); "
                 "choose another output directory or pass --overwrite"
             )
         return True
     out_dir.mkdir(parents=True, exist_ok=True)
     write_json(manifest_path, record)
     return False
+
+
+def _without(view: Any, keys: Collection[str]) -> Any:
+    """``view`` (nested dicts) without the dotted key paths ``keys``."""
+    if not keys or not isinstance(view, dict):
+        return view
+    out = {}
+    for k, v in view.items():
+        if k in keys:
+            continue
+        inner = {key.split(".", 1)[1] for key in keys if "." in key and key.split(".", 1)[0] == k}
+        out[k] = _without(v, inner)
+    return out

@@ -27,7 +27,6 @@ from typing import Any, Literal
 
 import numpy as np
 
-from cadalign.config import to_dict
 from cadalign.emulate import figures, layered_mesh, lidar, sonar, views
 from cadalign.emulate.mesh import LayeredMesh
 from cadalign.emulate.sources import SCENE_SUFFIXES, DepthFn, SegFn, load_source, read_image_input, write_ply
@@ -115,7 +114,7 @@ def run(sensor: Sensor, cfg: Any, source: Path, out_dir: Path, *, pose: Rigid3 |
                          "BOP scene (SCENE/rgb/NNNNNN.png) or an .npz with rgb, depth_m and K")
     T = pose if pose is not None else (None if sensor == "mesh" else default_pose(source, sensor))
     stat = source.stat()
-    record = {"sensor": sensor, "config": to_dict(cfg), "source": str(source.resolve()),
+    record = {"sensor": sensor, "config": cfg, "source": str(source.resolve()),
               "source_size": stat.st_size, "source_mtime_ns": stat.st_mtime_ns,
               "T_world_from_sensor": None if T is None else T.matrix().tolist(), "models": models or {}}
     done = prepare_stage_dir(out_dir, f"emulate_{sensor}", record, overwrite=overwrite)

@@ -25,7 +25,6 @@ from pathlib import Path
 import numpy as np
 
 from cadalign.cad.model import CadModel
-from cadalign.config import to_dict
 from cadalign.errors import InputError
 from cadalign.eval.pose_eval import CroppedMask
 from cadalign.infer.detect import Detector, frame_ids, models_dir_of
@@ -125,7 +124,7 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
         progress: Progress | None = None) -> Path:
     """Run the pose pipeline over a video or frame folder; returns ``out_dir / "poses.jsonl"`` (see module doc)."""
     out_dir = Path(out_dir)
-    record = {"infer": to_dict(cfg), "source": str(source), "detector": detector_info, "max_frames": max_frames,
+    record = {"infer": cfg, "source": str(source), "detector": detector_info, "max_frames": max_frames,
               "depth": None if depth_scene is None else str(depth_scene),
               "gt": None if gt_scene is None else str(gt_scene)}
     poses_path = out_dir / "poses.jsonl"

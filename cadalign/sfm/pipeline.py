@@ -30,7 +30,6 @@ from typing import Any
 
 import numpy as np
 
-from cadalign.config import to_dict
 from cadalign.errors import InputError
 from cadalign.io import MANIFEST_NAME, atomic_path, fingerprint, prepare_stage_dir, read_json, write_json
 from cadalign.sfm import colmap
@@ -128,7 +127,7 @@ def run(
         raise InputError(f"{source} is neither a video nor a folder of images")
     if overwrite and out_dir.exists():
         clear_outputs(out_dir)
-    config = {"sfm": to_dict(cfg), "source": source_identity(source)}
+    config = {"sfm": cfg, "source": source_identity(source)}
     prepare_stage_dir(out_dir, "sfm", config)
     lay = Layout(out_dir)
     steps: dict[str, Callable[[], dict[str, Any]]] = {

@@ -30,7 +30,6 @@ from pathlib import Path
 
 import numpy as np
 
-from cadalign.config import to_dict
 from cadalign.data import bop
 from cadalign.io import prepare_stage_dir, read_json, write_image, write_json
 from cadalign.render.bop_writer import frame_done, write_bop_frame
@@ -79,7 +78,7 @@ def simulate(
     """Render ``scene_path`` into ``out_dir``; returns ``out_dir``. Finished frames are reused."""
     scene_path, out_dir = Path(scene_path), Path(out_dir)
     spec = apply_overrides(load_scene(scene_path), frames, resolution, seed)
-    config = {"scene": to_dict(spec), "scene_file": str(scene_path.resolve()), "video": video}
+    config = {"scene": spec, "scene_file": str(scene_path.resolve()), "video": video}
     if overwrite and out_dir.exists():
         shutil.rmtree(out_dir)
     reused = prepare_stage_dir(out_dir, "sim", config)

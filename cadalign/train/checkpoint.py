@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from cadalign.config import config_differences, to_dict
 from cadalign.errors import TrainingError
 from cadalign.io import atomic_path
 
@@ -73,22 +74,25 @@ def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dic
 def check_extra_state(saved: dict[str, Any] | None, expected: dict[str, Any] | None, source: Path) -> None:
     """Refuse a checkpoint whose ``extra_state`` differs from ``expected`` in any key ``expected`` has.
 
+    Values of ``expected`` may be config dataclasses (the model config); they are compared with the saved
+    ``to_dict`` form through :func:`cadalign.config.config_differences`, so a model-config field added later
+    with a default does not refuse checkpoints saved before it existed.
+
     Raises:
         TrainingError: naming the first differing key and both values.
     """
     saved = saved or {}
     for key, want in (expected or {}).items():
-        have = saved.get(key, "<missing>")
-        if _normalise(have) != _normalise(want):
+        if key not in saved:
             raise TrainingError(
-                f"{source} was trained with a different {key}: checkpoint has {have!r}, this run has {want!r}; "
-                "use a new --out folder (or the matching dataset/model settings)"
+                f"{source} was trained with a different {key}: checkpoint has '<missing>', this run has "
+                f"{to_dict(want)!r}; use a new --out folder (or the matching dataset/model settings)"
             )
-
-
-def _normalise(v: Any) -> Any:
-    if isinstance(v, (list, tuple)):
-        return [_normalise(x) for x in v]
-    if isinstance(v, dict):
-        return {str(k): _normalise(x) for k, x in v.items()}
-    return v
+        have = saved[key]
+        differs = config_differences(have, want)
+        if differs:
+            fields = f" (differs in: {', '.join(differs)})" if differs != [""] else ""
+            raise TrainingError(
+                f"{source} was trained with a different {key}{fields}: checkpoint has {have!r}, this run has "
+                f"{to_dict(want)!r}; use a new --out folder (or the matching dataset/model settings)"
+            )

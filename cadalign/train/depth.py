@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from cadalign.config import bounded, to_dict
+from cadalign.config import bounded
 from cadalign.models.dispnet import DispNet, DispNetConfig, alpha_beta_from_range
 from cadalign.train.augment import AugmentConfig, augment_dense
 from cadalign.train.common import write_run_record
@@ -144,7 +144,7 @@ def train_depth(cfg: DepthTrainConfig, ds: Path, out: Path, *, split: str = "tra
     model_cfg = resolve_model_config(cfg, data)
     torch.manual_seed(cfg.loop.seed)
     model = DispNet(model_cfg)
-    identity = {"task": "depth", "classes": list(base.classes.names), "model": to_dict(model_cfg),
+    identity = {"task": "depth", "classes": list(base.classes.names), "model": model_cfg,
                 "scale": cfg.scale, "mask_input": cfg.mask_input}
     write_run_record(out, "depth", cfg, identity,
                      {"depth_range_m": [1 / (model_cfg.alpha + model_cfg.beta), 1 / model_cfg.beta],

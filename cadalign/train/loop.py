@@ -31,7 +31,7 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader, Dataset, default_collate
 
-from cadalign.config import bounded, to_dict
+from cadalign.config import bounded, config_differences, to_dict
 from cadalign.errors import ConfigError, TrainingError
 from cadalign.io import read_json, write_json
 from cadalign.train.batches import StepBatchSampler, check_finite_batch, sample_names, stream_indices
@@ -206,7 +206,7 @@ class _Run:
         return {
             "model": unwrap(self.model).state_dict(), "optimizer": self.opt.state_dict(),
             "scheduler": self.sched.state_dict(), "step": self.step, "sampler_position": self.step,
-            "rng": rng_state(), "extra_state": self.extra or {}, "loop_config": to_dict(self.cfg),
+            "rng": rng_state(), "extra_state": to_dict(self.extra or {}), "loop_config": to_dict(self.cfg),
             "window": list(self.window), "seconds": self.seconds(), "cpu_seconds": self.cpu_seconds(),
         }
 
@@ -223,9 +223,9 @@ class _Run:
         check_extra_state(ck.get("extra_state"), self.extra, path)
         old = ck.get("loop_config", {})
         now = to_dict(self.cfg)
-        diff = [k for k in now if k not in _RESUMABLE_CHANGES and k in old and old[k] != now[k]]
+        diff = [k for k in config_differences(old, self.cfg) if k not in _RESUMABLE_CHANGES]
         if diff:
-            changes = ", ".join(f"{k}: {old[k]!r} -> {now[k]!r}" for k in diff)
+            changes = ", ".join(f"{k}: {old.get(k, '<missing>')!r} -> {now.get(k, '<removed>')!r}" for k in diff)
             raise ConfigError(
                 f"{path} was trained with other loop settings ({changes}); "
                 "resume with the same settings or use a new --out folder"

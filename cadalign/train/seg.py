@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from cadalign.config import bounded, to_dict
+from cadalign.config import bounded
 from cadalign.models.resunet import ResUNet, ResUNetConfig
 from cadalign.train.augment import AugmentConfig, augment_dense, random_patches
 from cadalign.train.common import write_run_record
@@ -163,7 +163,7 @@ def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train",
     weights, focus = class_weights(counts, image_counts, cfg), focus_weights(counts, cfg)
     torch.manual_seed(cfg.loop.seed)
     model = ResUNet(len(classes), cfg.model)
-    identity = {"task": "seg", "classes": list(classes), "model": to_dict(cfg.model), "scale": cfg.scale}
+    identity = {"task": "seg", "classes": list(classes), "model": cfg.model, "scale": cfg.scale}
     write_run_record(out, "seg", cfg, identity, {"class_weights": None if weights is None else weights.tolist(),
                                                  "focus_weights": focus, "class_pixels": counts.tolist(),
                                                  "dataset": {"scene": str(sel.scene_dir), "split": split,
