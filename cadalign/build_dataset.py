@@ -28,12 +28,13 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from cadalign.cad.model import CadModel
 from cadalign.config import to_dict
+from cadalign.errors import InputError
 from cadalign.io import fingerprint, prepare_stage_dir, read_json, write_json
 from cadalign.render.bop_writer import PosedObject, frame_done, merge_scene_files
 from cadalign.render.camera_refine import CameraRefineConfig, RefinedCamera, rays_of, refine_cameras
@@ -114,6 +115,7 @@ def render_frames(structure: Structure, cameras: dict[str, dict], cad_from_sfm: 
         result = refine_cameras(rec, cad_from_sfm, verts, faces, refine)
         refined, rec = result.frames, result.model
         write_json(scene_dir.parent.parent / "camera_refine.json", result.summary)
+    edge_poses, edge_info = _edge_align(meshes, rec, refined, sfm_dir, scene_dir.parent.parent, refine, progress)
     by_name = {im.name: im for im in rec.images.values()}
     renderers: dict[int, RaycastRenderer] = {}
     ids = list(range(len(names)))
@@ -126,9 +128,9 @@ def render_frames(structure: Structure, cameras: dict[str, dict], cad_from_sfm: 
         camera = Camera(np.asarray(cam.calibration_matrix(), dtype=np.float64), int(cam.width), int(cam.height))
         r = refined.get(names[k])
         if r is not None:
-            T_world_from_cam = r.T_world_from_cam
+            T_world_from_cam = edge_poses.get(names[k], r.T_world_from_cam)
             quality[k] = {"verified": r.verified, "pairs": r.n_pairs, "inliers": r.n_inliers, "rms_px": r.rms_px,
-                          "shift_m": r.shift_m, "turn_deg": r.turn_deg}
+                          "shift_m": r.shift_m, "turn_deg": r.turn_deg, "edges": edge_info.get(names[k])}
         else:
             quality[k] = {"verified": refine is None}
         if frame_done(scene_dir, k):
@@ -150,6 +152,48 @@ def render_frames(structure: Structure, cameras: dict[str, dict], cad_from_sfm: 
     write_json(scene_dir / "frame_names.json", {str(k): n for k, n in frame_names.items()})
     write_json(scene_dir / "frame_quality.json", {str(k): q for k, q in quality.items()})
     return frame_names, {k: bool(q["verified"]) for k, q in quality.items()}
+
+
+def _edge_align(meshes: list[RenderMesh], rec: Any, refined: dict[str, RefinedCamera], sfm_dir: Path, ds: Path,
+                refine: CameraRefineConfig | None, progress: Progress | None,
+                ) -> tuple[dict[str, Rigid3], dict[str, dict]]:
+    """The verified frames' poses aligned to the CAD's contours in their images (``ds/edge_align.json``
+    keeps them, so a resumed build does not redo it); empty when off."""
+    if refine is None or not refine.edges.enabled or not refined:
+        return {}, {}
+    path = ds / "edge_align.json"
+    if path.is_file():
+        saved = read_json(path)
+        return ({n: Rigid3.from_matrix(np.array(M)) for n, M in saved["T_world_from_cam"].items()},
+                saved["frames"])
+    import cv2
+
+    from cadalign.render.edge_refine import edge_align_frames
+
+    by_name = {im.name: im for im in rec.images.values()}
+    renderers: dict[int, RaycastRenderer] = {}
+
+    def renderer_of(name: str) -> RaycastRenderer:
+        cam = by_name[name].camera
+        if cam.camera_id not in renderers:
+            K = np.asarray(cam.calibration_matrix(), dtype=np.float64)
+            renderers[cam.camera_id] = RaycastRenderer(meshes, Camera(K, int(cam.width), int(cam.height)),
+                                                       rays_cam=rays_of(cam))
+        return renderers[cam.camera_id]
+
+    def gray_of(name: str) -> np.ndarray:
+        img = cv2.imread(str(sfm_dir / "images" / name), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise InputError(f"cannot read frame {sfm_dir / 'images' / name} for the edge alignment; re-run the "
+                             "build with --overwrite to extract the frames again")
+        return img.astype(np.float32)
+
+    poses = {n: r.T_world_from_cam for n, r in refined.items() if r.verified}
+    centre = np.concatenate([m.vertices_m for m in meshes]).mean(axis=0)
+    out, info, summary = edge_align_frames(poses, renderer_of, gray_of, centre, refine.edges, progress)
+    write_json(path, {"summary": summary, "frames": info,
+                      "T_world_from_cam": {n: T.matrix().tolist() for n, T in out.items()}})
+    return out, info
 
 
 def write_dataset_extras(ds: Path, structure: Structure, verified: dict[int, bool] | None = None, block: int = 10,
@@ -240,6 +284,8 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
         "alignment": {k: v for k, v in read_json(align_json).items() if k in ("cad_from_sfm", "metrics", "gates")},
         "seconds": seconds, "sfm_report": read_json(sfm_dir / "sfm_report.json"),
     }
+    if (ds / "edge_align.json").is_file():
+        report["edge_alignment"] = read_json(ds / "edge_align.json")["summary"]
     if gt is not None:
         from cadalign.eval.dataset_eval import evaluate_against_sim
 

@@ -131,6 +131,16 @@ def write_build_html(out: Path, report: dict[str, Any]) -> Path:
         table([{"metric": k, "value": v} for k, v in metrics.items() if isinstance(v, (int, float))]),
         img_tag(out / "align" / "align.png", "alignment"),
     ]
+    edges = report.get("edge_alignment")
+    if edges:
+        sh = edges["shared"]
+        parts += ["<h2>Edge alignment (cameras against the CAD's contours in the images)</h2>", table([
+            {"step": "shared correction", "applied": sh["applied"], "deg": sh["turn_deg"], "mm": 1000 * sh["shift_m"],
+             "edges": sh["edges"]},
+            {"step": "per frame (median)", "applied": f"{edges['frames_refined']} of {edges['frames']}",
+             "deg": edges["frame_turn_deg_median"], "mm": edges["frame_shift_mm_median"],
+             "edges": "residual %s px" % (None if edges["median_abs_offset_px"] is None
+                                          else round(edges["median_abs_offset_px"], 3))}])]
     vt = report.get("vs_truth")
     if vt:
         rows = [

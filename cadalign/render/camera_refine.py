@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from cadalign.geometry import geodesic_angle
+from cadalign.render.edge_refine import EdgeRefineConfig
 from cadalign.types import Rigid3, Sim3
 
 log = logging.getLogger(__name__)
@@ -49,6 +50,10 @@ class CameraRefineConfig:
     """A refined centre farther than this from the SfM one marks the frame not verified, metres."""
     max_turn_deg: float = 2.0
     """A refined orientation turned more than this from the SfM one marks the frame not verified."""
+    edges: EdgeRefineConfig = EdgeRefineConfig()
+    """Then align the verified frames to the CAD's contours in the images
+    (:mod:`cadalign.render.edge_refine`): what the anchored adjustment leaves (the rig sliding along planar
+    faces, each frame's own error) is about half a pixel at 10 m."""
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,318 @@
+"""Edge alignment: one rigid correction of all cameras against the CAD's occluding contours in the images.
+
+The CAD-anchored bundle adjustment (:mod:`cadalign.render.camera_refine`) pins SfM points onto the CAD
+surface, which fixes them only along the surface normal: the whole camera rig can still slide along the
+structure's large planar faces, and on the default orbit it keeps a shared rotation of ~0.08 deg (0.6 px
+at 10 m), about as much as each frame's own error. The images themselves do not slide: the structure's
+outline against the water and against farther parts is where the CAD says it is only at the right pose.
+
+For a few frames this module renders the CAD, takes the near side of every depth discontinuity (an
+occluding contour) with its image-plane normal, and searches the image along that normal (a 1-D search of
+the intensity derivative, with the contrast's sign read at the predicted edge, parabolic sub-pixel peak),
+as in model-based edge trackers (RAPID, ViSP's moving edges). One rigid motion of the world about the CAD's
+centre is then fitted to all frames' edge offsets by iteratively re-weighted least squares (Tukey), and
+the frames are re-rendered and searched again for a few rounds. The correction is applied to every frame
+when it is small (it corrects a residual, not a failed alignment) and the fit has enough edges.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from cadalign.geometry.rotations import axis_angle_to_matrix
+from cadalign.types import Rigid3
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class EdgeRefineConfig:
+    enabled: bool = True
+    """Fit the correction (off: the cameras of the CAD-anchored adjustment are used as they are)."""
+    frames: int = 24
+    """Frames used for the fit, evenly spaced over the verified frames."""
+    rounds: int = 4
+    """Render -> search -> fit rounds."""
+    search_px: float = 3.0
+    """Search range along the contour normal, pixels each way (the correction being fitted is sub-pixel
+    to a few pixels; longer searches find other parts' edges)."""
+    point_step: int = 2
+    """Use every n-th contour pixel (in raster order)."""
+    depth_jump: float = 0.05
+    """A neighbour farther by this fraction of the near depth (or open water) makes an occluding contour."""
+    min_contrast: float = 4.0
+    """Weakest accepted edge: intensity step (0-255 grey levels) across the contour."""
+    tukey_px: float = 1.5
+    """Tukey biweight scale of the edge offsets, pixels."""
+    min_edges: int = 500
+    """Fewer matched edges than this in all frames together: no correction."""
+    max_turn_deg: float = 0.5
+    """A fitted rotation larger than this is not applied (it would not be a residual of a good alignment)."""
+    max_shift_m: float = 0.05
+    """A fitted translation larger than this is not applied, metres."""
+    per_frame: bool = True
+    """Then fit each frame's own correction (its pose error after the shared one is about as large)."""
+    min_frame_edges: int = 300
+    """A frame with fewer matched edges keeps its pose."""
+    max_frame_turn_deg: float = 0.3
+    """A frame's own correction larger than this is not applied (the frame keeps its pose)."""
+    max_frame_shift_m: float = 0.03
+    """A frame's own correction moving the camera more than this is not applied, metres."""
+
+
+@dataclass(frozen=True)
+class EdgeSet:
+    """Contour samples of one frame: camera-frame points, their pixels, normals and image offsets."""
+
+    X_cam: np.ndarray  # (N, 3) metres
+    offset_px: np.ndarray  # (N,) signed image edge position along the normal minus the predicted one
+    normal: np.ndarray  # (N, 2) unit image-plane normal (towards the far side)
+
+
+def contour_samples(depth: np.ndarray, rays_unit: np.ndarray, range_m: np.ndarray, cfg: EdgeRefineConfig,
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Occluding-contour samples of a rendered view.
+
+    Returns (X_cam (N, 3) near-side surface points, uv (N, 2) sub-pixel predicted contour positions: half a
+    pixel from the near pixel's centre towards its far neighbour, normal (N, 2) unit, pointing to the far
+    side). A pixel counts once even when several neighbours are far (the normal comes from the inverse-depth
+    gradient, not from the neighbour)."""
+    import cv2
+
+    z = np.where(depth > 0, depth, np.inf).astype(np.float64)
+    H, W = z.shape
+    jump = 1.0 + cfg.depth_jump
+    far = np.zeros((H, W, 2), dtype=np.float64)  # summed direction to far neighbours
+    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        nb = np.full_like(z, np.inf)
+        ys, yd = slice(max(dy, 0), H + min(dy, 0)), slice(max(-dy, 0), H + min(-dy, 0))
+        xs, xd = slice(max(dx, 0), W + min(dx, 0)), slice(max(-dx, 0), W + min(-dx, 0))
+        nb[yd, xd] = z[ys, xs]
+        edge = np.isfinite(z) & (nb > z * jump)
+        if dy == 0 and (dx > 0):
+            edge[:, -1] = False
+        if dy == 0 and dx < 0:
+            edge[:, 0] = False
+        if dx == 0 and dy > 0:
+            edge[-1, :] = False
+        if dx == 0 and dy < 0:
+            edge[0, :] = False
+        far[edge] += (dx, dy)
+    inv = np.where(np.isfinite(z), 1.0 / z, 0.0)
+    gx = cv2.Sobel(inv, cv2.CV_64F, 1, 0, ksize=3)
+    gy = cv2.Sobel(inv, cv2.CV_64F, 0, 1, ksize=3)
+    g = -np.stack([gx, gy], axis=-1)  # towards smaller inverse depth: the far side
+    ys, xs = np.nonzero(np.any(far != 0, axis=-1))
+    keep = slice(None, None, max(int(cfg.point_step), 1))
+    ys, xs = ys[keep], xs[keep]
+    n = g[ys, xs]
+    norm = np.linalg.norm(n, axis=1)
+    ok = (norm > 0) & (np.einsum("nk,nk->n", n, far[ys, xs]) > 0)
+    ys, xs, n = ys[ok], xs[ok], n[ok] / norm[ok, None]
+    # the contour lies between the near pixel's centre and the far one's: half a pixel along the step
+    step = far[ys, xs] / np.abs(far[ys, xs]).sum(axis=1, keepdims=True).clip(1)
+    uv = np.stack([xs, ys], axis=1).astype(np.float64) + 0.5 * step
+    X = rays_unit[ys, xs].astype(np.float64) * range_m[ys, xs, None]
+    return X, uv, n
+
+
+def search_edges(gray: np.ndarray, uv: np.ndarray, normal: np.ndarray, cfg: EdgeRefineConfig) -> np.ndarray:
+    """Signed offset (pixels, along ``normal``) of the image edge nearest in strength to each predicted
+    contour point; NaN where no edge of the expected contrast sign and at least ``min_contrast`` is found
+    inside the search range (or the peak lies on the range's end)."""
+    import cv2
+
+    S = float(cfg.search_px)
+    s = np.arange(-S - 1.0, S + 1.0 + 1e-9, 0.5)  # half-pixel samples
+    pts = uv[:, None, :] + s[None, :, None] * normal[:, None, :]
+    mx, my = pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32)
+    prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+    # derivative over one pixel (samples two half-steps apart), at s[1:-1]
+    d = prof[:, 2:] - prof[:, :-2]
+    sd = s[1:-1]
+    # the contrast's sign: the far half of the range against the near half
+    sign = np.sign(prof[:, (s >= 0.5) & (s <= S)].mean(axis=1) - prof[:, (s <= -0.5) & (s >= -S)].mean(axis=1))
+    score = d * sign[:, None]
+    inside = np.abs(sd) <= S
+    score = np.where(inside[None, :], score, -np.inf)
+    k = np.argmax(score, axis=1)
+    rows = np.arange(len(k))
+    peak = score[rows, k]
+    ok = (peak >= cfg.min_contrast) & (sign != 0) & (k > 0) & (k < len(sd) - 1)
+    k1 = np.clip(k, 1, len(sd) - 2)
+    a, b, c = score[rows, k1 - 1], score[rows, k1], score[rows, k1 + 1]
+    ok &= np.isfinite(a) & np.isfinite(c)
+    a, b, c = np.where(ok, a, 0.0), np.where(ok, b, 1.0), np.where(ok, c, 0.0)
+    den = a - 2 * b + c  # < 0 at a strict maximum; a plateau (0) keeps the sample
+    frac = 0.5 * (a - c) / np.where(den < 0, den, -np.inf)
+    off = sd[k1] + 0.5 * np.clip(frac, -1.0, 1.0)  # samples are half a pixel apart
+    return np.where(ok, off, np.nan)
+
+
+def _jacobian(X_cam: np.ndarray, R_cw: np.ndarray, X_w_rel: np.ndarray, K: np.ndarray,
+              normal: np.ndarray) -> np.ndarray:
+    """d(normal . u)/d(omega, t) for the world motion X_w -> c + exp(omega)(X_w - c) + t, (N, 6)."""
+    x, y, z = X_cam.T
+    du = np.zeros((len(X_cam), 2, 3))
+    du[:, 0, 0] = K[0, 0] / z
+    du[:, 0, 2] = -K[0, 0] * x / z**2
+    du[:, 1, 1] = K[1, 1] / z
+    du[:, 1, 2] = -K[1, 1] * y / z**2
+    dn = np.einsum("nk,nkj->nj", normal, du)  # (N, 3): d(n.u)/dX_cam
+    p = X_w_rel
+    dXw_dw = np.zeros((len(p), 3, 3))  # d(exp(w) p)/dw at w = 0: -[p]x
+    dXw_dw[:, 0, 1], dXw_dw[:, 0, 2] = p[:, 2], -p[:, 1]
+    dXw_dw[:, 1, 0], dXw_dw[:, 1, 2] = -p[:, 2], p[:, 0]
+    dXw_dw[:, 2, 0], dXw_dw[:, 2, 1] = p[:, 1], -p[:, 0]
+    J_rot = np.einsum("nj,jk,nkl->nl", dn, R_cw, dXw_dw)
+    J_t = dn @ R_cw
+    return np.concatenate([J_rot, J_t], axis=1)
+
+
+def fit_correction(rows: Sequence[tuple[np.ndarray, np.ndarray]], tukey_px: float, iterations: int = 10,
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """IRLS (Tukey) solution of J xi = -r over all frames' (J, r); returns (xi (6,), inlier weights)."""
+    J = np.concatenate([j for j, _ in rows])
+    r = np.concatenate([v for _, v in rows])
+    xi = np.zeros(6)
+    w = np.ones(len(r))
+    scale = np.r_[np.full(3, 1e-3), np.full(3, 1e-3)]  # well-conditioned normal equations
+    for _ in range(iterations):
+        e = r + J @ xi
+        u = e / tukey_px
+        w = np.where(np.abs(u) < 1, (1 - u**2) ** 2, 0.0)
+        Js = J * scale
+        A = Js.T @ (Js * w[:, None]) + 1e-9 * np.eye(6)
+        step = np.linalg.solve(A, -(Js.T @ (w * (r + J @ xi))))
+        xi = xi + step * scale
+        if np.all(np.abs(step) < 1e-8):
+            break
+    return xi, w
+
+
+@dataclass(frozen=True)
+class EdgeCorrection:
+    """The fitted world motion (``apply`` it to the CAD-frame camera poses) and what it rests on."""
+
+    H_world: Rigid3  # X_world -> H X_world moves the CAD where the images see it (cameras: H^-1 T_wc)
+    applied: bool
+    summary: dict[str, Any]
+
+    def camera(self, T_world_from_cam: Rigid3) -> Rigid3:
+        return self.H_world.inverse() @ T_world_from_cam if self.applied else T_world_from_cam
+
+
+def _motion(xi: np.ndarray, centre: np.ndarray) -> Rigid3:
+    R = axis_angle_to_matrix(xi[:3])
+    return Rigid3(R, centre - R @ centre + xi[3:])
+
+
+def _frame_rows(renderer: Any, gray: np.ndarray, T_wc: Rigid3, centre: np.ndarray | None, cfg: EdgeRefineConfig,
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(J (N, 6), residuals (N,), world points (N, 3)) of one frame's matched contour samples; ``centre``
+    None: the samples' own centroid."""
+    f = renderer.render(T_wc, with_full_masks=False)
+    X_cam, uv, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, cfg)
+    if len(X_cam) == 0:
+        return None
+    off = search_edges(gray, uv, n, cfg)
+    ok = np.isfinite(off)
+    X_cam, n, off = X_cam[ok], n[ok], off[ok]
+    if len(X_cam) == 0:
+        return None
+    X_w = T_wc.apply(X_cam)
+    c = X_w.mean(axis=0) if centre is None else centre
+    J = _jacobian(X_cam, T_wc.R.T, X_w - c, renderer.camera.K, n)
+    return J, -off, X_w  # residual: predicted minus found position along n
+
+
+def refine_frame(renderer: Any, gray: np.ndarray, T_wc: Rigid3, cfg: EdgeRefineConfig,
+                 ) -> tuple[Rigid3, dict[str, Any]]:
+    """One frame's own rigid correction against its contours (after the shared one); the input pose is
+    returned unchanged when the frame has too few edges or the correction exceeds the limits."""
+    T = T_wc
+    n_used, med = 0, None
+    for _ in range(max(int(cfg.rounds), 1)):
+        got = _frame_rows(renderer, gray, T, None, cfg)
+        if got is None or len(got[1]) < cfg.min_frame_edges:
+            return T_wc, {"applied": False, "edges": 0 if got is None else len(got[1])}
+        J, r, X_w = got
+        xi, w = fit_correction([(J, r)], cfg.tukey_px)
+        n_used, med = len(r), float(np.median(np.abs(r[w > 0]))) if np.any(w > 0) else None
+        T = _motion(xi, X_w.mean(axis=0)).inverse() @ T
+    d = T_wc.inverse() @ T
+    turn = float(np.degrees(np.arccos(np.clip((np.trace(d.R) - 1) / 2, -1, 1))))
+    shift = float(np.linalg.norm(T.t - T_wc.t))
+    ok = turn <= cfg.max_frame_turn_deg and shift <= cfg.max_frame_shift_m
+    info = {"applied": ok, "edges": n_used, "median_abs_offset_px": med, "turn_deg": turn, "shift_m": shift}
+    return (T if ok else T_wc), info
+
+
+def fit_edge_correction(renderers: Sequence[Any], grays: Sequence[np.ndarray], poses: Sequence[Rigid3],
+                        centre: np.ndarray, cfg: EdgeRefineConfig) -> EdgeCorrection:
+    """Fit one rigid world motion to the contours of the given frames (renderer, grey image, ``T_world_from_cam``
+    each; see the module doc)."""
+    H = Rigid3.identity()
+    history = []
+    n_used = 0
+    for _ in range(max(int(cfg.rounds), 1)):
+        rows = []
+        for renderer, gray, T in zip(renderers, grays, poses, strict=True):
+            got = _frame_rows(renderer, gray, H.inverse() @ T, centre, cfg)
+            if got is not None:
+                rows.append(got[:2])
+        n_used = int(sum(len(r) for _, r in rows))
+        if n_used < cfg.min_edges:
+            break
+        xi, w = fit_correction(rows, cfg.tukey_px)
+        r_all = np.concatenate([r for _, r in rows])
+        history.append({"edges": n_used, "inliers": int((w > 0).sum()),
+                        "median_abs_offset_px": float(np.median(np.abs(r_all[w > 0]))) if np.any(w > 0) else None,
+                        "step_deg": float(np.degrees(np.linalg.norm(xi[:3]))), "step_m": float(np.linalg.norm(xi[3:]))})
+        H = _motion(xi, centre) @ H
+    turn = float(np.degrees(np.arccos(np.clip((np.trace(H.R) - 1) / 2, -1, 1))))
+    shift = float(np.linalg.norm(H.apply(centre[None])[0] - centre))
+    applied = bool(history) and n_used >= cfg.min_edges and turn <= cfg.max_turn_deg and shift <= cfg.max_shift_m
+    summary = {"frames": len(poses), "edges": n_used, "rounds": history, "turn_deg": turn, "shift_m": shift,
+               "applied": applied}
+    if not applied:
+        log.warning("edge alignment not applied: %d edges, correction %.3f deg / %.4f m (limits %d edges, %.2f deg, "
+                    "%.3f m)", n_used, turn, shift, cfg.min_edges, cfg.max_turn_deg, cfg.max_shift_m)
+    else:
+        log.info("edge alignment: %.4f deg / %.2f mm from %d edges in %d frames", turn, 1000 * shift, n_used,
+                 len(poses))
+    return EdgeCorrection(H, applied, summary)
+
+
+def edge_align_frames(poses: dict[str, Rigid3], renderer_of: Callable[[str], Any],
+                      gray_of: Callable[[str], np.ndarray], centre: np.ndarray, cfg: EdgeRefineConfig,
+                      progress: Callable[[Iterable, str, int], Iterable] | None = None,
+                      ) -> tuple[dict[str, Rigid3], dict[str, dict[str, Any]], dict[str, Any]]:
+    """The shared correction fitted on ``cfg.frames`` evenly spaced frames of ``poses`` (name ->
+    ``T_world_from_cam``), applied to all of them, then each frame's own correction (``cfg.per_frame``).
+
+    Returns (corrected poses, per-frame info, summary). ``renderer_of(name)`` gives a renderer of the frame's
+    camera, ``gray_of(name)`` its grey image (float32, 0-255)."""
+    names = sorted(poses)
+    if not cfg.enabled or not names:
+        return dict(poses), {}, {"applied": False, "frames": 0}
+    pick = sorted({names[int(i)] for i in np.linspace(0, len(names) - 1, min(cfg.frames, len(names))).round()})
+    shared = fit_edge_correction([renderer_of(n) for n in pick], [gray_of(n) for n in pick],
+                                 [poses[n] for n in pick], centre, cfg)
+    out = {n: shared.camera(poses[n]) for n in names}
+    info: dict[str, dict[str, Any]] = {}
+    if cfg.per_frame:
+        for n in progress(names, "edge alignment", len(names)) if progress else names:
+            out[n], info[n] = refine_frame(renderer_of(n), gray_of(n), out[n], cfg)
+    applied = [v for v in info.values() if v["applied"]]
+    summary = {"shared": shared.summary, "frames": len(names), "frames_refined": len(applied),
+               "frame_turn_deg_median": float(np.median([v["turn_deg"] for v in applied])) if applied else None,
+               "frame_shift_mm_median": float(1000 * np.median([v["shift_m"] for v in applied])) if applied else None,
+               "median_abs_offset_px": float(np.median([v["median_abs_offset_px"] for v in applied]))
+               if applied else None}
+    return out, info, summary
