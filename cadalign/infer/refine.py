@@ -29,10 +29,12 @@ from typing import Literal
 
 import numpy as np
 
+from cadalign.cad.symmetry import Symmetry
 from cadalign.config import bounded
 from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.infer.contour_fit import SignedDistance, refine_silhouette, silhouette_iou
 from cadalign.infer.depth_icp import ICP_DAMPING, depth_along_ray, depth_fit, masked_depth_points, refine_depth_icp
+from cadalign.infer.hypotheses import yaw_hypotheses_rad
 from cadalign.infer.model_geom import ModelGeometry
 from cadalign.infer.refine_math import apply_twist
 from cadalign.types import Rigid3
@@ -87,9 +89,10 @@ class RefineConfig:
     translation error is mostly depth (the box size at a few pixels is off by 10 %, i.e. ~1 m at 10 m), far
     beyond ICP's gate and its prior on the detector's pose."""
     yaw_hypotheses: int = bounded(1, ge=1)
-    """Depth ICP restarts from the pose turned about the model's z axis by multiples of 360 deg / n, keeping the
-    best depth fit (1 = the detector's pose only). Upright parts (valves on a frame) are mostly wrong in yaw
-    by more than ICP's basin when a network is unsure."""
+    """Depth ICP restarts from the pose turned about the model's z axis by multiples of P / n, keeping the
+    best depth fit (1 = the detector's pose only), where P is the yaw range the model's symmetry leaves distinct
+    (360 deg, 180 deg for a half-turn symmetry about z; :mod:`cadalign.infer.hypotheses`). Upright parts
+    (valves on a frame) are mostly wrong in yaw by more than ICP's basin when a network is unsure."""
     seed: int = 0
     """Seed of the point subsampling."""
 
@@ -114,26 +117,29 @@ class RefineResult:
 
 
 def refine(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, mask: np.ndarray, cfg: RefineConfig,
-           depth_m: np.ndarray | None = None) -> RefineResult:
-    """Run the configured refinements in order (silhouette, then depth ICP when ``depth_m`` is given)."""
+           depth_m: np.ndarray | None = None, symmetry: Symmetry | None = None) -> RefineResult:
+    """Run the configured refinements in order (silhouette, then depth ICP when ``depth_m`` is given).
+
+    ``symmetry`` (the model's) spreads the yaw restarts over the turn it leaves distinct (``cfg.yaw_hypotheses``).
+    """
     t0 = time.perf_counter()
     T, iters, costs = T_init, {}, {}
     if cfg.method in ("silhouette", "both"):
         T, iters["silhouette"], costs["silhouette"] = refine_silhouette(geom, T, K, mask, cfg)
     if cfg.method in ("depth", "both") and depth_m is not None:
-        T, iters["depth"], costs["depth"] = _icp_yaw_hypotheses(geom, T, K, depth_m, mask, cfg)
+        T, iters["depth"], costs["depth"] = _icp_yaw_hypotheses(geom, T, K, depth_m, mask, cfg, symmetry)
     return RefineResult(T, iters, costs, time.perf_counter() - t0)
 
 
 def _icp_yaw_hypotheses(geom: ModelGeometry, T0: Rigid3, K: np.ndarray, depth_m: np.ndarray, mask: np.ndarray,
-                        cfg: RefineConfig) -> tuple[Rigid3, int, list[float]]:
+                        cfg: RefineConfig, symmetry: Symmetry | None = None) -> tuple[Rigid3, int, list[float]]:
     best = refine_depth_icp(geom, T0, K, depth_m, mask, cfg)
     if cfg.yaw_hypotheses <= 1 or best[1] == 0:
         return best
     Q = masked_depth_points(depth_m, mask, np.asarray(K, float), cfg.max_depth_points, np.random.default_rng(cfg.seed))
     score = depth_fit(geom, best[0], Q)
-    for k in range(1, cfg.yaw_hypotheses):
-        yaw = axis_angle_to_matrix(np.array([0.0, 0.0, 2 * np.pi * k / cfg.yaw_hypotheses]))
+    for angle in yaw_hypotheses_rad(cfg.yaw_hypotheses, symmetry)[1:]:
+        yaw = axis_angle_to_matrix(np.array([0.0, 0.0, angle]))
         cand = refine_depth_icp(geom, Rigid3(T0.R @ yaw, T0.t), K, depth_m, mask, cfg)
         s = depth_fit(geom, cand[0], Q)
         if s < score:

@@ -137,3 +137,22 @@ def test_yaw_hypotheses_recover_a_quarter_turn_icp_alone_cannot(valve_view) -> N
                   view.depth_m).T_cam_from_obj
     assert rotation_error_deg(one.R, T_gt.R, half) > 20
     assert rotation_error_deg(four.R, T_gt.R, half) < 1 and translation_error_m(four.t, T_gt.t) < 0.005
+
+
+@pytest.mark.parametrize("yaw_err_deg", [55.0, 125.0])
+def test_yaw_restarts_spread_over_the_symmetry_period(valve_view, yaw_err_deg: float) -> None:
+    """A half-turn symmetric valve 55 (or 125) deg off in yaw: four restarts over 360 deg start 35 deg from a
+    symmetric copy at best (0/180 and 90/270 are the same pose); over the 180 deg the symmetry leaves distinct
+    they are 45 deg apart and one starts 10 deg off."""
+    from cadalign.cad.symmetry import Symmetry
+    from cadalign.geometry import axis_angle_to_matrix
+
+    model, geom, view = valve_view
+    T_gt = view.T_cam_from_obj
+    T0 = Rigid3(T_gt.R @ axis_angle_to_matrix(np.array([0.0, 0.0, np.radians(yaw_err_deg)])), T_gt.t)
+    half = Symmetry.cyclic((0.0, 0.0, 1.0), 2)
+    cfg = RefineConfig(method="depth", yaw_hypotheses=4)
+    over_360 = refine(geom, T0, view.camera.K, view.mask, cfg, view.depth_m).T_cam_from_obj  # no symmetry given
+    spread = refine(geom, T0, view.camera.K, view.mask, cfg, view.depth_m, symmetry=half).T_cam_from_obj
+    assert rotation_error_deg(over_360.R, T_gt.R, half) > 10  # measured 15.6 / 21.8 deg
+    assert rotation_error_deg(spread.R, T_gt.R, half) < 1 and translation_error_m(spread.t, T_gt.t) < 0.005
