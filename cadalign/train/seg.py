@@ -22,8 +22,8 @@ from cadalign.models.resunet import ResUNet, ResUNetConfig
 from cadalign.train.augment import AugmentConfig, augment_dense, random_patches
 from cadalign.train.common import write_run_record
 from cadalign.train.data import ScaledDataset, class_pixel_counts, select
-from cadalign.train.loop import LoopConfig, TrainResult, train_loop
-from cadalign.train.losses import cross_entropy, median_frequency_weights, soft_dice
+from cadalign.train.loop import LoopConfig, TrainResult, augment_seed, train_loop
+from cadalign.train.losses import boundary_weights, cross_entropy, median_frequency_weights, soft_dice
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +58,20 @@ class SegTrainConfig:
     gentler push that over-predicts small classes less when focus patches already oversample them)."""
     focal_gamma: float = bounded(0.0, ge=0)
     """Focal-loss exponent on the cross-entropy (0 = plain cross-entropy)."""
+    boundary_boost: float = bounded(0.0, ge=0)
+    """Extra cross-entropy weight of pixels within ``boundary_radius`` of another class (0 = off): pixel weight
+    ``1 + boundary_boost`` there. Thin parts (1-2 px hot-stab bars) lie wholly on boundaries."""
+    boundary_radius: int = bounded(1, ge=1, le=5)
+    """Chebyshev radius, pixels, of the boundary band boosted by ``boundary_boost``."""
+    full_frame_fraction: float = bounded(0.0, ge=0, le=1)
+    """Share of the steps, at the end, that train on whole frames instead of ``patch`` windows (0 = never):
+    the network finishes on the inference input size and class mix. A share, so ``--steps`` scales it."""
+    full_frame_batch: int = bounded(1, ge=1)
+    """Frames per step in that final phase (the first ones of each batch): 1 frame of 640x480 holds the pixels
+    of 4 240x320 windows, so a step costs about the same."""
+    channels_last: bool = True
+    """Train in the channels-last memory layout: the same network and loss, ~25 % less CPU time per step on
+    one thread (measured: 0.74 -> 0.55 s for a batch of 4 240x320 windows at width 12)."""
 
 
 # fast: full-resolution 240x320 windows, 70% of them centred on a small-class pixel (hot stabs most often),
@@ -96,16 +110,21 @@ def focus_weights(counts: np.ndarray, cfg: SegTrainConfig) -> list[float] | None
     return np.where(c > 0, np.maximum(c, 1.0) ** -cfg.focus_power, 0.0).tolist()
 
 
-def seg_step(weight: torch.Tensor | None, dice_weight: float, gamma: float = 0.0) -> Callable:
+def seg_step(weight: torch.Tensor | None, dice_weight: float, gamma: float = 0.0,
+             channels_last: bool = False, boundary: tuple[float, int] = (0.0, 1)) -> Callable:
     """The loop's step function: ``(model, batch) -> (CE [+ dice_weight * Dice], {"ce", "dice", "acc"})``.
 
-    ``gamma > 0`` makes the cross-entropy a focal loss.
+    ``gamma > 0`` makes the cross-entropy a focal loss; ``boundary = (boost, radius)`` weighs pixels near a
+    class boundary ``1 + boost`` in it (see :func:`cadalign.train.losses.boundary_weights`);
+    ``channels_last`` feeds the image in that layout.
     """
 
     def step(model: nn.Module, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
-        logits = model(batch["image"])
+        image = batch["image"]
+        logits = model(image.contiguous(memory_format=torch.channels_last) if channels_last else image)
         w = weight.to(logits.device) if weight is not None else None
-        ce = cross_entropy(logits, batch["label"], w, gamma=gamma)
+        pw = boundary_weights(batch["label"], boundary[0], boundary[1]) if boundary[0] > 0 else None
+        ce = cross_entropy(logits, batch["label"], w, gamma=gamma, pixel_weight=pw)
         metrics = {"ce": float(ce.detach())}
         loss = ce
         if dice_weight > 0:
@@ -141,7 +160,24 @@ def val_miou(ds: ScaledDataset, classes: tuple[str, ...], device: str, batch: in
     return fn
 
 
+def augment_step(g: torch.Generator, seed: int) -> int:
+    """The loop step whose augmentation generator ``g`` is (inverts :func:`cadalign.train.loop.augment_seed`,
+    which is linear in the step), so a resumed run switches phases at the same step as an uninterrupted one."""
+    import torch.distributed as dist
+
+    rank = dist.get_rank() if dist.is_available() and dist.is_initialized() else 0
+    base = augment_seed(seed, 0, rank)
+    step, rest = divmod(g.initial_seed() - base, augment_seed(seed, 1, rank) - base)
+    assert rest == 0 and step >= 0, "generator not seeded by the training loop"
+    return step
+
+
 def _patches(batch: dict, g: torch.Generator, cfg: SegTrainConfig, focus: list[float] | None) -> dict:
+    full = int(round(cfg.full_frame_fraction * cfg.loop.steps))
+    if full and augment_step(g, cfg.loop.seed) >= cfg.loop.steps - full:
+        k = min(cfg.full_frame_batch, len(batch["image"]))
+        return {key: v[:k] if isinstance(v, torch.Tensor) and v.ndim > 0 and len(v) == len(batch["image"]) else v
+                for key, v in batch.items()}
     return batch if cfg.patch is None else random_patches(batch, g, cfg.patch, cfg.focus_prob, focus)
 
 
@@ -163,6 +199,8 @@ def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train",
     weights, focus = class_weights(counts, image_counts, cfg), focus_weights(counts, cfg)
     torch.manual_seed(cfg.loop.seed)
     model = ResUNet(len(classes), cfg.model)
+    if cfg.channels_last:
+        model = model.to(memory_format=torch.channels_last)
     identity = {"task": "seg", "classes": list(classes), "model": cfg.model, "scale": cfg.scale}
     write_run_record(out, "seg", cfg, identity, {"class_weights": None if weights is None else weights.tolist(),
                                                  "focus_weights": focus, "class_pixels": counts.tolist(),
@@ -179,6 +217,7 @@ def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train",
         except Exception as exc:  # no val frames: train without validation rows
             log.info("no validation (%s)", exc)
     w = None if weights is None else torch.tensor(weights, dtype=torch.float32)
-    return train_loop(model, seg_step(w, cfg.dice_weight, cfg.focal_gamma), data, cfg.loop, out,
+    step = seg_step(w, cfg.dice_weight, cfg.focal_gamma, cfg.channels_last, (cfg.boundary_boost, cfg.boundary_radius))
+    return train_loop(model, step, data, cfg.loop, out,
                       augment=(lambda b, g: augment_dense(_patches(b, g, cfg, focus), g, cfg.augment)), val_fn=val_fn,
                       val_every=cfg.val_every, resume=resume, device=device, progress=progress, extra_state=identity)
