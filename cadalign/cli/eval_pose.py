@@ -13,9 +13,13 @@ def command(
     poses: Path = typer.Argument(..., help="An 'infer' output folder (or its poses.jsonl)."),
     gt: Path = typer.Option(..., "--gt", help="Simulation folder or BOP scene with the ground truth."),
     out: Path | None = typer.Option(None, "--out", help="Folder for eval.json/eval.md (default: beside poses)."),
+    min_box_side_px: float = typer.Option(
+        0.0, "--min-box-side-px", min=0.0,
+        help="Ground-truth parts whose visible box's shorter side is below this (px) are don't-care (0 = off)."),
 ) -> None:
     """Detection P/R/F1, t/R errors (thesis Table 4.5 layout), ADD(-S), BOP MSSD/MSPD recalls, errors by distance."""
     from cadalign.errors import InputError
+    from cadalign.eval.pose_eval import PoseEvalConfig
     from cadalign.infer.detect import frame_ids, resolve_scene_dir
     from cadalign.infer.run import evaluate_run, read_poses
     from cadalign.io import read_json
@@ -34,7 +38,7 @@ def command(
             console.print(f"[yellow]{frames_json} is missing: every ground-truth frame counts (misses included)[/]")
         out_dir = out or path.parent
         out_dir.mkdir(parents=True, exist_ok=True)
-        reports = evaluate_run(records, names, scene, out_dir)
+        reports = evaluate_run(records, names, scene, out_dir, PoseEvalConfig(min_box_side_px=min_box_side_px))
     for which, rep in reports.items():
         o = rep["overall"]
         console.print(f"{which:>9}: F1 {rep['detection']['f1']:.3f}  t_err mean {o['t_err_m']['mean']:.4f} m  "

@@ -26,7 +26,7 @@ import numpy as np
 
 from cadalign.cad.model import CadModel
 from cadalign.errors import InputError
-from cadalign.eval.pose_eval import CroppedMask
+from cadalign.eval.pose_eval import CroppedMask, PoseEvalConfig
 from cadalign.infer.detect import Detector, frame_ids, models_dir_of
 from cadalign.infer.model_geom import draw_wireframe
 from cadalign.infer.pipeline import InferConfig, PosePipeline, PoseRecord
@@ -200,10 +200,13 @@ def _timing_summary(times: dict[str, list[float]], n_frames: int, n_poses: int, 
                     "clock; pipeline_cpu = process CPU time of the same; overlay apart"}
 
 
-def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, out_dir: Path | None) -> dict:
-    """Evaluate the detector's, the refined and the fused poses against a BOP scene (eval.json/eval.md)."""
+def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, out_dir: Path | None,
+                 eval_cfg: PoseEvalConfig | None = None) -> dict:
+    """Evaluate the detector's, the refined and the fused poses against a BOP scene (eval.json/eval.md).
+
+    ``eval_cfg`` defaults to :class:`~cadalign.eval.pose_eval.PoseEvalConfig` () (BOP's rules)."""
     from cadalign.data.torch_datasets import load_class_map
-    from cadalign.eval.pose_eval import PoseEvalConfig, PosePrediction, evaluate_scene, load_bop_models, table_markdown
+    from cadalign.eval.pose_eval import PosePrediction, evaluate_scene, load_bop_models, table_markdown
     from cadalign.eval.pose_symmetry import warn_undeclared
 
     cmap = load_class_map(gt_scene)
@@ -219,7 +222,8 @@ def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, ou
     for which, attr in (("detector", "T_detector"), ("refined", "T_refined"), ("fused", "T_cam_from_obj")):
         preds = [PosePrediction(ids[r.frame_name], label_of.get(r.class_name, -1), r.score, r.box_xyxy,
                                 getattr(r, attr), r.obj_id, r.mask) for r in records if r.frame_name in ids]
-        rep = evaluate_scene(preds, gt_scene, models, cmap.names, cmap.class_of_obj, PoseEvalConfig(), im_ids)
+        rep = evaluate_scene(preds, gt_scene, models, cmap.names, cmap.class_of_obj, eval_cfg or PoseEvalConfig(),
+                             im_ids)
         if which != "fused":
             rep.pop("matches")
         rep["config"]["undeclared_symmetries"] = {str(k): v for k, v in undeclared.items()}

@@ -74,6 +74,13 @@ def test_eval_pose_on_an_infer_folder(tiny_sim: Path, oracle_run: Path, tmp_path
     assert res.exit_code == 0, res.output
     ev = read_json(tmp_path / "eval.json")
     assert ev["fused"]["detection"] == read_json(oracle_run / "eval.json")["fused"]["detection"]
+    # a size cut above every part leaves no target: nothing is a hit or a miss, the oracle's poses are don't-care
+    res = runner.invoke(app, ["eval", "pose", str(oracle_run), "--gt", str(tiny_sim), "--out", str(tmp_path / "cut"),
+                              "--min-box-side-px", "10000"])
+    assert res.exit_code == 0, res.output
+    cut = read_json(tmp_path / "cut" / "eval.json")["fused"]
+    assert cut["config"]["min_box_side_px"] == 10000 and cut["detection"]["tp"] == cut["detection"]["fn"] == 0
+    assert ev["fused"]["detection"]["tp"] > 0
 
 
 def test_video_without_parts_gives_empty_poses(tiny_sim: Path, tmp_path: Path) -> None:
