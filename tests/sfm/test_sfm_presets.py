@@ -1,0 +1,53 @@
+"""The SfM presets on the default 64-frame orbit: every preset maps all frames as one consistent model.
+
+The ``accurate`` preset used to pair each frame with its next 12 (68 deg apart on this orbit) and re-match with
+guided matching; pairs more than ~6 frames apart on this orbit are mostly false matches on repeated parts, guided
+matching tripled their inliers, and the model folded at frames 54/55 with all three seeds (31 of 64 frames kept).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from cadalign.config import resolve
+from cadalign.sfm import PRESETS, SfMConfig
+
+
+def test_accurate_pairs_frames_like_balanced():
+    """Only features and adjustment are more thorough in 'accurate'; the pairing is the one that maps the orbit."""
+    acc, bal = PRESETS["accurate"], PRESETS["balanced"]
+    assert acc.matching == bal.matching
+    assert not acc.matching.guided_matching and acc.matching.overlap == 10
+    assert acc.features.peak_threshold < bal.features.peak_threshold
+    assert acc.mapper.refine_iterations > bal.mapper.refine_iterations
+    assert acc.mapper.ba_global_max_num_iterations > bal.mapper.ba_global_max_num_iterations
+
+
+@pytest.fixture(scope="module")
+def default_orbit(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> Path:
+    from cadalign.sim.run import simulate
+    from cadalign.sim.spec import default_scene_path
+
+    return simulate(default_scene_path(), tmp_path_factory.mktemp("orbit") / "sim", video=False, contact_sheet=False)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("preset", ["balanced", "accurate"])
+def test_preset_maps_the_default_orbit(preset: str, default_orbit: Path, tmp_path: Path):
+    """Measured on one thread: balanced 0.061 deg mean rotation error / 1.24 cm centre RMSE, accurate 0.066 deg /
+    1.28 cm (max 0.29 vs 0.19 deg, 4.4 vs 2.4 cm); both 64/64 registered with no break at the first seed."""
+    import json
+
+    from cadalign.eval.sfm_metrics import run as evaluate
+    from cadalign.sfm import run
+    from cadalign.sfm.report import intrinsics_from_cameras_json
+
+    K = list(intrinsics_from_cameras_json(default_orbit / "calibration.json"))
+    cfg = resolve(SfMConfig, PRESETS, preset, overrides={"num_threads": 1, "camera": {"intrinsics": K}})
+    out = run(cfg, default_orbit / "frames", tmp_path / preset)
+    evaluate(out, default_orbit)
+    report = json.loads((out / "sfm_report.json").read_text())
+    assert report["registered"] == 64 and report["consistency"]["breaks"] == []
+    assert report["gt"]["rot_err_deg_mean"] < 0.15 and report["gt"]["centre_rmse_m"] < 0.03
