@@ -123,7 +123,10 @@ def test_stage_refuses_the_new_field_at_a_non_default_value(tmp_path):
 def test_stage_refuses_changed_values_and_other_stages(tmp_path):
     assert prepare_stage_dir(tmp_path, "sfm", _sfm_config(SfMConfig())) is False
     assert prepare_stage_dir(tmp_path, "sfm", _sfm_config(SfMConfig())) is True
-    with pytest.raises(ConfigError, match=r"another config .*sfm\.matching\.overlap"):
+    longer = dataclasses.replace(SfMConfig(), matching=dataclasses.replace(SfMConfig().matching, overlap=12))
+    with pytest.raises(ConfigError, match=r"another config .*differs in: sfm\.matching\.overlap\)"):
+        prepare_stage_dir(tmp_path, "sfm", _sfm_config(longer))
+    with pytest.raises(ConfigError, match=r"differs in: sfm\.features\.peak_threshold, sfm\.mapper"):
         prepare_stage_dir(tmp_path, "sfm", _sfm_config(PRESETS["accurate"]))
     with pytest.raises(ConfigError, match="holds 'sfm' results"):
         prepare_stage_dir(tmp_path, "align", _sfm_config(SfMConfig()))
