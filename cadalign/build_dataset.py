@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from cadalign.align.seabed import SeabedConfig
 from cadalign.cad.model import CadModel
 from cadalign.config import to_dict
 from cadalign.errors import InputError
@@ -51,6 +52,7 @@ SCENE = Path("all") / "000000"
 DEPTH_SCALE = 1.0
 SPEC_SUFFIXES = (".toml", ".yaml", ".yml")
 DEFAULT_REFINE = CameraRefineConfig()
+DEFAULT_SEABED = SeabedConfig()
 
 
 @dataclass(frozen=True)
@@ -94,28 +96,21 @@ def metric_pose(entry: dict, cad_from_sfm: Sim3) -> tuple[Camera, Rigid3]:
 def render_frames(structure: Structure, cameras: dict[str, dict], cad_from_sfm: Sim3, sfm_dir: Path,
                   scene_dir: Path, progress: Progress | None = None,
                   refine: CameraRefineConfig | None = DEFAULT_REFINE, executor: RayExecutor | None = None,
-                  ) -> tuple[dict[int, str], dict[int, bool]]:
+                  seabed: SeabedConfig | None = DEFAULT_SEABED) -> tuple[dict[int, str], dict[int, bool]]:
     """Ray-cast and write every registered frame (resumably).
 
     Rays come from the SfM camera model (its distortion included), poses from the SfM refined against the
-    CAD (:mod:`cadalign.render.camera_refine`) unless ``refine`` is None. With an ``executor`` (Ray) the
+    CAD (:mod:`cadalign.render.camera_refine`) unless ``refine`` is None. The seabed found by SfM round the
+    structure (:mod:`cadalign.align.seabed`, unless ``seabed`` is None) occludes it. With an ``executor`` (Ray) the
     frames are rendered by its workers after the loop, else here one by one (same files either way).
     Returns im_id -> source frame name and im_id -> whether the frame's pose was verified against the CAD.
     """
     import pycolmap
 
     names = sorted(cameras)
-    meshes = structure.render_meshes()
     rec = pycolmap.Reconstruction(str(sfm_dir / "sparse" / "0"))
-    refined: dict[str, RefinedCamera] = {}
-    if refine is not None:
-        verts = np.concatenate([m.vertices_m for m in meshes])
-        offsets = np.cumsum([0] + [len(m.vertices_m) for m in meshes[:-1]])
-        faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)])
-        result = refine_cameras(rec, cad_from_sfm, verts, faces, refine)
-        refined, rec = result.frames, result.model
-        write_json(scene_dir.parent.parent / "camera_refine.json", result.summary)
-    edge_poses, edge_info = _edge_align(meshes, rec, refined, sfm_dir, scene_dir.parent.parent, refine, progress)
+    meshes, rec, refined, edge_poses, edge_info = _against_cad(structure, rec, cad_from_sfm, sfm_dir,
+                                                               scene_dir.parent.parent, refine, seabed, progress)
     by_name = {im.name: im for im in rec.images.values()}
     renderers: dict[int, RaycastRenderer] = {}
     ids = list(range(len(names)))
@@ -154,6 +149,30 @@ def render_frames(structure: Structure, cameras: dict[str, dict], cad_from_sfm: 
     return frame_names, {k: bool(q["verified"]) for k, q in quality.items()}
 
 
+def _against_cad(structure: Structure, rec: Any, cad_from_sfm: Sim3, sfm_dir: Path, ds: Path,
+                 refine: CameraRefineConfig | None, seabed: SeabedConfig | None, progress: Progress | None,
+                 ) -> tuple[list[RenderMesh], Any, dict[str, RefinedCamera], dict[str, Rigid3], dict[str, dict]]:
+    """The meshes to render (the CAD, plus the seabed as an occluder when SfM shows one), the model with
+    the refined intrinsics, the CAD-anchored cameras and their edge-aligned poses."""
+    from cadalign.align.seabed import seabed_from_model
+
+    meshes = structure.render_meshes()
+    verts = np.concatenate([m.vertices_m for m in meshes])
+    offsets = np.cumsum([0] + [len(m.vertices_m) for m in meshes[:-1]])
+    faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)])
+    floor = seabed_from_model(rec, cad_from_sfm, verts, faces, seabed) if seabed is not None else None
+    write_json(ds / "seabed.json", {"found": floor is not None, **(floor.summary if floor else {})})
+    if floor is not None:
+        meshes.append(RenderMesh(floor.vertices, floor.faces, 0, 0))
+    refined: dict[str, RefinedCamera] = {}
+    if refine is not None:
+        result = refine_cameras(rec, cad_from_sfm, verts, faces, refine)
+        refined, rec = result.frames, result.model
+        write_json(ds / "camera_refine.json", result.summary)
+    edge_poses, edge_info = _edge_align(meshes, rec, refined, sfm_dir, ds, refine, progress)
+    return meshes, rec, refined, edge_poses, edge_info
+
+
 def _edge_align(meshes: list[RenderMesh], rec: Any, refined: dict[str, RefinedCamera], sfm_dir: Path, ds: Path,
                 refine: CameraRefineConfig | None, progress: Progress | None,
                 ) -> tuple[dict[str, Rigid3], dict[str, dict]]:
@@ -162,7 +181,7 @@ def _edge_align(meshes: list[RenderMesh], rec: Any, refined: dict[str, RefinedCa
     if refine is None or not refine.edges.enabled or not refined:
         return {}, {}
     path = ds / "edge_align.json"
-    if path.is_file():
+    if path.is_file():  # a resumed build: the saved poses (a fresh one reads them back too, so both agree bitwise)
         saved = read_json(path)
         return ({n: Rigid3.from_matrix(np.array(M)) for n, M in saved["T_world_from_cam"].items()},
                 saved["frames"])
@@ -193,7 +212,7 @@ def _edge_align(meshes: list[RenderMesh], rec: Any, refined: dict[str, RefinedCa
     out, info, summary = edge_align_frames(poses, renderer_of, gray_of, centre, refine.edges, progress)
     write_json(path, {"summary": summary, "frames": info,
                       "T_world_from_cam": {n: T.matrix().tolist() for n, T in out.items()}})
-    return out, info
+    return _edge_align(meshes, rec, refined, sfm_dir, ds, refine, progress)
 
 
 def write_dataset_extras(ds: Path, structure: Structure, verified: dict[int, bool] | None = None, block: int = 10,
@@ -269,7 +288,7 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
         shutil.rmtree(ds)
     refine_cfg = DEFAULT_REFINE if calib is None else dataclasses.replace(DEFAULT_REFINE, intrinsics=False)
     config = {"align": fingerprint(read_json(align_json)["cad_from_sfm"]), "cad": str(Path(cad).resolve()),
-              "depth_scale": DEPTH_SCALE, "camera_refine": to_dict(refine_cfg)}
+              "depth_scale": DEPTH_SCALE, "camera_refine": to_dict(refine_cfg), "seabed": to_dict(DEFAULT_SEABED)}
     prepare_stage_dir(ds, "build-dataset", config, overwrite=overwrite)
     t0 = time.perf_counter()
     cameras = read_json(sfm_dir / "cameras.json")["frames"]
@@ -284,6 +303,8 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
         "alignment": {k: v for k, v in read_json(align_json).items() if k in ("cad_from_sfm", "metrics", "gates")},
         "seconds": seconds, "sfm_report": read_json(sfm_dir / "sfm_report.json"),
     }
+    if (ds / "seabed.json").is_file():
+        report["seabed"] = read_json(ds / "seabed.json")
     if (ds / "edge_align.json").is_file():
         report["edge_alignment"] = read_json(ds / "edge_align.json")["summary"]
     if gt is not None:

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from cadalign.geometry.rotations import axis_angle_to_matrix
-from cadalign.types import Rigid3
+from cadalign.types import Rigid3, Sim3
 
 log = logging.getLogger(__name__)
 
@@ -47,18 +47,26 @@ class EdgeRefineConfig:
     """A neighbour farther by this fraction of the near depth (or open water) makes an occluding contour."""
     min_contrast: float = 4.0
     """Weakest accepted edge: intensity step (0-255 grey levels) across the contour."""
-    tukey_px: float = 1.5
-    """Tukey biweight scale of the edge offsets, pixels."""
+    tukey_px: float = 0.75
+    """Tukey biweight scale of the edge offsets in the last round, pixels. The first round uses twice this
+    (it must see offsets of the error being corrected), later rounds shrink it linearly: near a silhouette
+    the image edge is skewed inwards (shading falls off at grazing angles), and a wide scale lets that
+    skew pull the fit."""
     min_edges: int = 500
     """Fewer matched edges than this in all frames together: no correction."""
     max_turn_deg: float = 0.5
     """A fitted rotation larger than this is not applied (it would not be a residual of a good alignment)."""
     max_shift_m: float = 0.05
     """A fitted translation larger than this is not applied, metres."""
+    scale: bool = True
+    """The shared correction includes a scale (the alignment's scale error shows in every frame)."""
+    max_scale_rel: float = 0.02
+    """A fitted scale farther than this from 1 is not applied."""
     per_frame: bool = True
     """Then fit each frame's own correction (its pose error after the shared one is about as large)."""
-    min_frame_edges: int = 300
-    """A frame with fewer matched edges keeps its pose."""
+    min_frame_edges: int = 1000
+    """A frame with fewer matched edges keeps its pose: one view's six degrees of freedom need many
+    contours spread over the image (a few boxes' outlines leave rotation and translation trading off)."""
     max_frame_turn_deg: float = 0.3
     """A frame's own correction larger than this is not applied (the frame keeps its pose)."""
     max_frame_shift_m: float = 0.03
@@ -75,13 +83,14 @@ class EdgeSet:
 
 
 def contour_samples(depth: np.ndarray, rays_unit: np.ndarray, range_m: np.ndarray, cfg: EdgeRefineConfig,
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    instance: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Occluding-contour samples of a rendered view.
 
     Returns (X_cam (N, 3) near-side surface points, uv (N, 2) sub-pixel predicted contour positions: half a
     pixel from the near pixel's centre towards its far neighbour, normal (N, 2) unit, pointing to the far
     side). A pixel counts once even when several neighbours are far (the normal comes from the inverse-depth
-    gradient, not from the neighbour)."""
+    gradient, not from the neighbour). With ``instance``, only pixels of an object (> 0) are near sides:
+    background geometry such as the seabed occludes, but its own outline is no CAD edge."""
     import cv2
 
     z = np.where(depth > 0, depth, np.inf).astype(np.float64)
@@ -107,7 +116,10 @@ def contour_samples(depth: np.ndarray, rays_unit: np.ndarray, range_m: np.ndarra
     gx = cv2.Sobel(inv, cv2.CV_64F, 1, 0, ksize=3)
     gy = cv2.Sobel(inv, cv2.CV_64F, 0, 1, ksize=3)
     g = -np.stack([gx, gy], axis=-1)  # towards smaller inverse depth: the far side
-    ys, xs = np.nonzero(np.any(far != 0, axis=-1))
+    near = np.any(far != 0, axis=-1)
+    if instance is not None:
+        near &= instance > 0
+    ys, xs = np.nonzero(near)
     keep = slice(None, None, max(int(cfg.point_step), 1))
     ys, xs = ys[keep], xs[keep]
     n = g[ys, xs]
@@ -155,8 +167,9 @@ def search_edges(gray: np.ndarray, uv: np.ndarray, normal: np.ndarray, cfg: Edge
 
 
 def _jacobian(X_cam: np.ndarray, R_cw: np.ndarray, X_w_rel: np.ndarray, K: np.ndarray,
-              normal: np.ndarray) -> np.ndarray:
-    """d(normal . u)/d(omega, t) for the world motion X_w -> c + exp(omega)(X_w - c) + t, (N, 6)."""
+              normal: np.ndarray, with_scale: bool = False) -> np.ndarray:
+    """d(normal . u)/d(omega, t[, sigma]) for the world motion X_w -> c + e^sigma exp(omega)(X_w - c) + t,
+    (N, 6) or (N, 7)."""
     x, y, z = X_cam.T
     du = np.zeros((len(X_cam), 2, 3))
     du[:, 0, 0] = K[0, 0] / z
@@ -171,23 +184,24 @@ def _jacobian(X_cam: np.ndarray, R_cw: np.ndarray, X_w_rel: np.ndarray, K: np.nd
     dXw_dw[:, 2, 0], dXw_dw[:, 2, 1] = p[:, 1], -p[:, 0]
     J_rot = np.einsum("nj,jk,nkl->nl", dn, R_cw, dXw_dw)
     J_t = dn @ R_cw
-    return np.concatenate([J_rot, J_t], axis=1)
+    cols = [J_rot, J_t] + ([np.einsum("nk,nk->n", J_t, p)[:, None]] if with_scale else [])
+    return np.concatenate(cols, axis=1)
 
 
 def fit_correction(rows: Sequence[tuple[np.ndarray, np.ndarray]], tukey_px: float, iterations: int = 10,
                    ) -> tuple[np.ndarray, np.ndarray]:
-    """IRLS (Tukey) solution of J xi = -r over all frames' (J, r); returns (xi (6,), inlier weights)."""
+    """IRLS (Tukey) solution of J xi = -r over all frames' (J, r); returns (xi (6,) or (7,), inlier weights)."""
     J = np.concatenate([j for j, _ in rows])
     r = np.concatenate([v for _, v in rows])
-    xi = np.zeros(6)
+    xi = np.zeros(J.shape[1])
     w = np.ones(len(r))
-    scale = np.r_[np.full(3, 1e-3), np.full(3, 1e-3)]  # well-conditioned normal equations
+    scale = np.full(J.shape[1], 1e-3)  # well-conditioned normal equations
     for _ in range(iterations):
         e = r + J @ xi
         u = e / tukey_px
         w = np.where(np.abs(u) < 1, (1 - u**2) ** 2, 0.0)
         Js = J * scale
-        A = Js.T @ (Js * w[:, None]) + 1e-9 * np.eye(6)
+        A = Js.T @ (Js * w[:, None]) + 1e-9 * np.eye(J.shape[1])
         step = np.linalg.solve(A, -(Js.T @ (w * (r + J @ xi))))
         xi = xi + step * scale
         if np.all(np.abs(step) < 1e-8):
@@ -197,27 +211,39 @@ def fit_correction(rows: Sequence[tuple[np.ndarray, np.ndarray]], tukey_px: floa
 
 @dataclass(frozen=True)
 class EdgeCorrection:
-    """The fitted world motion (``apply`` it to the CAD-frame camera poses) and what it rests on."""
+    """The fitted world similarity and what it rests on; :meth:`camera` applies it to a camera pose."""
 
-    H_world: Rigid3  # X_world -> H X_world moves the CAD where the images see it (cameras: H^-1 T_wc)
+    H_world: Sim3  # X -> H X moves the CAD to where the images see it
     applied: bool
     summary: dict[str, Any]
 
     def camera(self, T_world_from_cam: Rigid3) -> Rigid3:
-        return self.H_world.inverse() @ T_world_from_cam if self.applied else T_world_from_cam
+        return moved_camera(self.H_world, T_world_from_cam) if self.applied else T_world_from_cam
 
 
-def _motion(xi: np.ndarray, centre: np.ndarray) -> Rigid3:
+def moved_camera(H: Sim3, T_world_from_cam: Rigid3) -> Rigid3:
+    """The camera (CAD frame) that sees each point X where ``T_world_from_cam`` sees H(X): the CAD stays
+    metric, the cameras take the correction (a scale of the world is a scale of the camera positions)."""
+    T_cw = T_world_from_cam.inverse()
+    return Rigid3(T_cw.R @ H.R, (T_cw.R @ H.t + T_cw.t) / H.s).inverse()
+
+
+def _tukey_schedule(cfg: EdgeRefineConfig) -> np.ndarray:
+    return np.linspace(2.0, 1.0, max(int(cfg.rounds), 1)) * cfg.tukey_px
+
+
+def _motion(xi: np.ndarray, centre: np.ndarray) -> Sim3:
     R = axis_angle_to_matrix(xi[:3])
-    return Rigid3(R, centre - R @ centre + xi[3:])
+    s = float(np.exp(xi[6])) if len(xi) > 6 else 1.0
+    return Sim3(s, R, centre - s * (R @ centre) + xi[3:6])
 
 
 def _frame_rows(renderer: Any, gray: np.ndarray, T_wc: Rigid3, centre: np.ndarray | None, cfg: EdgeRefineConfig,
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+                with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(J (N, 6), residuals (N,), world points (N, 3)) of one frame's matched contour samples; ``centre``
     None: the samples' own centroid."""
     f = renderer.render(T_wc, with_full_masks=False)
-    X_cam, uv, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, cfg)
+    X_cam, uv, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, cfg, f.instance)
     if len(X_cam) == 0:
         return None
     off = search_edges(gray, uv, n, cfg)
@@ -227,7 +253,7 @@ def _frame_rows(renderer: Any, gray: np.ndarray, T_wc: Rigid3, centre: np.ndarra
         return None
     X_w = T_wc.apply(X_cam)
     c = X_w.mean(axis=0) if centre is None else centre
-    J = _jacobian(X_cam, T_wc.R.T, X_w - c, renderer.camera.K, n)
+    J = _jacobian(X_cam, T_wc.R.T, X_w - c, renderer.camera.K, n, with_scale)
     return J, -off, X_w  # residual: predicted minus found position along n
 
 
@@ -237,14 +263,14 @@ def refine_frame(renderer: Any, gray: np.ndarray, T_wc: Rigid3, cfg: EdgeRefineC
     returned unchanged when the frame has too few edges or the correction exceeds the limits."""
     T = T_wc
     n_used, med = 0, None
-    for _ in range(max(int(cfg.rounds), 1)):
+    for tukey in _tukey_schedule(cfg):
         got = _frame_rows(renderer, gray, T, None, cfg)
         if got is None or len(got[1]) < cfg.min_frame_edges:
             return T_wc, {"applied": False, "edges": 0 if got is None else len(got[1])}
         J, r, X_w = got
-        xi, w = fit_correction([(J, r)], cfg.tukey_px)
+        xi, w = fit_correction([(J, r)], tukey)
         n_used, med = len(r), float(np.median(np.abs(r[w > 0]))) if np.any(w > 0) else None
-        T = _motion(xi, X_w.mean(axis=0)).inverse() @ T
+        T = moved_camera(_motion(xi, X_w.mean(axis=0)), T)
     d = T_wc.inverse() @ T
     turn = float(np.degrees(np.arccos(np.clip((np.trace(d.R) - 1) / 2, -1, 1))))
     shift = float(np.linalg.norm(T.t - T_wc.t))
@@ -257,19 +283,19 @@ def fit_edge_correction(renderers: Sequence[Any], grays: Sequence[np.ndarray], p
                         centre: np.ndarray, cfg: EdgeRefineConfig) -> EdgeCorrection:
     """Fit one rigid world motion to the contours of the given frames (renderer, grey image, ``T_world_from_cam``
     each; see the module doc)."""
-    H = Rigid3.identity()
+    H = Sim3.identity()
     history = []
     n_used = 0
-    for _ in range(max(int(cfg.rounds), 1)):
+    for tukey in _tukey_schedule(cfg):
         rows = []
         for renderer, gray, T in zip(renderers, grays, poses, strict=True):
-            got = _frame_rows(renderer, gray, H.inverse() @ T, centre, cfg)
+            got = _frame_rows(renderer, gray, moved_camera(H, T), centre, cfg, cfg.scale)
             if got is not None:
                 rows.append(got[:2])
         n_used = int(sum(len(r) for _, r in rows))
         if n_used < cfg.min_edges:
             break
-        xi, w = fit_correction(rows, cfg.tukey_px)
+        xi, w = fit_correction(rows, tukey)
         r_all = np.concatenate([r for _, r in rows])
         history.append({"edges": n_used, "inliers": int((w > 0).sum()),
                         "median_abs_offset_px": float(np.median(np.abs(r_all[w > 0]))) if np.any(w > 0) else None,
@@ -277,12 +303,15 @@ def fit_edge_correction(renderers: Sequence[Any], grays: Sequence[np.ndarray], p
         H = _motion(xi, centre) @ H
     turn = float(np.degrees(np.arccos(np.clip((np.trace(H.R) - 1) / 2, -1, 1))))
     shift = float(np.linalg.norm(H.apply(centre[None])[0] - centre))
-    applied = bool(history) and n_used >= cfg.min_edges and turn <= cfg.max_turn_deg and shift <= cfg.max_shift_m
+    scale_rel = abs(H.s - 1.0)
+    applied = (bool(history) and n_used >= cfg.min_edges and turn <= cfg.max_turn_deg and shift <= cfg.max_shift_m
+               and scale_rel <= cfg.max_scale_rel)
     summary = {"frames": len(poses), "edges": n_used, "rounds": history, "turn_deg": turn, "shift_m": shift,
-               "applied": applied}
+               "scale": H.s, "applied": applied}
     if not applied:
-        log.warning("edge alignment not applied: %d edges, correction %.3f deg / %.4f m (limits %d edges, %.2f deg, "
-                    "%.3f m)", n_used, turn, shift, cfg.min_edges, cfg.max_turn_deg, cfg.max_shift_m)
+        log.warning("edge alignment not applied: %d edges, correction %.3f deg / %.4f m / scale %.4f (limits %d "
+                    "edges, %.2f deg, %.3f m, %.3f)", n_used, turn, shift, H.s, cfg.min_edges, cfg.max_turn_deg,
+                    cfg.max_shift_m, cfg.max_scale_rel)
     else:
         log.info("edge alignment: %.4f deg / %.2f mm from %d edges in %d frames", turn, 1000 * shift, n_used,
                  len(poses))

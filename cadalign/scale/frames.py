@@ -15,7 +15,7 @@ retry rewrites every file of the frame; a retried job skips the frames whose rec
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -93,6 +93,10 @@ class FrameShared:
 def write_frame(job: FrameJob, renderer: RaycastRenderer, shared: FrameShared) -> None:
     """Ray-cast frame ``job.k`` and write its BOP files into ``shared.scene_dir`` (its record last, atomically)."""
     gt = renderer.render(job.T_world_from_cam)
+    if any(m.instance == 0 for m in shared.meshes):  # background geometry (the seabed) occludes; no CAD depth
+        bg = gt.instance == 0
+        gt = replace(gt, depth_m=np.where(bg, np.float32(0), gt.depth_m),
+                                 normals_cam=np.where(bg[..., None], np.float32(0), gt.normals_cam))
     scene_dir, scale = Path(shared.scene_dir), shared.depth_scale
     if job.sfm_depth is not None:  # semi-dense SfM depth, now in metres
         d = np.load(job.sfm_depth).astype(np.float64) * job.sfm_scale

@@ -61,6 +61,9 @@ def test_dataset_matches_the_truth(built: Path) -> None:
     a = vt["alignment"]
     assert a["rotation_deg"] <= 0.6 and a["translation_m"] <= 0.03 and a["scale_rel"] <= 0.015, a
     assert vt["depth"]["cad_depth"]["abs_rel"] <= 0.015, vt["depth"]
+    # the block stands on the seabed: SfM finds the floor, and the cameras were aligned to the contours
+    assert report["seabed"]["found"] and abs(report["seabed"]["cad_lowest_above_m"]) < 0.05, report["seabed"]
+    assert report["edge_alignment"]["shared"]["applied"], report["edge_alignment"]
     assert vt["mask_visib_iou"]["all"]["median"] >= 0.9, vt["mask_visib_iou"]
     assert vt["pose_in_camera"]["rotation_deg"]["median"] <= 0.5
     assert vt["pose_in_camera"]["translation_m"]["median"] <= 0.03

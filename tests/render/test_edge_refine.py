@@ -16,10 +16,11 @@ from cadalign.render.edge_refine import (
     contour_samples,
     edge_align_frames,
     fit_correction,
+    moved_camera,
     search_edges,
 )
 from cadalign.render.raycast import RaycastRenderer, RenderMesh
-from cadalign.types import Camera, Rigid3
+from cadalign.types import Camera, Rigid3, Sim3
 
 CFG = EdgeRefineConfig()
 
@@ -138,12 +139,14 @@ def test_edge_alignment_takes_perturbed_cameras_back_to_the_images(per_frame: bo
              for k, a in enumerate(np.linspace(0, 2 * np.pi, 6, endpoint=False))}
     images = {n: _shaded(renderer, T) for n, T in truth.items()}
     rng = np.random.default_rng(0)
-    shared = Rigid3(_turn(np.radians([0.25, -0.15, 0.2])), np.array([0.01, -0.006, 0.004]))
+    # the alignment's error: a similarity of the world (0.36 deg, 1.2 cm, 0.5 % scale) about the centre
+    H = Sim3(1.005, _turn(np.radians([0.25, -0.15, 0.2])), np.zeros(3))
+    H = Sim3(H.s, H.R, centre - H.s * (H.R @ centre) + np.array([0.01, -0.006, 0.004]))
     start = {}
     for n, T in truth.items():
         own = Rigid3(_turn(np.radians(rng.normal(0, 0.08, 3))), rng.normal(0, 0.003, 3)) if per_frame else \
             Rigid3.identity()
-        start[n] = own @ shared @ T
+        start[n] = own @ moved_camera(H, T)
 
     def err(poses: dict[str, Rigid3]) -> tuple[float, float, float]:
         """Largest rotation (deg), camera-centre (m) and image (px) error over the frames; the image error is
@@ -158,17 +161,18 @@ def test_edge_alignment_takes_perturbed_cameras_back_to_the_images(per_frame: bo
 
         return float(turn), float(shift), float(max(np.abs(uv(poses[n]) - uv(truth[n])).max() for n in truth))
 
-    cfg = EdgeRefineConfig(frames=6, per_frame=per_frame, min_edges=200, min_frame_edges=100)
+    cfg = EdgeRefineConfig(frames=6, per_frame=per_frame, min_edges=200, min_frame_edges=100)  # a small scene
     out, info, summary = edge_align_frames(start, lambda n: renderer, lambda n: images[n], centre, cfg)
     (r0, t0, p0), (r1, t1, p1) = err(start), err(out)
     assert summary["shared"]["applied"] and r0 > 0.25 and p0 > 0.5
-    if not per_frame:  # one shared motion: recovered in full
-        assert r1 < 0.2 * r0 and t1 < 0.2 * t0 and p1 < 0.1, (r0, t0, p0, r1, t1, p1)
+    if not per_frame:  # one shared similarity: recovered
+        assert abs(summary["shared"]["scale"] * 1.005 - 1) < 0.002  # 0.5 % error -> under 0.2 %
+        assert r1 < 0.3 * r0 and t1 < 0.3 * t0 and p1 < 0.2, (r0, t0, p0, r1, t1, p1)
     else:
         # each frame alone: the image fits to a fraction of a pixel; its 3-D pose keeps some of the
         # rotation/translation trade-off of a single view of a few boxes
-        assert summary["frames_refined"] == 6 and all(v["applied"] for v in info.values())
-        assert p1 < 0.3 * p0 and p1 < 0.3, (p0, p1)
+        assert summary["frames_refined"] >= 5 and sum(v["applied"] for v in info.values()) == summary["frames_refined"]
+        assert p1 < 0.4 * p0 and p1 < 0.4, (p0, p1)
 
 
 def test_edge_alignment_leaves_cameras_alone_without_image_edges() -> None:
