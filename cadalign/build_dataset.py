@@ -34,7 +34,6 @@ import numpy as np
 
 from cadalign.align.seabed import SeabedConfig
 from cadalign.cad.model import CadModel
-from cadalign.config import to_dict
 from cadalign.errors import InputError
 from cadalign.io import fingerprint, prepare_stage_dir, read_json, write_json
 from cadalign.render.bop_writer import PosedObject, frame_done, merge_scene_files
@@ -288,7 +287,7 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
         shutil.rmtree(ds)
     refine_cfg = DEFAULT_REFINE if calib is None else dataclasses.replace(DEFAULT_REFINE, intrinsics=False)
     config = {"align": fingerprint(read_json(align_json)["cad_from_sfm"]), "cad": str(Path(cad).resolve()),
-              "depth_scale": DEPTH_SCALE, "camera_refine": to_dict(refine_cfg), "seabed": to_dict(DEFAULT_SEABED)}
+              "depth_scale": DEPTH_SCALE, "camera_refine": refine_cfg, "seabed": DEFAULT_SEABED}
     prepare_stage_dir(ds, "build-dataset", config, overwrite=overwrite)
     t0 = time.perf_counter()
     cameras = read_json(sfm_dir / "cameras.json")["frames"]
