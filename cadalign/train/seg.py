@@ -36,9 +36,8 @@ class SegTrainConfig:
     """Optimisation: steps, batch size, learning rate, checkpoints, seed."""
     augment: AugmentConfig = AugmentConfig()
     """Colour/turbidity jitter, flips, crops."""
-    scale: float = bounded(0.5, gt=0, le=2)
-    """Image scale the network sees (0.5: 640x480 frames become 320x240); predictions are resized back to the
-    frame. Above 1 magnifies small parts for the network (inference then costs ``scale**2`` times more)."""
+    scale: float = bounded(0.5, gt=0, le=1)
+    """Image scale the network sees (0.5: 640x480 frames become 320x240); predictions are upsampled back."""
     class_weighting: Literal["none", "median_frequency"] = "median_frequency"
     """Cross-entropy class weights."""
     max_class_weight: float = bounded(10.0, ge=1)
@@ -61,12 +60,14 @@ class SegTrainConfig:
     """Focal-loss exponent on the cross-entropy (0 = plain cross-entropy)."""
     boundary_boost: float = bounded(0.0, ge=0)
     """Extra cross-entropy weight of pixels within ``boundary_radius`` of another class (0 = off): pixel weight
-    ``1 + boundary_boost`` there. Thin parts (1-2 px hot-stab bars) lie wholly on boundaries."""
+    ``1 + boundary_boost`` there. Thin parts (1-2 px hot-stab bars) lie wholly on boundaries. (Boost 2 in a
+    150-step fine-tune of the fast model changed no IoU by more than 0.003 on the default scene.)"""
     boundary_radius: int = bounded(1, ge=1, le=5)
     """Chebyshev radius, pixels, of the boundary band boosted by ``boundary_boost``."""
     full_frame_fraction: float = bounded(0.0, ge=0, le=1)
     """Share of the steps, at the end, that train on whole frames instead of ``patch`` windows (0 = never):
-    the network finishes on the inference input size and class mix. A share, so ``--steps`` scales it."""
+    the network finishes on the inference input size and class mix. A share, so ``--steps`` scales it.
+    (0.1 on the 1750-step fast preset: val IoU unchanged, test valve 0.752 -> 0.747, hot stab 0.100 -> 0.067.)"""
     full_frame_batch: int = bounded(1, ge=1)
     """Frames per step in that final phase (the first ones of each batch): 1 frame of 640x480 holds the pixels
     of 4 240x320 windows, so a step costs about the same."""
