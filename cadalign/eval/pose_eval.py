@@ -244,14 +244,15 @@ def summarise(rows: list[dict], targets: list[dict], counts: dict[int, list[int]
             **_recalls(ct),
         }
     tot = np.array(list(counts.values())).reshape(-1, 3).sum(0)
-    errs = {k: np.array([r[k] for r in rows]) for k in ("t_err_m", "r_err_deg", "add_or_adds_m", "mspd_px")}
+    errs = {k: np.array([r[k] for r in rows]) for k in ("t_err_m", "r_err_deg", "add_or_adds_m", "mspd_px",
+                                                         "mask_iou")}
     return {
         "config": {"iou_thresh": cfg.iou_thresh, "min_visib_fract": cfg.min_visib_fract,
                    "min_box_side_px": cfg.min_box_side_px},
         "detection": pm.DetectionCounts(*map(int, tot)).as_dict(),
         "per_class": per_class,
         "overall": {"t_err_m": pm.error_stats(errs["t_err_m"]), "r_err_deg": pm.error_stats(errs["r_err_deg"]),
-                    **_recalls(targets)},
+                    "mask_iou": pm.error_stats(errs["mask_iou"]), **_recalls(targets)},
         "by_distance": pm.binned_by(errs, np.array([r["distance_m"] for r in rows]), cfg.distance_bins_m),
         "matches": rows,
     }

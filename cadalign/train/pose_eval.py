@@ -43,9 +43,10 @@ def predict(model: MaskRCNNPose, dataset: DetectionPoseDataset, score_thresh: fl
 
 
 def summary(report: dict) -> dict:
-    """Flat overall numbers of an :func:`evaluate_scene` report: detection counts/P/R/F1, mean/median errors."""
+    """Flat overall numbers of an :func:`evaluate_scene` report: detection counts/P/R/F1, mean/median errors and
+    mask IoU of the matches."""
     out = dict(report["detection"])
-    for key in ("t_err_m", "r_err_deg"):
+    for key in ("t_err_m", "r_err_deg", "mask_iou"):
         stats = report["overall"][key]
         out[f"{key}_mean"] = stats["mean"] if stats["n"] else None  # None (JSON null): no match to measure
         out[f"{key}_median"] = stats["median"] if stats["n"] else None
