@@ -17,6 +17,9 @@ from typing import Any
 
 import numpy as np
 
+from cadalign.errors import DegenerateGeometryError
+from cadalign.geometry.plane import fit_plane
+
 log = logging.getLogger(__name__)
 
 
@@ -69,8 +72,11 @@ def _ransac_plane(P: np.ndarray, inlier_m: float, iterations: int, seed: int) ->
     if best.sum() < 3:
         return np.array([0.0, 0.0, 1.0]), 0.0, best
     for _ in range(2):  # least squares on the inliers, then re-select
-        c = P[best].mean(axis=0)
-        n = np.linalg.svd(P[best] - c, full_matrices=False)[2][-1]
+        try:
+            plane = fit_plane(P[best])
+        except DegenerateGeometryError:  # collinear inliers: keep the RANSAC selection
+            break
+        n, c = plane.normal, plane.centroid
         best = np.abs((P - c) @ n) < inlier_m
         if best.sum() < 3:
             break

@@ -18,6 +18,7 @@ from cadalign.geometry.camera import (
     intrinsics,
     pixel_rays,
     project,
+    project_jacobian,
     recover_focal_shift,
 )
 from cadalign.geometry.euler import euler_to_matrix, matrix_to_euler
@@ -71,6 +72,7 @@ __all__ = [
     "plane_basis",
     "polygon_area",
     "project",
+    "project_jacobian",
     "project_to_plane_2d",
     "quaternion_angle",
     "quaternion_canonicalize",

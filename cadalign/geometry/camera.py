@@ -118,6 +118,19 @@ def project(K: np.ndarray, X_cam: np.ndarray, eps: float = 1e-9) -> tuple[np.nda
     return uv, valid
 
 
+def project_jacobian(K: np.ndarray, X_cam: np.ndarray) -> np.ndarray:
+    """(N, 2, 3) derivative of the pinhole projection ``u = fx x / z + cx, v = fy y / z + cy`` with respect
+    to the camera-frame point (N, 3) (points with ``z > 0``)."""
+    x, y, z = np.asarray(X_cam, dtype=np.float64).T
+    iz = 1.0 / z
+    du = np.zeros((len(x), 2, 3))
+    du[:, 0, 0] = K[0, 0] * iz
+    du[:, 0, 2] = -K[0, 0] * x * iz * iz
+    du[:, 1, 1] = K[1, 1] * iz
+    du[:, 1, 2] = -K[1, 1] * y * iz * iz
+    return du
+
+
 def _scale_rays(rays: np.ndarray, depth: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``rays * depth`` where valid, NaN elsewhere; no warnings."""
     d = np.where(valid, depth, 0.0)

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cadalign.geometry.camera import project_jacobian
 from cadalign.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from cadalign.infer.model_geom import ModelGeometry
 from cadalign.types import Rigid3
@@ -35,14 +36,8 @@ def proj_jacobian(K: np.ndarray, X: np.ndarray, t: np.ndarray) -> np.ndarray:
 
     A point moves as ``X' = X + omega x (X - t) + v`` with ``t`` the object's origin in the camera frame.
     """
-    x, y, z = X[:, 0], X[:, 1], X[:, 2]
     a, b, c = (X - t).T
-    iz = 1.0 / z
-    du = np.zeros((len(X), 2, 3))
-    du[:, 0, 0] = K[0, 0] * iz
-    du[:, 0, 2] = -K[0, 0] * x * iz * iz
-    du[:, 1, 1] = K[1, 1] * iz
-    du[:, 1, 2] = -K[1, 1] * y * iz * iz
+    du = project_jacobian(K, X)
     dX = np.zeros((len(X), 3, 6))
     dX[:, 0, 1], dX[:, 0, 2] = c, -b  # -[X - t]_x
     dX[:, 1, 0], dX[:, 1, 2] = -c, a

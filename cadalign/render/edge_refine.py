@@ -24,7 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from cadalign.geometry.rotations import axis_angle_to_matrix
+from cadalign.geometry.camera import project_jacobian
+from cadalign.geometry.rotations import axis_angle_to_matrix, geodesic_angle
 from cadalign.types import Rigid3, Sim3
 
 log = logging.getLogger(__name__)
@@ -98,20 +99,11 @@ def contour_samples(depth: np.ndarray, rays_unit: np.ndarray, range_m: np.ndarra
     jump = 1.0 + cfg.depth_jump
     far = np.zeros((H, W, 2), dtype=np.float64)  # summed direction to far neighbours
     for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-        nb = np.full_like(z, np.inf)
+        nb = z.copy()  # beyond the image border a pixel is its own neighbour: no contour there
         ys, yd = slice(max(dy, 0), H + min(dy, 0)), slice(max(-dy, 0), H + min(-dy, 0))
         xs, xd = slice(max(dx, 0), W + min(dx, 0)), slice(max(-dx, 0), W + min(-dx, 0))
         nb[yd, xd] = z[ys, xs]
-        edge = np.isfinite(z) & (nb > z * jump)
-        if dy == 0 and (dx > 0):
-            edge[:, -1] = False
-        if dy == 0 and dx < 0:
-            edge[:, 0] = False
-        if dx == 0 and dy > 0:
-            edge[-1, :] = False
-        if dx == 0 and dy < 0:
-            edge[0, :] = False
-        far[edge] += (dx, dy)
+        far[np.isfinite(z) & (nb > z * jump)] += (dx, dy)
     inv = np.where(np.isfinite(z), 1.0 / z, 0.0)
     gx = cv2.Sobel(inv, cv2.CV_64F, 1, 0, ksize=3)
     gy = cv2.Sobel(inv, cv2.CV_64F, 0, 1, ksize=3)
@@ -170,13 +162,7 @@ def _jacobian(X_cam: np.ndarray, R_cw: np.ndarray, X_w_rel: np.ndarray, K: np.nd
               normal: np.ndarray, with_scale: bool = False) -> np.ndarray:
     """d(normal . u)/d(omega, t[, sigma]) for the world motion X_w -> c + e^sigma exp(omega)(X_w - c) + t,
     (N, 6) or (N, 7)."""
-    x, y, z = X_cam.T
-    du = np.zeros((len(X_cam), 2, 3))
-    du[:, 0, 0] = K[0, 0] / z
-    du[:, 0, 2] = -K[0, 0] * x / z**2
-    du[:, 1, 1] = K[1, 1] / z
-    du[:, 1, 2] = -K[1, 1] * y / z**2
-    dn = np.einsum("nk,nkj->nj", normal, du)  # (N, 3): d(n.u)/dX_cam
+    dn = np.einsum("nk,nkj->nj", normal, project_jacobian(K, X_cam))  # (N, 3): d(n.u)/dX_cam
     p = X_w_rel
     dXw_dw = np.zeros((len(p), 3, 3))  # d(exp(w) p)/dw at w = 0: -[p]x
     dXw_dw[:, 0, 1], dXw_dw[:, 0, 2] = p[:, 2], -p[:, 1]
@@ -271,8 +257,7 @@ def refine_frame(renderer: Any, gray: np.ndarray, T_wc: Rigid3, cfg: EdgeRefineC
         xi, w = fit_correction([(J, r)], tukey)
         n_used, med = len(r), float(np.median(np.abs(r[w > 0]))) if np.any(w > 0) else None
         T = moved_camera(_motion(xi, X_w.mean(axis=0)), T)
-    d = T_wc.inverse() @ T
-    turn = float(np.degrees(np.arccos(np.clip((np.trace(d.R) - 1) / 2, -1, 1))))
+    turn = float(np.degrees(geodesic_angle(T_wc.R, T.R)))
     shift = float(np.linalg.norm(T.t - T_wc.t))
     ok = turn <= cfg.max_frame_turn_deg and shift <= cfg.max_frame_shift_m
     info = {"applied": ok, "edges": n_used, "median_abs_offset_px": med, "turn_deg": turn, "shift_m": shift}
@@ -301,7 +286,7 @@ def fit_edge_correction(renderers: Sequence[Any], grays: Sequence[np.ndarray], p
                         "median_abs_offset_px": float(np.median(np.abs(r_all[w > 0]))) if np.any(w > 0) else None,
                         "step_deg": float(np.degrees(np.linalg.norm(xi[:3]))), "step_m": float(np.linalg.norm(xi[3:]))})
         H = _motion(xi, centre) @ H
-    turn = float(np.degrees(np.arccos(np.clip((np.trace(H.R) - 1) / 2, -1, 1))))
+    turn = float(np.degrees(geodesic_angle(np.eye(3), H.R)))
     shift = float(np.linalg.norm(H.apply(centre[None])[0] - centre))
     scale_rel = abs(H.s - 1.0)
     applied = (bool(history) and n_used >= cfg.min_edges and turn <= cfg.max_turn_deg and shift <= cfg.max_shift_m
