@@ -65,6 +65,14 @@ class PoseTrainConfig:
     per step of the crop size; poses are unchanged (K's principal point moves), see :mod:`cadalign.train.pose_crop`."""
     crop_object_prob: float = bounded(0.8, ge=0, le=1)
     """Probability that a crop is placed around a randomly chosen instance (else uniformly)."""
+    zoom_prob: float = bounded(0.0, ge=0, le=1)
+    """Probability that a training crop is zoomed in: a window ``z`` times smaller than ``crop_hw`` (the whole
+    ``input_hw`` image when ``crop_hw`` is None) upsampled to it, ``z`` log-uniform in ``[1, zoom_max]``. Parts
+    then look as if ``z`` times closer (focal length and principal point scale, the pose stays), so parts that
+    are nearer at inference than in any training frame are not out of distribution; see
+    :mod:`cadalign.train.pose_crop`."""
+    zoom_max: float = bounded(2.0, ge=1)
+    """Largest zoom factor of ``zoom_prob``."""
 
     def __post_init__(self) -> None:
         if self.crop_hw is not None and (self.crop_hw[0] > self.model.input_hw[0]
@@ -193,15 +201,23 @@ def make_step_fn(loss: PoseLoss) -> Callable[[nn.Module, dict], tuple[torch.Tens
     return step_fn
 
 
-def make_augment(cfg: AugmentConfig, crop_hw: tuple[int, int] | None = None, crop_object_prob: float = 0.8
+def make_augment(cfg: AugmentConfig, crop_hw: tuple[int, int] | None = None, crop_object_prob: float = 0.8,
+                 zoom_prob: float = 0.0, zoom_max: float = 2.0, input_hw: tuple[int, int] | None = None
                  ) -> Callable[[dict, torch.Generator], dict] | None:
-    """The loop's ``augment``: random crops (when ``crop_hw``), then colour jitter (when enabled)."""
+    """The loop's ``augment``: random (zoomed) crops (when ``crop_hw`` or ``zoom_prob``), then colour jitter.
+
+    Zoom without ``crop_hw`` crops to ``input_hw`` (the whole image), which must then be given.
+    """
+    if zoom_prob > 0 and crop_hw is None:
+        if input_hw is None:
+            raise ValueError("zoom without crop_hw needs input_hw")
+        crop_hw = input_hw
     if not cfg.enabled and crop_hw is None:
         return None
 
     def augment(batch: dict, g: torch.Generator) -> dict:
         if crop_hw is not None:
-            batch = crop_batch(batch, g, tuple(crop_hw), crop_object_prob)
+            batch = crop_batch(batch, g, tuple(crop_hw), crop_object_prob, zoom_prob, zoom_max)
         return {**batch, "image": colour_jitter(batch["image"], g, cfg)} if cfg.enabled else batch
 
     return augment
@@ -237,7 +253,8 @@ def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = Fa
     loss = PoseLoss(geometry, cfg.loss)
     torch.manual_seed(cfg.loop.seed)
     model = MaskRCNNPose(cfg.model, classes)
-    augment = make_augment(cfg.augment, cfg.crop_hw, cfg.crop_object_prob)
+    augment = make_augment(cfg.augment, cfg.crop_hw, cfg.crop_object_prob, cfg.zoom_prob, cfg.zoom_max,
+                           cfg.model.input_hw)
     result = train_loop(model, make_step_fn(loss), data, cfg.loop, Path(out_dir), collate_fn=detection_collate,
                         augment=augment, resume=resume, device=device, progress=progress,
                         extra_state=extra_state(cfg, classes))

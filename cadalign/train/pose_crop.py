@@ -10,11 +10,20 @@ A crop only moves the image origin: the camera centre and orientation stay, so `
 ``K``'s principal point shifts by the crop offset. Boxes are recomputed from the cropped visible masks;
 instances with no pixel left are dropped (partly cut ones stay, as at the image border; the pose loss leaves
 out RoIs whose object origin is far outside them, see ``PoseLossConfig.max_center_offset``).
+
+A *zoomed* crop (``zoom > 1``) cuts a window ``zoom`` times smaller than the crop and upsamples it to the crop
+size: the same camera centre and orientation with focal length and principal point (measured from the
+window's corner) multiplied by ``zoom`` (pixel-edge convention: pixel ``i`` covers ``[i, i + 1)``, as in
+``F.interpolate(align_corners=False)``). A part then looks as it would ``zoom`` times closer, so a network
+trained on far parts also sees them at the size of nearer ones. ``R``, ``t`` stay; masks are resampled
+(bilinear, >= 0.5) and boxes recomputed from them; the ``improved`` head's translation codes follow from the
+zoomed ``K`` (``dz = t_z s / f_x`` is unchanged, the box and ``f_x`` both scale).
 """
 
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 _PER_IMAGE = ("boxes", "labels", "masks", "R", "t", "obj_ids")
@@ -69,10 +78,47 @@ def crop_target(target: dict, y0: int, x0: int, crop_hw: tuple[int, int]) -> dic
     return out
 
 
-def crop_batch(batch: dict, g: torch.Generator, crop_hw: tuple[int, int], object_prob: float = 0.8) -> dict:
+def zoom_target(target: dict, out_hw: tuple[int, int]) -> dict:
+    """One (cropped) image's targets upsampled to ``out_hw``: masks resampled, boxes recomputed, K scaled.
+
+    The scale is ``out / in`` per axis; instances whose mask vanishes are dropped.
+    """
+    h, w = target["masks"].shape[-2:]
+    oh, ow = out_hw
+    if (h, w) == (oh, ow):
+        return target
+    masks = target["masks"]
+    if len(masks):
+        masks = F.interpolate(masks[:, None].float(), size=out_hw, mode="bilinear", align_corners=False)[:, 0] >= 0.5
+    else:
+        masks = torch.zeros(0, oh, ow, dtype=torch.bool)
+    keep = torch.nonzero(masks.flatten(1).any(1)).squeeze(1)
+    out = {k: target[k][keep] for k in _PER_IMAGE if k != "masks"}
+    out["masks"] = masks[keep]
+    out["boxes"] = masks_to_boxes(out["masks"]).to(target["boxes"].dtype)
+    scale = torch.tensor([ow / w, oh / h, 1.0], dtype=target["K"].dtype)
+    out["K"] = scale[:, None] * target["K"]
+    return out
+
+
+def draw_zoom(g: torch.Generator, prob: float, zoom_max: float) -> float:
+    """A zoom factor: 1 with probability ``1 - prob``, else log-uniform in ``[1, zoom_max]``.
+
+    Nothing is drawn when ``prob`` is 0, so recipes without zoom keep their random stream.
+    """
+    if prob <= 0 or zoom_max <= 1:
+        return 1.0
+    u = torch.rand(2, generator=g).tolist()
+    return float(zoom_max ** u[1]) if u[0] < prob else 1.0
+
+
+def crop_batch(batch: dict, g: torch.Generator, crop_hw: tuple[int, int], object_prob: float = 0.8,
+               zoom_prob: float = 0.0, zoom_max: float = 2.0) -> dict:
     """A :func:`cadalign.data.torch_datasets.detection_collate` batch with each image randomly cropped.
 
-    ``image`` (B, 3, H, W) -> (B, 3, ch, cw); the per-image lists follow (see :func:`crop_target`).
+    ``image`` (B, 3, H, W) -> (B, 3, ch, cw); the per-image lists follow (see :func:`crop_target`). With
+    probability ``zoom_prob`` an image's crop is instead a window ``z`` times smaller (``z`` log-uniform in
+    ``[1, zoom_max]``) upsampled to ``crop_hw`` (see :func:`zoom_target`).
 
     Raises:
         ValueError: the crop is larger than the images.
@@ -81,13 +127,20 @@ def crop_batch(batch: dict, g: torch.Generator, crop_hw: tuple[int, int], object
     ch, cw = crop_hw
     if ch > h or cw > w:
         raise ValueError(f"crop {crop_hw} is larger than the training images {(h, w)}; lower crop_hw")
-    if (ch, cw) == (h, w):
+    if (ch, cw) == (h, w) and zoom_prob <= 0:
         return batch
     images, per = [], {k: [] for k in (*_PER_IMAGE, "K")}
     for i in range(batch["image"].shape[0]):
         target = {k: batch[k][i] for k in (*_PER_IMAGE, "K")}
-        y0, x0 = crop_origin((h, w), crop_hw, target["boxes"], g, object_prob)
-        images.append(batch["image"][i, :, y0:y0 + ch, x0:x0 + cw])
-        for k, v in crop_target(target, y0, x0, crop_hw).items():
+        z = draw_zoom(g, zoom_prob, zoom_max)
+        src = (max(int(round(ch / z)), 1), max(int(round(cw / z)), 1))
+        y0, x0 = crop_origin((h, w), src, target["boxes"], g, object_prob)
+        image = batch["image"][i, :, y0:y0 + src[0], x0:x0 + src[1]]
+        cropped = crop_target(target, y0, x0, src)
+        if src != (ch, cw):
+            image = F.interpolate(image[None], size=(ch, cw), mode="bilinear", align_corners=False)[0]
+            cropped = zoom_target(cropped, (ch, cw))
+        images.append(image)
+        for k, v in cropped.items():
             per[k].append(v)
     return {**batch, "image": torch.stack(images), **per}
