@@ -97,6 +97,14 @@ def render_silhouette(geom: ModelGeometry, T_cam_from_obj: Rigid3, K: np.ndarray
     Exact: one ray through each pixel centre, cast against the model (Open3D, one thread), the same rule as
     the ground-truth masks of :mod:`cadalign.render.raycast`.
     """
+    return np.isfinite(render_depth(geom, T_cam_from_obj, K, shape, offset))
+
+
+def render_depth(geom: ModelGeometry, T_cam_from_obj: Rigid3, K: np.ndarray, shape: tuple[int, int],
+                 offset: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """(H, W) camera z (metres) of the model's nearest surface through each pixel centre of a window whose
+    top-left pixel is ``offset`` = (x0, y0); ``inf`` where the ray misses the model (ray cast as
+    :func:`render_silhouette`)."""
     import open3d as o3d
 
     H, W = shape
@@ -108,7 +116,8 @@ def render_silhouette(geom: ModelGeometry, T_cam_from_obj: Rigid3, K: np.ndarray
     origin = -R_obj_from_cam @ T_cam_from_obj.t
     rays = np.concatenate([np.broadcast_to(origin, d_cam.shape), d_cam @ R_obj_from_cam.T], axis=1)
     hit = geom.raycaster().cast_rays(o3d.core.Tensor(rays.astype(np.float32)), nthreads=1)["t_hit"].numpy()
-    return np.isfinite(hit).reshape(H, W)
+    # the ray direction has camera z = 1, so the hit distance in its units is the camera depth
+    return hit.astype(np.float64).reshape(H, W)
 
 
 def contour_points(geom: ModelGeometry, T_cam_from_obj: Rigid3, K: np.ndarray, spacing_px: float = 2.0,

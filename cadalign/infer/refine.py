@@ -34,6 +34,7 @@ from cadalign.config import bounded
 from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.infer.contour_fit import SignedDistance, refine_silhouette, silhouette_iou
 from cadalign.infer.depth_icp import ICP_DAMPING, depth_along_ray, depth_fit, masked_depth_points, refine_depth_icp
+from cadalign.infer.half_turn import half_turned, needs_half_turn_check, pick_half_turn
 from cadalign.infer.hypotheses import yaw_hypotheses_rad
 from cadalign.infer.model_geom import ModelGeometry
 from cadalign.infer.refine_math import apply_twist
@@ -93,6 +94,18 @@ class RefineConfig:
     best depth fit (1 = the detector's pose only), where P is the yaw range the model's symmetry leaves distinct
     (360 deg, 180 deg for a half-turn symmetry about z; :mod:`cadalign.infer.hypotheses`). Upright parts
     (valves on a frame) are mostly wrong in yaw by more than ICP's basin when a network is unsure."""
+    half_turn_check: bool = False
+    """After refinement, also refine the pose turned half a turn about the model's z axis and keep whichever
+    disagrees with the view in fewer pixels (rendered model depth against the observed depth: see-through and
+    unexplained mask pixels; silhouette XOR mask without depth; :mod:`cadalign.infer.half_turn`). Only for models
+    that no turn about z leaves unchanged (their symmetry): a nearly half-turn symmetric part (a ball valve with an
+    off-centre lever) comes out of a network in either orientation, and the depth fit of the data to the model
+    barely tells them apart."""
+    half_turn_tol: float = bounded(0.05, gt=0)
+    """Depth tolerance of the half-turn check, in model diameters (observed depth this far behind the rendered
+    surface is seen through it)."""
+    half_turn_min_px: int = bounded(3, ge=0)
+    """The half-turned pose must disagree with the view in at least this many fewer pixels to be taken."""
     seed: int = 0
     """Seed of the point subsampling."""
 
@@ -128,7 +141,22 @@ def refine(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, mask: np.ndarray,
         T, iters["silhouette"], costs["silhouette"] = refine_silhouette(geom, T, K, mask, cfg)
     if cfg.method in ("depth", "both") and depth_m is not None:
         T, iters["depth"], costs["depth"] = _icp_yaw_hypotheses(geom, T, K, depth_m, mask, cfg, symmetry)
+    if cfg.half_turn_check and cfg.method != "none" and needs_half_turn_check(symmetry) and np.any(mask):
+        T, iters["half_turn"] = _half_turn(geom, T, K, np.asarray(mask, bool), cfg, depth_m)
     return RefineResult(T, iters, costs, time.perf_counter() - t0)
+
+
+def _half_turn(geom: ModelGeometry, T: Rigid3, K: np.ndarray, mask: np.ndarray, cfg: RefineConfig,
+               depth_m: np.ndarray | None) -> tuple[Rigid3, int]:
+    """``T`` or its refined half turn, whichever agrees better with the view; 1 when the turn was taken."""
+    T_alt = half_turned(T)
+    if cfg.method in ("silhouette", "both"):
+        T_alt = refine_silhouette(geom, T_alt, K, mask, cfg)[0]
+    if cfg.method in ("depth", "both") and depth_m is not None:
+        T_alt = refine_depth_icp(geom, T_alt, K, depth_m, mask, cfg)[0]
+    best, _ = pick_half_turn(geom, T, T_alt, K, mask, depth_m, cfg.half_turn_tol * geom.diameter_m,
+                             cfg.half_turn_min_px)
+    return best, int(best is T_alt)
 
 
 def _icp_yaw_hypotheses(geom: ModelGeometry, T0: Rigid3, K: np.ndarray, depth_m: np.ndarray, mask: np.ndarray,
