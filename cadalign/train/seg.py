@@ -71,6 +71,11 @@ class SegTrainConfig:
     full_frame_batch: int = bounded(1, ge=1)
     """Frames per step in that final phase (the first ones of each batch): 1 frame of 640x480 holds the pixels
     of 4 240x320 windows, so a step costs about the same."""
+    zoom_prob: float = bounded(0.0, ge=0, le=1)
+    """Share of ``patch`` windows zoomed in (see :func:`cadalign.train.augment.random_patches`): a smaller window
+    around the same (focus) centre, upsampled to ``patch``, so parts are also seen at close-up sizes. 0 = off."""
+    zoom_max: float = bounded(2.0, ge=1)
+    """Largest zoom factor (log-uniform in [1, zoom_max])."""
     channels_last: bool = True
     """Train in the channels-last memory layout: the same network and loss, ~25 % less CPU time per step on
     one thread (measured: 0.74 -> 0.55 s for a batch of 4 240x320 windows at width 12)."""
@@ -183,7 +188,15 @@ def _patches(batch: dict, g: torch.Generator, cfg: SegTrainConfig, focus: list[f
         k = min(cfg.full_frame_batch, len(batch["image"]))
         return {key: v[:k] if isinstance(v, torch.Tensor) and v.ndim > 0 and len(v) == len(batch["image"]) else v
                 for key, v in batch.items()}
-    return batch if cfg.patch is None else random_patches(batch, g, cfg.patch, cfg.focus_prob, focus)
+    if cfg.patch is None:
+        return batch
+    return random_patches(batch, g, cfg.patch, cfg.focus_prob, focus, zoom_prob=cfg.zoom_prob, zoom_max=cfg.zoom_max)
+
+
+def lamp_weights(focus: list[float] | None, n_classes: int) -> list[float]:
+    """Class weights of the lamp-hotspot centre: the focus weights (uniform without them), background excluded."""
+    w = list(focus) if focus is not None else [1.0] * n_classes
+    return [0.0, *w[1:]]
 
 
 def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train", val_split: str | None = "val",
@@ -202,6 +215,7 @@ def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train",
     data = ScaledDataset(base, cfg.scale)
     counts, image_counts = class_pixel_counts(data, len(classes))
     weights, focus = class_weights(counts, image_counts, cfg), focus_weights(counts, cfg)
+    lamp = lamp_weights(focus, len(classes))
     torch.manual_seed(cfg.loop.seed)
     model = ResUNet(len(classes), cfg.model)
     if cfg.channels_last:
@@ -224,5 +238,6 @@ def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train",
     w = None if weights is None else torch.tensor(weights, dtype=torch.float32)
     step = seg_step(w, cfg.dice_weight, cfg.focal_gamma, cfg.channels_last, (cfg.boundary_boost, cfg.boundary_radius))
     return train_loop(model, step, data, cfg.loop, out,
-                      augment=(lambda b, g: augment_dense(_patches(b, g, cfg, focus), g, cfg.augment)), val_fn=val_fn,
-                      val_every=cfg.val_every, resume=resume, device=device, progress=progress, extra_state=identity)
+                      augment=(lambda b, g: augment_dense(_patches(b, g, cfg, focus), g, cfg.augment, lamp)),
+                      val_fn=val_fn, val_every=cfg.val_every, resume=resume, device=device, progress=progress,
+                      extra_state=identity)
