@@ -24,12 +24,13 @@ def seg(
     split: str = typer.Option("test", "--split", help="train | val | test | all."),
     device: str = typer.Option("cpu", "--device", help="torch device."),
     figures: int = typer.Option(4, "--figures", min=0, help="Number of frames drawn as PNG panels."),
+    flip_tta: bool = typer.Option(False, "--flip-tta", help="Average each frame with its mirror (2x time)."),
 ) -> None:
     """Per-class IoU, mIoU and pixel accuracy of a segmentation model."""
     from cadalign.eval.dense_eval import evaluate_seg
 
     with user_errors():
-        res = evaluate_seg(model, ds, out, split=split, device=device, n_vis=figures)
+        res = evaluate_seg(model, ds, out, split=split, device=device, n_vis=figures, flip_tta=flip_tta)
     ious = ", ".join(f"{k} {'-' if v is None else f'{v:.3f}'}" for k, v in res.metrics["iou"].items())
     console.print(f"mIoU {res.metrics['miou']:.3f}, pixel accuracy {res.metrics['pixel_accuracy']:.3f}; IoU: {ious}")
     console.print(f"[green]written {res.metrics_path}[/]")

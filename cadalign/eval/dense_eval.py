@@ -58,8 +58,11 @@ def _vis_ids(n: int, k: int) -> set[int]:
 
 
 def evaluate_seg(run: Path, ds: Path, out: Path, *, split: str = "test", device: str = "cpu",
-                 n_vis: int = 4) -> EvalOutput:
-    """Per-class IoU, mIoU and pixel accuracy of the model in ``run`` on ``split`` of ``ds``; writes ``out``."""
+                 n_vis: int = 4, flip_tta: bool = False) -> EvalOutput:
+    """Per-class IoU, mIoU and pixel accuracy of the model in ``run`` on ``split`` of ``ds``; writes ``out``.
+
+    ``flip_tta`` averages each frame's probabilities with those of its mirror image (stated in the protocol).
+    """
     from cadalign.data.torch_datasets import SegmentationDataset
 
     sel = select(ds, split)
@@ -70,7 +73,7 @@ def evaluate_seg(run: Path, ds: Path, out: Path, *, split: str = "test", device:
     figs, vis = [], _vis_ids(len(data), n_vis)
     for i in range(len(data)):
         item = data[i]
-        pred = seg_probabilities(dm, item["image"])[0].argmax(0).numpy()
+        pred = seg_probabilities(dm, item["image"], flip_tta=flip_tta)[0].argmax(0).numpy()
         label = item["label"].numpy()
         cm += confusion_matrix(pred, label, n)
         if i in vis:
@@ -82,7 +85,8 @@ def evaluate_seg(run: Path, ds: Path, out: Path, *, split: str = "test", device:
         "task": "seg", "model": str(dm.checkpoint), "steps": dm.steps,
         "dataset": {"scene": str(sel.scene_dir), "split": split, "frames": len(sel.ids), "source": sel.source},
         "protocol": {"resolution": f"network at scale {dm.scale}, logits upsampled bilinearly to the full frame",
-                     "pixels": "every labelled pixel of the full frame (label 255 ignored)", "crop": "none"},
+                     "pixels": "every labelled pixel of the full frame (label 255 ignored)", "crop": "none",
+                     "test_time_augmentation": "mean of the frame and its mirror" if flip_tta else "none"},
         **m.to_json(),
         "figures": "image | ground truth | prediction",
     }

@@ -106,15 +106,27 @@ def _run_scaled(dm: DenseModel, x: torch.Tensor) -> tuple[torch.Tensor, tuple[in
 
 
 @torch.no_grad()
-def seg_probabilities(dm: DenseModel, images: np.ndarray | torch.Tensor) -> torch.Tensor:
-    """Class probabilities ``(B, C, H, W)`` float32 (CPU) of one image or a batch at the input resolution."""
+def seg_probabilities(dm: DenseModel, images: np.ndarray | torch.Tensor, *, flip_tta: bool = False) -> torch.Tensor:
+    """Class probabilities ``(B, C, H, W)`` float32 (CPU) of one image or a batch at the input resolution.
+
+    ``flip_tta``: also run the horizontally mirrored image and average the two probability maps (the mirrored
+    one mirrored back); twice the network time. The trainers flip horizontally, never vertically, so the
+    mirrored frame is an in-distribution view.
+    """
     if dm.task != "seg":
         raise InputError(f"{dm.checkpoint} is a depth model; class probabilities need a segmentation model")
     x, (h, w) = _run_scaled(dm, _as_batch(images))
+    prob = _seg_probs(dm, x, (h, w))
+    if flip_tta:
+        prob = 0.5 * (prob + _seg_probs(dm, x.flip(-1), (h, w)).flip(-1))
+    return prob.cpu()
+
+
+def _seg_probs(dm: DenseModel, x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     logits = dm.model(x).float()
-    if logits.shape[-2:] != (h, w):
-        logits = F.interpolate(logits, size=(h, w), mode="bilinear", align_corners=False)
-    return logits.softmax(1).cpu()
+    if logits.shape[-2:] != size:
+        logits = F.interpolate(logits, size=size, mode="bilinear", align_corners=False)
+    return logits.softmax(1)
 
 
 @torch.no_grad()

@@ -38,7 +38,12 @@ def test_seg_train_resume_eval(tiny_dense, tiny_seg_toml, tmp_path):
     m = read_json(out / "seg_metrics.json")
     assert set(m["iou"]) == {"background", "structure", "valve", "hot_stab"} and m["dataset"]["split"] == "test"
     assert 0 <= m["pixel_accuracy"] <= 1 and m["pixels"] == 160 * 120 and "scale 0.5" in m["protocol"]["resolution"]
-    assert len(list(out.glob("seg_*.png"))) == 1
+    assert len(list(out.glob("seg_*.png"))) == 1 and m["protocol"]["test_time_augmentation"] == "none"
+    res = runner.invoke(app, ["eval", "seg", str(tiny_dense), "--model", str(run), "--out", str(tmp_path / "tta"),
+                              "--figures", "0", "--flip-tta"])
+    assert res.exit_code == 0, res.output
+    tta = read_json(tmp_path / "tta" / "seg_metrics.json")
+    assert tta["protocol"]["test_time_augmentation"] == "mean of the frame and its mirror"
 
 
 def test_depth_train_eval_and_wrong_task(tiny_dense, tiny_depth_toml, tmp_path):
