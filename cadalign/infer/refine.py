@@ -106,6 +106,9 @@ class RefineConfig:
     surface is seen through it)."""
     half_turn_min_px: int = bounded(3, ge=0)
     """The half-turned pose must disagree with the view in at least this many fewer pixels to be taken."""
+    half_turn_band_px: float = bounded(1.5, ge=0)
+    """Disagreement within this many pixels of the other side's outline is not counted (a pose a few degrees off
+    is a pixel off all round; the lever of the default scene's wrong-way ball valve sticks out ~5 px at 12 m)."""
     seed: int = 0
     """Seed of the point subsampling."""
 
@@ -155,7 +158,7 @@ def _half_turn(geom: ModelGeometry, T: Rigid3, K: np.ndarray, mask: np.ndarray, 
     if cfg.method in ("depth", "both") and depth_m is not None:
         T_alt = refine_depth_icp(geom, T_alt, K, depth_m, mask, cfg)[0]
     best, _ = pick_half_turn(geom, T, T_alt, K, mask, depth_m, cfg.half_turn_tol * geom.diameter_m,
-                             cfg.half_turn_min_px)
+                             cfg.half_turn_min_px, cfg.half_turn_band_px)
     return best, int(best is T_alt)
 
 
