@@ -98,7 +98,8 @@ class RefineConfig:
     """After refinement, also refine the pose turned half a turn about the model's z axis and keep whichever
     disagrees with the view in fewer pixels (rendered model depth against the observed depth: see-through and
     unexplained mask pixels; silhouette XOR mask without depth; :mod:`cadalign.infer.half_turn`). Only for models
-    that no turn about z leaves unchanged (their symmetry): a nearly half-turn symmetric part (a ball valve with an
+    that no turn about z leaves unchanged (their symmetry), and only when both poses were fitted (some refinement
+    ran: unfitted poses differ mostly by misalignment). A nearly half-turn symmetric part (a ball valve with an
     off-centre lever) comes out of a network in either orientation, and the depth fit of the data to the model
     barely tells them apart."""
     half_turn_tol: float = bounded(0.05, gt=0)
@@ -144,19 +145,26 @@ def refine(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, mask: np.ndarray,
         T, iters["silhouette"], costs["silhouette"] = refine_silhouette(geom, T, K, mask, cfg)
     if cfg.method in ("depth", "both") and depth_m is not None:
         T, iters["depth"], costs["depth"] = _icp_yaw_hypotheses(geom, T, K, depth_m, mask, cfg, symmetry)
-    if cfg.half_turn_check and cfg.method != "none" and needs_half_turn_check(symmetry) and np.any(mask):
+    fitted = any(iters.values())  # comparing unfitted poses scores their misalignment, not their orientation
+    if cfg.half_turn_check and fitted and needs_half_turn_check(symmetry):
         T, iters["half_turn"] = _half_turn(geom, T, K, np.asarray(mask, bool), cfg, depth_m)
     return RefineResult(T, iters, costs, time.perf_counter() - t0)
 
 
 def _half_turn(geom: ModelGeometry, T: Rigid3, K: np.ndarray, mask: np.ndarray, cfg: RefineConfig,
                depth_m: np.ndarray | None) -> tuple[Rigid3, int]:
-    """``T`` or its refined half turn, whichever agrees better with the view; 1 when the turn was taken."""
-    T_alt = half_turned(T)
+    """``T`` or its refined half turn, whichever agrees better with the view; 1 when the turn was taken.
+
+    The turned pose must be fitted as ``T`` was (some refinement iterations run), else ``T`` stays."""
+    T_alt, n = half_turned(T), 0
     if cfg.method in ("silhouette", "both"):
-        T_alt = refine_silhouette(geom, T_alt, K, mask, cfg)[0]
+        T_alt, k, _ = refine_silhouette(geom, T_alt, K, mask, cfg)
+        n += k
     if cfg.method in ("depth", "both") and depth_m is not None:
-        T_alt = refine_depth_icp(geom, T_alt, K, depth_m, mask, cfg)[0]
+        T_alt, k, _ = refine_depth_icp(geom, T_alt, K, depth_m, mask, cfg)
+        n += k
+    if n == 0:
+        return T, 0
     best, _ = pick_half_turn(geom, T, T_alt, K, mask, depth_m, cfg.half_turn_tol * geom.diameter_m,
                              cfg.half_turn_min_px, cfg.half_turn_band_px)
     return best, int(best is T_alt)

@@ -95,3 +95,12 @@ def test_the_band_forgives_a_pose_a_few_degrees_off(ball_valve) -> None:
     wrong = half_turned(T)
     best, (a, b) = pick_half_turn(geom, T_off, wrong, K, view.mask, depth, 0.04, 3, band_px=1.5)
     assert best is T_off and b >= a + 10  # measured 0 vs 22 px; without the band 59 vs 36 (the wrong turn wins)
+
+
+def test_unfitted_poses_are_not_compared(ball_valve) -> None:
+    """With no refinement run (mask below min_mask_px, no depth) the detector's pose stays as it is."""
+    geom, view, _ = ball_valve
+    T0 = half_turned(view.T_cam_from_obj)
+    cfg = RefineConfig(half_turn_check=True, min_mask_px=10_000)
+    res = refine(geom, T0, view.camera.K, view.mask, cfg)
+    assert res.T_cam_from_obj is T0 and "half_turn" not in res.iterations
