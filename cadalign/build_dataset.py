@@ -207,7 +207,8 @@ def _edge_align(meshes: list[RenderMesh], rec: Any, refined: dict[str, RefinedCa
         return img.astype(np.float32)
 
     poses = {n: r.T_world_from_cam for n, r in refined.items() if r.verified}
-    centre = np.concatenate([m.vertices_m for m in meshes]).mean(axis=0)
+    # the similarity turns and scales about the CAD's centre (not the seabed square's, an occluder only)
+    centre = np.concatenate([m.vertices_m for m in meshes if m.instance > 0]).mean(axis=0)
     out, info, summary = edge_align_frames(poses, renderer_of, gray_of, centre, refine.edges, progress)
     write_json(path, {"summary": summary, "frames": info,
                       "T_world_from_cam": {n: T.matrix().tolist() for n, T in out.items()}})

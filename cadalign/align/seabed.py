@@ -136,16 +136,11 @@ def seabed_from_model(rec: Any, cad_from_sfm: Any, cad_vertices_m: np.ndarray, c
     """:func:`fit_seabed` on a ``pycolmap.Reconstruction`` aligned by ``cad_from_sfm`` (a Sim3)."""
     if not cfg.enabled:
         return None
-    import open3d as o3d
-
-    from cadalign.render.raycast import _o3d_mesh
+    from cadalign.render.raycast import MeshQuery
 
     xyz = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
     P = cad_from_sfm.apply(xyz) if len(xyz) else xyz
-    origin = cad_vertices_m.mean(axis=0)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(_o3d_mesh(cad_vertices_m - origin, cad_faces))
-    dist = scene.compute_distance(o3d.core.Tensor((P - origin).astype(np.float32))).numpy().astype(np.float64)
+    dist = MeshQuery(cad_vertices_m, cad_faces).distances(P)
     centres = []
     for im in rec.images.values():
         if im.has_pose:

@@ -12,6 +12,7 @@ from scipy.spatial import cKDTree
 
 from cadalign.cad import CadModel
 from cadalign.errors import InputError
+from cadalign.render.raycast import MeshQuery
 from cadalign.types import Rigid3
 
 CadPart = CadModel | tuple[CadModel, Rigid3]
@@ -59,23 +60,13 @@ class CadSurface:
         return float(np.max(self.points_m.max(axis=0) - self.points_m.min(axis=0)))
 
     @cached_property
-    def _raycaster(self):  # -> open3d.t.geometry.RaycastingScene
-        import open3d as o3d
-
-        scene = o3d.t.geometry.RaycastingScene()
-        # float32 inside Open3D: coordinates are taken relative to the centroid so that a structure given
-        # in UTM-sized coordinates keeps sub-millimetre precision
-        verts = (self.vertices_m - self.centroid_m).astype(np.float32)
-        scene.add_triangles(o3d.core.Tensor(verts), o3d.core.Tensor(self.faces.astype(np.uint32)))
-        return scene
+    def _mesh_query(self) -> MeshQuery:
+        return MeshQuery(self.vertices_m, self.faces, origin=self.centroid_m)
 
     def distances(self, points_m: np.ndarray) -> np.ndarray:
         """(N,) exact distance of each point (N, 3) to the CAD triangles, metres (float32 precision,
         about 1e-7 of the distance from the CAD centroid)."""
-        import open3d as o3d
-
-        q = (np.asarray(points_m, dtype=np.float64) - self.centroid_m).astype(np.float32)
-        return self._raycaster.compute_distance(o3d.core.Tensor(q)).numpy().astype(np.float64)
+        return self._mesh_query.distances(points_m)
 
 
 def query_workers(n_queries: int) -> int:

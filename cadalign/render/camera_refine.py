@@ -90,20 +90,15 @@ def refine_cameras(rec: Any, cad_from_sfm: Sim3, vertices_m: np.ndarray, faces: 
                    cfg: CameraRefineConfig) -> RefineResult:
     """Refine the registered cameras of ``rec`` (a ``pycolmap.Reconstruction``, left unchanged) against the
     CAD mesh (world frame, metres); see the module doc."""
-    import open3d as o3d
     import pycolmap
 
-    from cadalign.render.raycast import _o3d_mesh
+    from cadalign.render.raycast import MeshQuery
 
     model = pycolmap.Reconstruction(rec)
     ids = list(model.points3D)
     xyz = np.array([model.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
     X = cad_from_sfm.apply(xyz)
-    origin = vertices_m.mean(axis=0)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(_o3d_mesh(vertices_m - origin, faces))
-    closest = scene.compute_closest_points(o3d.core.Tensor((X - origin).astype(np.float32)))
-    snapped = closest["points"].numpy().astype(np.float64) + origin
+    snapped = MeshQuery(vertices_m, faces).closest_points(X)
     near = np.linalg.norm(snapped - X, axis=1) < cfg.snap_max_m
     sfm_from_cad = cad_from_sfm.inverse()
     anchored = sfm_from_cad.apply(snapped)

@@ -58,6 +58,37 @@ def _o3d_mesh(vertices: np.ndarray, faces: np.ndarray):  # -> o3d.t.geometry.Tri
     return m
 
 
+class MeshQuery:
+    """Closest points on, and distances to, a triangle mesh (Open3D ``RaycastingScene``, exact, CPU).
+
+    Open3D works in float32, so coordinates are taken relative to ``origin`` (the vertex mean unless
+    given): a structure in UTM-sized coordinates keeps sub-millimetre precision.
+    """
+
+    def __init__(self, vertices_m: np.ndarray, faces: np.ndarray, origin: np.ndarray | None = None) -> None:
+        import open3d as o3d
+
+        vertices_m = np.asarray(vertices_m, dtype=np.float64)
+        self.origin = vertices_m.mean(axis=0) if origin is None else np.asarray(origin, dtype=np.float64)
+        self._scene = o3d.t.geometry.RaycastingScene()
+        self._scene.add_triangles(_o3d_mesh(vertices_m - self.origin, faces))
+
+    def _query(self, points_m: np.ndarray):  # -> o3d.core.Tensor
+        import open3d as o3d
+
+        q = (np.asarray(points_m, dtype=np.float64).reshape(-1, 3) - self.origin).astype(np.float32)
+        return o3d.core.Tensor(q)
+
+    def distances(self, points_m: np.ndarray) -> np.ndarray:
+        """(N,) distance of each point (N, 3) to the triangles, metres."""
+        return self._scene.compute_distance(self._query(points_m)).numpy().astype(np.float64)
+
+    def closest_points(self, points_m: np.ndarray) -> np.ndarray:
+        """(N, 3) closest point on the triangles to each point (N, 3), metres."""
+        got = self._scene.compute_closest_points(self._query(points_m))
+        return got["points"].numpy().astype(np.float64) + self.origin
+
+
 @dataclass(frozen=True)
 class RenderMesh:
     """One mesh to ray cast, already in world coordinates.
