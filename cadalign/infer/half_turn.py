@@ -45,8 +45,8 @@ def half_turned(T: Rigid3) -> Rigid3:
     return Rigid3(T.R @ axis_angle_to_matrix(np.array([0.0, 0.0, math.pi])), T.t)
 
 
-def _window(geom: ModelGeometry, poses: list[Rigid3], K: np.ndarray, mask: np.ndarray) -> tuple[int, int, int, int]:
-    """(x0, y0, x1, y1) covering the mask and every pose's projected surface samples, clipped to the image."""
+def view_window(geom: ModelGeometry, poses: list[Rigid3], K: np.ndarray, mask: np.ndarray) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) covering the mask and every pose's projected surface samples (+2 px), clipped to the image."""
     h, w = mask.shape
     pts = [np.argwhere(mask)[:, ::-1].astype(float) + 0.5] if mask.any() else []
     for T in poses:
@@ -104,7 +104,7 @@ def pick_half_turn(geom: ModelGeometry, T: Rigid3, T_turned: Rigid3, K: np.ndarr
 
     Both are scored on the same window (:func:`view_disagreement`); returns the pose and the two counts.
     """
-    win = _window(geom, [T, T_turned], np.asarray(K, float), np.asarray(mask, bool))
+    win = view_window(geom, [T, T_turned], np.asarray(K, float), np.asarray(mask, bool))
     a = view_disagreement(geom, T, K, mask, depth_m, tol_m, win, band_px)
     b = view_disagreement(geom, T_turned, K, mask, depth_m, tol_m, win, band_px)
     return (T_turned if b + min_px <= a else T), (a, b)
