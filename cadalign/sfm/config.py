@@ -185,9 +185,15 @@ class MapperConfig:
     linearly with the frames, and a weak stretch then hinges one segment, not the whole dive."""
     segment_overlap: int = bounded(8, ge=3)
     """Frames each segment shares with the next (>= 3; the Sim(3) that merges them is fitted on these)."""
-    on_break: Literal["largest_piece", "keep_all"] = "largest_piece"
-    """When every attempt has breaks: keep only the largest consistent piece of the sequence (its frames
-    are reliable; the others are reported as dropped) or keep the whole, inconsistent model."""
+    on_break: Literal["repair", "largest_piece", "keep_all"] = "repair"
+    """When every attempt has breaks: 'repair' re-maps a window of ``repair_frames`` frames round each break
+    on its own and merges it with the pieces (:mod:`cadalign.sfm.repair`), and keeps the largest piece when
+    that fails; 'largest_piece' keeps only the largest consistent piece of the sequence (its frames are
+    reliable; the others are reported as dropped); 'keep_all' keeps the whole, inconsistent model."""
+    repair_frames: int = bounded(16, ge=6)
+    """Length of the window re-mapped round a break (on_break='repair'), half before the seam and half
+    after; it must share 3 registered frames with each piece. On the default orbit 16 frames (90 deg of
+    the orbit) mapped soundly where the whole orbit broke with 3 of 3 seeds."""
 
 
 @dataclass(frozen=True)

@@ -269,6 +269,7 @@ def _finish_report(lay: Layout, keep_gt: bool) -> None:
         "loop_pairs_verified": marks["mapping"]["loop_pairs_verified"],
         "consistency": marks["mapping"].get("consistency"),
         "mapping_attempts": marks["mapping"].get("attempts", []),
+        "repair": marks["mapping"].get("repair"),
         "segments": {k: marks["mapping"][k] for k in ("segments", "seams") if k in marks["mapping"]} or None,
         "refinement": {k: marks["refine"][k] for k in ("rounds", "before", "after")},
         "depth": marks["export"]["depth"],
