@@ -144,9 +144,9 @@ def _repair(cfg: SfMConfig, lay: Layout, rec: Any, names: list[str], cons: Consi
         repair.adopt_camera(model, rec, cfg.num_threads)
         return model, _consistency(cfg, lay, model, sub)
 
-    def merge(models: list[Any]) -> tuple[Any, list[dict[str, Any]]]:
+    def merge(models: list[Any], adds: list[set[str] | None]) -> tuple[Any, list[dict[str, Any]]]:
         return segments.merge_models(models, lay.database, lay.images, work / "repair_merged",
-                                     colmap.incremental_options(cfg, names))
+                                     colmap.incremental_options(cfg, names), adds)
 
     return repair.repair_breaks(rec, names, cons, cfg.mapper.repair_frames, map_window, merge,
                                 lambda m: _consistency(cfg, lay, m, names))

@@ -270,6 +270,7 @@ def _finish_report(lay: Layout, keep_gt: bool) -> None:
         "consistency": marks["mapping"].get("consistency"),
         "mapping_attempts": marks["mapping"].get("attempts", []),
         "repair": marks["mapping"].get("repair"),
+        "first_pass_repair": marks["mapping"].get("first_pass_repair"),
         "segments": {k: marks["mapping"][k] for k in ("segments", "seams") if k in marks["mapping"]} or None,
         "refinement": {k: marks["refine"][k] for k in ("rounds", "before", "after")},
         "depth": marks["export"]["depth"],

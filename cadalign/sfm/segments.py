@@ -18,7 +18,7 @@ after the alignment, in median frame-to-frame steps.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -80,9 +80,11 @@ def _poses(rec: Any) -> dict[int, Any]:
 
 
 def merge_models(models: list[Any], database: Path, images_dir: Path, work_dir: Path,
-                 options: Any | None = None) -> tuple[Any, list[dict[str, Any]]]:
+                 options: Any | None = None, adds: Sequence[set[str] | None] | None = None,
+                 ) -> tuple[Any, list[dict[str, Any]]]:
     """One model from segment models (each a ``pycolmap.Reconstruction`` of the same database, in capture
-    order); returns it and one record per seam. See the module doc."""
+    order); returns it and one record per seam. See the module doc. ``adds``: per model, the frames whose
+    poses it may give (None: any); a model that only joins its neighbours still aligns them."""
     import pycolmap
 
     base = models[0]
@@ -104,8 +106,9 @@ def merge_models(models: list[Any], database: Path, images_dir: Path, work_dir: 
         seams.append({"segment": k, "shared_frames": len(shared), "scale": s,
                       "centre_gap_steps_median": float(np.median(gap)) if gap else float("nan"),
                       "centre_gap_steps_max": float(np.max(gap)) if gap else float("nan")})
+        allowed = adds[k] if adds is not None else None
         for im in rec.images.values():
-            if im.has_pose and im.image_id not in poses:
+            if im.has_pose and im.image_id not in poses and (allowed is None or im.name in allowed):
                 poses[im.image_id] = (im.name, im.cam_from_world())
         prev = rec
     merged = pycolmap.Reconstruction()

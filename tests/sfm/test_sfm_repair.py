@@ -130,7 +130,7 @@ def test_a_window_that_breaks_too_gives_no_repair_and_says_why(mapped: Path):
     cons = Consistency(9, 0.3, 9.0, (Break(names[4], names[5], 100, 9.0),))
     merged = []
     out, report = repair_breaks(rec, names, cons, 6, lambda sub, k: (rec, cons),
-                                lambda models: merged.append(models), lambda m: cons)
+                                lambda models, adds: merged.append(models), lambda m: cons)
     assert out is None and not report["repaired"] and not merged
     assert report["why_not"] == f"the window {names[2]}..{names[7]} mapped on its own breaks too"
 
