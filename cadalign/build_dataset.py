@@ -25,7 +25,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -239,7 +239,7 @@ def write_dataset_extras(ds: Path, structure: Structure, verified: dict[int, boo
 def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced", picks: Path | None = None,
                   gt: Path | None = None, cad_unit: str | None = None, calib: Path | None = None,
                   overwrite: bool = False, progress: Progress | None = None, executor: RayExecutor | None = None,
-                  ) -> Path:
+                  sfm_set: Mapping[str, Any] | None = None) -> Path:
     """Run frames -> SfM -> align -> render -> write; returns ``out``. See the module doc for the layout.
 
     ``calib``: the camera's known intrinsics (a ``calibration.json`` ``{"K": [...]}`` as 'cadalign sim'
@@ -249,6 +249,8 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     which moves every object ~4 cm in its camera frame; calibrate the ROV camera underwater and pass it.
     ``executor``: render the
     frames with Ray (:mod:`cadalign.scale`); None renders them here. The dataset files are the same.
+    ``sfm_set``: SfM settings over the preset's (nested keys of :class:`cadalign.sfm.SfMConfig`, e.g.
+    ``{"mapper": {"repair_frames": 20}}``), checked strictly.
 
     Raises:
         AlignmentError: the alignment failed its quality gate (no dataset is written).
@@ -273,6 +275,11 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
 
         sfm_cfg = dataclasses.replace(sfm_cfg, camera=dataclasses.replace(
             sfm_cfg.camera, intrinsics=intrinsics_from_cameras_json(calib)))
+    if sfm_set:
+        from cadalign.config import from_dict
+        from cadalign.sfm import SfMConfig
+
+        sfm_cfg = from_dict(SfMConfig, sfm_set, source="the SfM settings (--sfm-set)", base=sfm_cfg)
     sfm_dir = sfm_run(sfm_cfg, Path(source), out / "sfm", overwrite=overwrite, progress=progress)
     seconds["sfm"] = time.perf_counter() - t0
     t0 = time.perf_counter()

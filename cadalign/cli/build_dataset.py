@@ -26,6 +26,8 @@ def command(
         None, "--calib", help="Known intrinsics: a calibration.json {\"K\": [...]} (as sim writes) or a "
         "cameras.json; held fixed after mapping and in the CAD-anchored refinement."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
+    sfm_set: list[str] = typer.Option([], "--sfm-set", help="Override an SfM setting of the preset, e.g. "
+                                      "--sfm-set matching.overlap=15 (keys as 'cadalign sfm --set')."),
     executor: str = typer.Option("local", "--executor",
                                  help="Where frames are rendered: local (this process, no Ray) | ray (Ray tasks)."),
     ray_address: str | None = typer.Option(None, "--ray-address",
@@ -37,17 +39,23 @@ def command(
 ) -> None:
     """Frames -> SfM -> CAD alignment (Sim3) -> per-frame CAD depth, normals, masks, poses -> BOP dataset."""
     from cadalign.build_dataset import build_dataset
+    from cadalign.cli.sfm import parse_overrides
+    from cadalign.errors import ConfigError
     from cadalign.scale import executor_config, make_executor
     from cadalign.scale.videos import JOBS_SUFFIXES
 
     with user_errors():
         cfg = executor_config(executor, ray_address, workers)
         if source.suffix.lower() in JOBS_SUFFIXES and source.is_file():
+            if sfm_set:
+                raise ConfigError(f"--sfm-set is for one video; a jobs file ({source}) builds each video with its "
+                                  "preset's SfM settings")
             _many(source, cad, out, preset, init, gt, cad_unit, calib, overwrite, cfg)
             return
         runner = make_executor(cfg)
         out_dir = build_dataset(source, cad, out, preset=preset, picks=init, gt=gt, cad_unit=cad_unit,
-                                calib=calib, overwrite=overwrite, progress=track, executor=runner)
+                                calib=calib, overwrite=overwrite, progress=track, executor=runner,
+                                sfm_set=parse_overrides(sfm_set))
     console.print(f"[green]dataset written to {out_dir / 'dataset'}; report {out_dir / 'build_report.html'}[/]")
 
 
