@@ -103,8 +103,8 @@ def test_preset_config_file_is_strict(tmp_path):
         from_dict(DepthTrainConfig, {"loss": "huber"}, source="x.toml")
 
 
-@pytest.mark.parametrize("name", ["seg_tiny", "seg_small_classes", "seg_thesis_weights", "depth_tiny", "depth_thesis",
-                                  "depth_silog_mask"])
+@pytest.mark.parametrize("name", ["seg_tiny", "seg_small_classes", "seg_thesis_weights", "seg_fast_240x320",
+                                  "seg_zoom_lamp", "depth_tiny", "depth_thesis", "depth_silog_mask"])
 def test_training_configs_load(repo_root, name):
     from cadalign.config import resolve
     from cadalign.train import depth, seg
