@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -51,6 +52,12 @@ class InferConfig:
     """Refinement iterations per candidate model when a detection's class has several models."""
     samples_per_model: int = bounded(3000, ge=100)
     """Surface samples per CAD model for ICP."""
+    enhance: Literal["none", "clahe", "clahe_wb"] = "none"
+    """Pre-processing of each frame before detection, as :func:`cadalign.sfm.frames.enhance` (default CLAHE
+    settings). A network trained on a built dataset saw the build's images, which SfM enhanced
+    (``frames.enhance = "clahe"`` in every preset): give it 'clahe' on raw video. Measured on the default
+    scene's 16 held-out frames: valve F1 0.902 on the dataset's images, 0.676 on the raw frames. The overlay
+    is drawn on the raw frame."""
 
 
 PRESETS: dict[str, InferConfig] = {

@@ -145,7 +145,7 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
                 K = calib.K(vf.name)
                 d_m = depth.get(vf.name)
                 cpu0 = time.process_time()
-                records, t = pipeline.process(vf.index, vf.name, vf.image, K, d_m,
+                records, t = pipeline.process(vf.index, vf.name, _enhanced(vf.image, cfg.enhance), K, d_m,
                                               calib.T_world_from_cam_of.get(vf.name))
                 t["pipeline_cpu"] = time.process_time() - cpu0  # wall times above inflate on a busy machine
                 for r in records:
@@ -169,6 +169,16 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
     if gt_scene is not None:
         evaluate_run(all_records, names, gt_scene, out_dir)
     return poses_path
+
+
+def _enhanced(image: np.ndarray, how: str) -> np.ndarray:
+    """The frame as the network should see it (``InferConfig.enhance``)."""
+    if how == "none":
+        return image
+    from cadalign.sfm.config import FrameConfig
+    from cadalign.sfm.frames import enhance
+
+    return enhance(image, FrameConfig(enhance=how))
 
 
 def _video_writer(path: Path, fps: float):  # -> imageio writer
