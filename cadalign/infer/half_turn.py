@@ -64,9 +64,7 @@ def view_window(geom: ModelGeometry, poses: list[Rigid3], K: np.ndarray, mask: n
 
 def _far_from(region: np.ndarray, band_px: float) -> np.ndarray:
     """Pixels at least ``band_px`` from every pixel of ``region`` (all of them when it is empty)."""
-    if band_px <= 0:
-        return np.ones(region.shape, bool)
-    if not region.any():
+    if band_px <= 0 or not region.any():
         return np.ones(region.shape, bool)
     return distance_transform_edt(~region) >= band_px
 

@@ -82,12 +82,17 @@ def test_gt_pose_projects_onto_its_mask_in_metres(pose_bop: Path):
     assert checked >= 3
 
 
-def test_resize_and_crop_keep_poses_consistent_with_pixels(pose_bop: Path):
-    ds = locate_dataset(pose_bop)
-    geometry = load_object_geometry(ds.models_dir, 300)
+def _doubled(pose_bop: Path) -> tuple[dict, dict, dict, tuple[int, int]]:
+    """(object geometry, the frame with the most well-visible instances, that frame resized to twice its size,
+    its original (h, w))."""
+    geometry = load_object_geometry(locate_dataset(pose_bop).models_dir, 300)
     item = max(_items(pose_bop), key=lambda it: len(_well_visible(it)))
     h0, w0 = item["image"].shape[-2:]
-    up = _resize_item(item, (2 * h0, 2 * w0))
+    return geometry, item, _resize_item(item, (2 * h0, 2 * w0)), (h0, w0)
+
+
+def test_resize_and_crop_keep_poses_consistent_with_pixels(pose_bop: Path):
+    geometry, item, up, (h0, w0) = _doubled(pose_bop)
     assert torch.allclose(up["K"][:2, :3], 2 * item["K"][:2, :3])
     batch = detection_collate([up])
     g = torch.Generator().manual_seed(3)

@@ -6,12 +6,12 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_pose_conventions import _items, _on_mask_fraction, _well_visible
+from test_pose_conventions import _doubled, _on_mask_fraction, _well_visible
 
 from cadalign.data.torch_datasets import detection_collate
 from cadalign.models.maskrcnn.pose_head import encode_translation
 from cadalign.train.augment import AugmentConfig
-from cadalign.train.pose import _resize_item, load_object_geometry, locate_dataset, make_augment, targets_from_batch
+from cadalign.train.pose import make_augment, targets_from_batch
 from cadalign.train.pose_crop import crop_batch, draw_zoom, masks_to_boxes, zoom_target
 
 
@@ -60,11 +60,7 @@ def test_zoom_moves_projected_points_with_the_image():
 
 
 def test_zoomed_crops_keep_masks_boxes_and_poses_consistent(pose_bop: Path):
-    ds = locate_dataset(pose_bop)
-    geometry = load_object_geometry(ds.models_dir, 300)
-    item = max(_items(pose_bop), key=lambda it: len(_well_visible(it)))
-    h0, w0 = item["image"].shape[-2:]
-    up = _resize_item(item, (2 * h0, 2 * w0))
+    geometry, _, up, (h0, w0) = _doubled(pose_bop)
     batch = detection_collate([up])
     zooms, checked = set(), 0
     for seed in range(6):
