@@ -47,6 +47,15 @@ class TrajectorySpec:
     """Approach: final distance to `center`, metres."""
     start_deg: float = 0.0
     """Orbit/approach/hover: azimuth of the start position, degrees."""
+    climb_m_per_lap: float = 0.0
+    """Orbit: height change per full turn, metres (a helix; negative descends). 0 flies one circle over and over."""
+    radius_step_m_per_lap: float = 0.0
+    """Orbit: radius change per full turn, metres (a spiral; negative closes in). Together with `climb_m_per_lap`
+    a second lap sees every side again from another height and distance, as an ROV's second inspection pass does."""
+    squareness: float = bounded(2.0, ge=2.0, le=20.0)
+    """Orbit: exponent n of the plan shape |x|^n + |y|^n = radius^n. 2 is a circle; larger values give a rounded
+    square that keeps `radius_m` from the centre at the middle of each side, so the ROV stays close to every face of
+    a box-shaped structure without running into its corners."""
     area_m: tuple[float, float] = (12.0, 12.0)
     """Lawnmower: size of the surveyed rectangle, metres."""
     line_spacing_m: float = bounded(3.0, gt=0.0)

@@ -1,4 +1,4 @@
-"""ROV trajectories as functions of time: orbit, lawnmower, approach and hover.
+"""ROV trajectories as functions of time: orbit (circle, helix, spiral, rounded square), lawnmower, approach, hover.
 
 A trajectory maps time t (seconds) to ``T_world_from_cam`` (OpenCV camera:
 x right, y down, z forward). The ROV moves along its path at ``speed_mps``;
@@ -8,8 +8,11 @@ seeded phases) imitates station keeping.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
+from cadalign.errors import ConfigError
 from cadalign.sim.spec import TrajectorySpec
 from cadalign.types import Rigid3
 
@@ -67,16 +70,57 @@ def _along_polyline(pts: np.ndarray, s: float) -> tuple[np.ndarray, np.ndarray]:
     return pts[i] + heading * (s - cum[i]), heading
 
 
+_ORBIT_SAMPLES_PER_LAP = 2048
+
+
+@functools.lru_cache(maxsize=8)
+def _orbit_path(spec: TrajectorySpec, laps: int) -> tuple[np.ndarray, np.ndarray]:
+    """(cumulative arc length (N,), eye positions (N, 3)) of ``laps`` turns of the orbit, densely sampled.
+
+    The plan shape is the superellipse ``|x|^n + |y|^n = r^n`` (``n = squareness``; 2 is a circle) whose
+    ``r`` changes by ``radius_step_m_per_lap`` per turn, and the height by ``climb_m_per_lap``.
+
+    Raises:
+        ConfigError: the spiral reaches the centre within ``laps`` turns.
+    """
+    theta = np.linspace(0.0, 2 * np.pi * laps, _ORBIT_SAMPLES_PER_LAP * laps + 1)
+    r = spec.radius_m + spec.radius_step_m_per_lap * theta / (2 * np.pi)
+    if r.min() <= 0.05 * spec.radius_m:
+        raise ConfigError(f"trajectory: the orbit spiral (radius_m = {spec.radius_m}, radius_step_m_per_lap = "
+                          f"{spec.radius_step_m_per_lap}) reaches the centre; make radius_step_m_per_lap less "
+                          "negative or fly fewer frames")
+    az = np.radians(spec.start_deg) + theta
+    c, s = np.cos(az), np.sin(az)
+    n = spec.squareness
+    r = r / (np.abs(c) ** n + np.abs(s) ** n) ** (1.0 / n)
+    eye = np.stack([spec.center[0] + r * c, spec.center[1] + r * s,
+                    spec.height_m + spec.climb_m_per_lap * theta / (2 * np.pi)], axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(eye, axis=0), axis=1))])
+    return cum, eye
+
+
+def _orbit_eye(spec: TrajectorySpec, s: float) -> np.ndarray:
+    """Camera centre after arc length ``s`` along the orbit (a circle, helix, spiral or rounded square)."""
+    if spec.squareness == 2.0 and spec.radius_step_m_per_lap == 0.0:  # the plain circle or helix, in closed form
+        az = np.radians(spec.start_deg) + s / spec.radius_m
+        laps = (az - np.radians(spec.start_deg)) / (2 * np.pi)
+        return np.array([spec.center[0] + spec.radius_m * np.cos(az), spec.center[1] + spec.radius_m * np.sin(az),
+                         spec.height_m + spec.climb_m_per_lap * laps])
+    laps = max(int(np.ceil(s / (2 * np.pi * spec.radius_m))) + 1, 1)
+    while True:
+        cum, eye = _orbit_path(spec, laps)
+        if cum[-1] >= s:
+            return np.array([np.interp(s, cum, eye[:, k]) for k in range(3)])
+        laps *= 2
+
+
 def pose_at(spec: TrajectorySpec, t: float, seed: int = 0) -> Rigid3:
     """``T_world_from_cam`` at time ``t`` seconds."""
     centre = np.asarray(spec.center, dtype=float)
     s = spec.speed_mps * t
     az0 = np.radians(spec.start_deg)
     if spec.kind == "orbit":
-        az = az0 + s / spec.radius_m
-        eye = np.array(
-            [centre[0] + spec.radius_m * np.cos(az), centre[1] + spec.radius_m * np.sin(az), spec.height_m]
-        )
+        eye = _orbit_eye(spec, s)
         target = centre
     elif spec.kind == "approach":
         dist = max(spec.radius_m - s, min(spec.standoff_m, spec.radius_m))
