@@ -259,6 +259,7 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     from cadalign.align import PRESETS as ALIGN_PRESETS
     from cadalign.align import read_sim3
     from cadalign.align import run as align_run
+    from cadalign.data.image_prep import prep_of_frame_config, write_record
     from cadalign.errors import ConfigError
     from cadalign.sfm import PRESETS as SFM_PRESETS
     from cadalign.sfm import run as sfm_run
@@ -302,6 +303,7 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     frame_names, verified = render_frames(structure, cameras, cad_from_sfm, sfm_dir, ds / SCENE, progress,
                                           refine=refine_cfg, executor=executor)
     splits = write_dataset_extras(ds, structure, verified)
+    write_record(ds, prep_of_frame_config(sfm_cfg.frames), source="sfm/images (the SfM stage's prepared frames)")
     seconds["render_and_write"] = time.perf_counter() - t0
     report = {
         "frames": len(frame_names), "frames_verified": int(sum(verified.values())),

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from cadalign.config import bounded
-from cadalign.io import MANIFEST_NAME, read_json
+from cadalign.io import read_json
 
 log = logging.getLogger(__name__)
 
@@ -146,14 +146,13 @@ def infer_stage(ctx: DemoContext) -> dict:
             link.symlink_to((ctx.sim_dir / "frames" / names[im_id]).resolve())
     structure = load_structure(ctx.scene)
     net, meta = load_pose_model(ctx.out / "train" / "pose")
-    # the network saw the build's images, which SfM enhanced; the simulator's exact truth is not enhanced
-    sfm_stage = ctx.out / "build" / "sfm" / MANIFEST_NAME
-    how = read_json(sfm_stage)["config"]["sfm"]["frames"]["enhance"] if ctx.dataset_kind == "built" else "none"
-    cfg = dataclasses.replace(PRESETS["fast"], enhance=how)
+    # enhance = "auto": the raw frames are prepared as the network's training images were (a built dataset's
+    # were CLAHE-enhanced by SfM, the simulator's exact truth is raw), as the training run recorded
+    cfg = PRESETS["fast"]
     detector = det.TorchDetector(net, cfg.score_thresh, "cpu")
     out = ctx.out / "infer" / "poses"
     run(cfg, clip, detector, structure.models, tuple(meta.get("classes", structure.class_names)), out,
-        calib=calibration_from_scene(scene), detector_info={"kind": "network", "run": "train/pose"},
+        calib=calibration_from_scene(scene), detector_info={"kind": "network", "run": str(ctx.out / "train" / "pose")},
         gt_scene=scene, overwrite=True)
     ev = out / "eval.json"
     return {"dir": "infer/poses", "frames": len(list(clip.iterdir())), "timings": read_json(out / "timings.json"),

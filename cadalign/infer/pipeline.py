@@ -52,12 +52,12 @@ class InferConfig:
     """Refinement iterations per candidate model when a detection's class has several models."""
     samples_per_model: int = bounded(3000, ge=100)
     """Surface samples per CAD model for ICP."""
-    enhance: Literal["none", "clahe", "clahe_wb"] = "none"
-    """Pre-processing of each frame before detection, as :func:`cadalign.sfm.frames.enhance` (default CLAHE
-    settings). A network trained on a built dataset saw the build's images, which SfM enhanced
-    (``frames.enhance = "clahe"`` in every preset): give it 'clahe' on raw video. Measured on the default
-    scene's 16 held-out frames: valve F1 0.902 on the dataset's images, 0.676 on the raw frames. The overlay
-    is drawn on the raw frame."""
+    enhance: Literal["auto", "none", "clahe", "clahe_wb"] = "auto"
+    """Pre-processing of each frame before detection, as :func:`cadalign.sfm.frames.enhance`. 'auto': as the
+    network's training images were prepared (:mod:`cadalign.data.image_prep`: a built dataset's images were
+    CLAHE-enhanced by SfM, a simulator's are raw), read from the run folder; the others force one (default CLAHE
+    settings). Measured on the default scene's 16 held-out frames: valve F1 0.902 on the dataset's images, 0.676
+    on the raw frames. The overlay is drawn on the raw frame."""
 
 
 PRESETS: dict[str, InferConfig] = {

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from cadalign.cad.model import CadModel
+from cadalign.data import image_prep
 from cadalign.errors import InputError
 from cadalign.eval.pose_eval import CroppedMask, PoseEvalConfig
 from cadalign.infer.detect import Detector, frame_ids, models_dir_of
@@ -124,6 +125,8 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
         progress: Progress | None = None) -> Path:
     """Run the pose pipeline over a video or frame folder; returns ``out_dir / "poses.jsonl"`` (see module doc)."""
     out_dir = Path(out_dir)
+    prep = resolve_prep(cfg.enhance, detector_info)
+    detector_info = {**detector_info, "images": prep}
     record = {"infer": cfg, "source": str(source), "detector": detector_info, "max_frames": max_frames,
               "depth": None if depth_scene is None else str(depth_scene),
               "gt": None if gt_scene is None else str(gt_scene)}
@@ -145,7 +148,7 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
                 K = calib.K(vf.name)
                 d_m = depth.get(vf.name)
                 cpu0 = time.process_time()
-                records, t = pipeline.process(vf.index, vf.name, _enhanced(vf.image, cfg.enhance), K, d_m,
+                records, t = pipeline.process(vf.index, vf.name, image_prep.apply(vf.image, prep), K, d_m,
                                               calib.T_world_from_cam_of.get(vf.name))
                 t["pipeline_cpu"] = time.process_time() - cpu0  # wall times above inflate on a busy machine
                 for r in records:
@@ -171,14 +174,28 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
     return poses_path
 
 
-def _enhanced(image: np.ndarray, how: str) -> np.ndarray:
-    """The frame as the network should see it (``InferConfig.enhance``)."""
-    if how == "none":
-        return image
-    from cadalign.sfm.config import FrameConfig
-    from cadalign.sfm.frames import enhance
+def resolve_prep(enhance: str, detector_info: dict) -> dict:
+    """The preparation each raw frame gets before detection (``InferConfig.enhance``).
 
-    return enhance(image, FrameConfig(enhance=how))
+    ``"auto"``: as the network's training images were prepared, from its run's ``train_config.json``
+    (``images``, recorded by ``cadalign train``), else from the dataset the run names; an oracle detector, or a
+    run that says nothing (a warning), gets the raw frames. Any other value is used as it is.
+    """
+    if enhance != "auto":
+        return image_prep.RAW if enhance == "none" else \
+            {"enhance": enhance, "clahe_clip": 2.0, "clahe_tiles": 8}  # FrameConfig's defaults
+    if detector_info.get("kind") != "network":
+        return dict(image_prep.RAW)
+    run_dir = Path(detector_info["run"])
+    rec = read_json(run_dir / "train_config.json") if (run_dir / "train_config.json").is_file() else {}
+    prep = rec.get("images")
+    if prep is None and rec.get("dataset") and Path(rec["dataset"]).exists():
+        prep = image_prep.read_prep(Path(rec["dataset"]))
+    if prep is None:
+        log.warning("infer: %s does not record how its training images were prepared; frames are fed raw. If the "
+                    "network was trained on a built dataset (CLAHE-enhanced by SfM), set enhance = 'clahe'", run_dir)
+        return dict(image_prep.RAW)
+    return {k: v for k, v in prep.items() if k != "source"}
 
 
 def _video_writer(path: Path, fps: float):  # -> imageio writer

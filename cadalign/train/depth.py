@@ -19,6 +19,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from cadalign.config import bounded
+from cadalign.data.image_prep import read_prep
 from cadalign.models.dispnet import DispNet, DispNetConfig, alpha_beta_from_range
 from cadalign.train.augment import AugmentConfig, augment_dense
 from cadalign.train.common import write_run_record
@@ -149,7 +150,7 @@ def train_depth(cfg: DepthTrainConfig, ds: Path, out: Path, *, split: str = "tra
     write_run_record(out, "depth", cfg, identity,
                      {"depth_range_m": [1 / (model_cfg.alpha + model_cfg.beta), 1 / model_cfg.beta],
                       "dataset": {"scene": str(sel.scene_dir), "split": split, "ids": list(sel.ids),
-                                  "source": sel.source}}, resume=resume)
+                                  "source": sel.source}, "images": read_prep(sel.scene_dir)}, resume=resume)
     log.info("depth: %d %s frames of %s, head range %.3f-%.3f m", len(sel.ids), split, sel.scene_dir,
              1 / (model_cfg.alpha + model_cfg.beta), 1 / model_cfg.beta)
     return train_loop(model, depth_step(cfg), data, cfg.loop, out,

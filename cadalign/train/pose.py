@@ -30,6 +30,7 @@ from torch.utils.data import Dataset
 from cadalign.cad.models_info import symmetry_from_entry
 from cadalign.config import bounded, to_dict
 from cadalign.data.bop import mask_bbox
+from cadalign.data.image_prep import read_prep
 from cadalign.data.torch_datasets import DetectionPoseDataset, detection_collate
 from cadalign.errors import InputError
 from cadalign.io import prepare_stage_dir, read_json, write_json
@@ -243,7 +244,8 @@ def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = Fa
     if overwrite and not resume and (Path(out_dir) / "checkpoints").is_dir():
         shutil.rmtree(Path(out_dir) / "checkpoints")
     write_json(Path(out_dir) / "train_config.json", {"config": to_dict(cfg), "dataset": str(dataset),
-                                                     "splits": {k: len(v) for k, v in ds.splits.items()}})
+                                                     "splits": {k: len(v) for k, v in ds.splits.items()},
+                                                     "images": read_prep(ds.scene_dir)})
     train_ids = ds.splits.get("train") or []
     if not train_ids:
         raise InputError(f"{dataset}: the train split is empty; the dataset needs more frames")

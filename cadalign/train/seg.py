@@ -18,6 +18,7 @@ import torch
 from torch import nn
 
 from cadalign.config import bounded
+from cadalign.data.image_prep import read_prep
 from cadalign.models.resunet import ResUNet, ResUNetConfig
 from cadalign.train.augment import AugmentConfig, augment_dense, random_patches
 from cadalign.train.common import write_run_record
@@ -233,7 +234,8 @@ def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train",
     write_run_record(out, "seg", cfg, identity, {"class_weights": None if weights is None else weights.tolist(),
                                                  "focus_weights": focus, "class_pixels": counts.tolist(),
                                                  "dataset": {"scene": str(sel.scene_dir), "split": split,
-                                                             "ids": list(sel.ids), "source": sel.source}},
+                                                             "ids": list(sel.ids), "source": sel.source},
+                                                 "images": read_prep(sel.scene_dir)},
                      resume=resume)
     log.info("seg: %d %s frames of %s, classes %s, weights %s", len(sel.ids), split, sel.scene_dir, classes,
              None if weights is None else np.round(weights, 2).tolist())

@@ -86,6 +86,11 @@ def test_dataset_layout_splits_and_coco(built: Path) -> None:
     assert {im["id"] for im in coco["images"]} == set(splits["train"]) and coco["annotations"]
     depth_sfm = read_image(ds / "all" / "000000" / "depth_sfm" / "000000.png", unchanged=True)
     assert depth_sfm.dtype == np.uint16 and 0 < (depth_sfm > 0).mean() < 0.2
+    # the images are SfM's CLAHE-enhanced frames, and the dataset says so (for 'cadalign infer' on raw video)
+    from cadalign.data.image_prep import read_prep
+
+    assert read_json(ds / "images.json")["enhance"] == "clahe"
+    assert read_prep(ds / "all" / "000000") == {"enhance": "clahe", "clahe_clip": 2.0, "clahe_tiles": 8}
 
 
 def test_interrupted_render_resumes_to_the_same_result(built: Path, capture: tuple[Path, Path]) -> None:

@@ -49,6 +49,7 @@ def test_seg_trains_and_predicts(tiny_dense, tmp_path):
     assert res.steps_done == 14 and np.mean(losses[-3:]) < 0.7 * np.mean(losses[:3])
     rec = read_json(tmp_path / "seg" / "train_config.json")
     assert rec["classes"] == ["background", "structure", "valve", "hot_stab"] and rec["model"]["base_channels"] == 4
+    assert rec["images"] == {"enhance": "none"}  # a simulator's frames are raw
     assert "val_miou" in read_json(tmp_path / "seg" / "metrics.json")["rows"][-1]
     dm = load_dense_model(tmp_path / "seg", task="seg")
     probs = seg_probabilities(dm, np.zeros((120, 160, 3), np.uint8))
