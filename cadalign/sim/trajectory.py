@@ -74,21 +74,19 @@ _ORBIT_SAMPLES_PER_LAP = 2048
 
 
 @functools.lru_cache(maxsize=8)
-def _orbit_path(spec: TrajectorySpec, laps: int) -> tuple[np.ndarray, np.ndarray]:
-    """(cumulative arc length (N,), eye positions (N, 3)) of ``laps`` turns of the orbit, densely sampled.
+def _orbit_path(spec: TrajectorySpec, laps: int) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(cumulative arc length (N,), eye positions (N, 3), whether the spiral ended) of ``laps`` turns of the
+    orbit, densely sampled.
 
     The plan shape is the superellipse ``|x|^n + |y|^n = r^n`` (``n = squareness``; 2 is a circle) whose
-    ``r`` changes by ``radius_step_m_per_lap`` per turn, and the height by ``climb_m_per_lap``.
-
-    Raises:
-        ConfigError: the spiral reaches the centre within ``laps`` turns.
+    ``r`` changes by ``radius_step_m_per_lap`` per turn, and the height by ``climb_m_per_lap``. An inward spiral
+    ends where ``r`` falls to 5 % of ``radius_m``.
     """
     theta = np.linspace(0.0, 2 * np.pi * laps, _ORBIT_SAMPLES_PER_LAP * laps + 1)
     r = spec.radius_m + spec.radius_step_m_per_lap * theta / (2 * np.pi)
-    if r.min() <= 0.05 * spec.radius_m:
-        raise ConfigError(f"trajectory: the orbit spiral (radius_m = {spec.radius_m}, radius_step_m_per_lap = "
-                          f"{spec.radius_step_m_per_lap}) reaches the centre; make radius_step_m_per_lap less "
-                          "negative or fly fewer frames")
+    keep = r > 0.05 * spec.radius_m
+    ended = not keep.all()
+    theta, r = theta[keep], r[keep]
     az = np.radians(spec.start_deg) + theta
     c, s = np.cos(az), np.sin(az)
     n = spec.squareness
@@ -96,22 +94,31 @@ def _orbit_path(spec: TrajectorySpec, laps: int) -> tuple[np.ndarray, np.ndarray
     eye = np.stack([spec.center[0] + r * c, spec.center[1] + r * s,
                     spec.height_m + spec.climb_m_per_lap * theta / (2 * np.pi)], axis=1)
     cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(eye, axis=0), axis=1))])
-    return cum, eye
+    return cum, eye, ended
 
 
 def _orbit_eye(spec: TrajectorySpec, s: float) -> np.ndarray:
-    """Camera centre after arc length ``s`` along the orbit (a circle, helix, spiral or rounded square)."""
-    if spec.squareness == 2.0 and spec.radius_step_m_per_lap == 0.0:  # the plain circle or helix, in closed form
+    """Camera centre after arc length ``s`` along the orbit (a circle, helix, spiral or rounded square).
+
+    Raises:
+        ConfigError: an inward spiral reaches the centre before ``s``.
+    """
+    if spec.squareness == 2.0 and spec.radius_step_m_per_lap == 0.0:
+        # the plain circle or helix in closed form (``s`` counted in plan; a helix's climb adds < 0.1 %)
         az = np.radians(spec.start_deg) + s / spec.radius_m
         laps = (az - np.radians(spec.start_deg)) / (2 * np.pi)
         return np.array([spec.center[0] + spec.radius_m * np.cos(az), spec.center[1] + spec.radius_m * np.sin(az),
                          spec.height_m + spec.climb_m_per_lap * laps])
     laps = max(int(np.ceil(s / (2 * np.pi * spec.radius_m))) + 1, 1)
     while True:
-        cum, eye = _orbit_path(spec, laps)
+        cum, eye, ended = _orbit_path(spec, laps)
         if cum[-1] >= s:
             return np.array([np.interp(s, cum, eye[:, k]) for k in range(3)])
-        laps *= 2
+        if ended:
+            raise ConfigError(f"trajectory: the orbit spiral (radius_m = {spec.radius_m}, radius_step_m_per_lap = "
+                              f"{spec.radius_step_m_per_lap}) reaches the centre after {cum[-1]:.1f} m of the "
+                              f"{s:.1f} m flown; make radius_step_m_per_lap less negative or fly fewer frames")
+        laps += max(laps // 2, 1)
 
 
 def pose_at(spec: TrajectorySpec, t: float, seed: int = 0) -> Rigid3:

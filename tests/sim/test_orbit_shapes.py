@@ -80,3 +80,15 @@ def test_squareness_below_two_is_refused() -> None:
 
     with pytest.raises(ConfigError, match="squareness"):
         from_dict(TrajectorySpec, {"squareness": 1.0})
+
+
+def test_an_inward_spiral_flies_until_it_reaches_the_centre() -> None:
+    """Refused exactly when the path flown is longer than the spiral (r from 10 m to 0.5 m at -3 m per lap: about
+    3.2 laps, ~110 m), not before."""
+    spec = TrajectorySpec(radius_m=10.0, height_m=3.0, radius_step_m_per_lap=-3.0, speed_mps=1.0, jitter_m=0.0)
+    laps = (10.0 - 0.5) / 3.0
+    length = 2 * np.pi * (10.0 * laps - 3.0 * laps**2 / 2)  # integral of r(theta) dtheta
+    ok = pose_at(spec, 0.97 * length)
+    assert np.hypot(*ok.t[:2]) < 2.0
+    with pytest.raises(ConfigError, match="reaches the centre"):
+        pose_at(spec, 1.03 * length)
