@@ -29,8 +29,15 @@ def prep_of_frame_config(frames: Any) -> dict[str, Any]:
     """The record of an SfM :class:`~cadalign.sfm.config.FrameConfig` (or its dict form)."""
     get = frames.get if isinstance(frames, dict) else lambda k: getattr(frames, k)
     how = get("enhance")
-    return RAW if how == "none" else {"enhance": how, "clahe_clip": float(get("clahe_clip")),
-                                      "clahe_tiles": int(get("clahe_tiles"))}
+    return dict(RAW) if how == "none" else {"enhance": how, "clahe_clip": float(get("clahe_clip")),
+                                            "clahe_tiles": int(get("clahe_tiles"))}
+
+
+def prep_named(enhance: str) -> dict[str, Any]:
+    """The record of one enhancement with SfM's default settings (``FrameConfig``'s CLAHE clip and tiles)."""
+    from cadalign.sfm.config import FrameConfig
+
+    return prep_of_frame_config(FrameConfig(enhance=enhance))
 
 
 def write_record(dataset_root: Path, prep: dict[str, Any], source: str) -> Path:
@@ -42,11 +49,7 @@ def _checked(prep: Any, where: str) -> dict[str, Any]:
     if not isinstance(prep, dict) or prep.get("enhance") not in ENHANCE:
         raise InputError(f"{where}: the image preparation {prep!r} is not one of enhance = {', '.join(ENHANCE)}; "
                          f"rebuild the dataset or delete {RECORD}")
-    out = {"enhance": prep["enhance"]}
-    if prep["enhance"] != "none":
-        out["clahe_clip"] = float(prep.get("clahe_clip", 2.0))
-        out["clahe_tiles"] = int(prep.get("clahe_tiles", 8))
-    return out
+    return prep_of_frame_config({**prep_named(prep["enhance"]), **prep})
 
 
 def read_prep(scene_or_root: Path) -> dict[str, Any] | None:
@@ -70,6 +73,18 @@ def read_prep(scene_or_root: Path) -> dict[str, Any] | None:
             frames = read_json(stage).get("config", {}).get("sfm", {}).get("frames")
             if isinstance(frames, dict) and "enhance" in frames:
                 return prep_of_frame_config(frames)
+    return None
+
+
+def read_run_prep(run_dir: Path) -> dict[str, Any] | None:
+    """The preparation of a training run's images: its ``train_config.json`` record (``images``), else that of
+    the dataset the run names, when it still exists; None when neither says."""
+    path = Path(run_dir) / "train_config.json"
+    rec = read_json(path) if path.is_file() else {}
+    if rec.get("images") is not None:
+        return _checked(rec["images"], str(path))
+    if rec.get("dataset") and Path(rec["dataset"]).exists():
+        return read_prep(Path(rec["dataset"]))
     return None
 
 

@@ -182,20 +182,16 @@ def resolve_prep(enhance: str, detector_info: dict) -> dict:
     run that says nothing (a warning), gets the raw frames. Any other value is used as it is.
     """
     if enhance != "auto":
-        return image_prep.RAW if enhance == "none" else \
-            {"enhance": enhance, "clahe_clip": 2.0, "clahe_tiles": 8}  # FrameConfig's defaults
+        return image_prep.prep_named(enhance)
     if detector_info.get("kind") != "network":
         return dict(image_prep.RAW)
-    run_dir = Path(detector_info["run"])
-    rec = read_json(run_dir / "train_config.json") if (run_dir / "train_config.json").is_file() else {}
-    prep = rec.get("images")
-    if prep is None and rec.get("dataset") and Path(rec["dataset"]).exists():
-        prep = image_prep.read_prep(Path(rec["dataset"]))
+    prep = image_prep.read_run_prep(Path(detector_info["run"]))
     if prep is None:
         log.warning("infer: %s does not record how its training images were prepared; frames are fed raw. If the "
-                    "network was trained on a built dataset (CLAHE-enhanced by SfM), set enhance = 'clahe'", run_dir)
+                    "network was trained on a built dataset (CLAHE-enhanced by SfM), set enhance = 'clahe'",
+                    detector_info["run"])
         return dict(image_prep.RAW)
-    return {k: v for k, v in prep.items() if k != "source"}
+    return prep
 
 
 def _video_writer(path: Path, fps: float):  # -> imageio writer

@@ -291,8 +291,8 @@ def refine_frame(renderer: Any, gray: np.ndarray, T_wc: Rigid3, cfg: EdgeRefineC
         if got is None or len(got[1]) < cfg.min_frame_edges:
             return T_wc, {"applied": False, "edges": 0 if got is None else len(got[1])}
         J, r, X_w = got
-        seen = X_w.mean(axis=0) if seen is None else seen
         c = X_w.mean(axis=0)
+        seen = c if seen is None else seen
         xi, w = fit_correction([(J, r)], tukey, prior=_frame_prior(T_wc, T, c, cfg))
         n_used, med = len(r), float(np.median(np.abs(r[w > 0]))) if np.any(w > 0) else None
         T = moved_camera(_motion(xi, c), T)

@@ -106,7 +106,7 @@ def _orbit_eye(spec: TrajectorySpec, s: float) -> np.ndarray:
     if spec.squareness == 2.0 and spec.radius_step_m_per_lap == 0.0:
         # the plain circle or helix in closed form (``s`` counted in plan; a helix's climb adds < 0.1 %)
         az = np.radians(spec.start_deg) + s / spec.radius_m
-        laps = (az - np.radians(spec.start_deg)) / (2 * np.pi)
+        laps = s / (2 * np.pi * spec.radius_m)
         return np.array([spec.center[0] + spec.radius_m * np.cos(az), spec.center[1] + spec.radius_m * np.sin(az),
                          spec.height_m + spec.climb_m_per_lap * laps])
     laps = max(int(np.ceil(s / (2 * np.pi * spec.radius_m))) + 1, 1)
