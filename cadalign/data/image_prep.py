@@ -12,6 +12,7 @@ on the dataset's images, 0.676 on the raw frames), so the preparation travels wi
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,8 @@ import numpy as np
 
 from cadalign.errors import InputError
 from cadalign.io import read_json, write_json
+
+log = logging.getLogger(__name__)
 
 RECORD = "images.json"
 ENHANCE = ("none", "clahe", "clahe_wb")
@@ -86,6 +89,26 @@ def read_run_prep(run_dir: Path) -> dict[str, Any] | None:
     if rec.get("dataset") and Path(rec["dataset"]).exists():
         return read_prep(Path(rec["dataset"]))
     return None
+
+
+def run_dir_of(run: Path) -> Path:
+    """The run folder of a run folder or of one of its checkpoints (``RUN/checkpoints/last.pt``)."""
+    run = Path(run)
+    return run if run.is_dir() else run.parent.parent
+
+
+def to_feed(source: dict[str, Any] | None, trained: dict[str, Any] | None, what: str) -> dict[str, Any]:
+    """The preparation that makes images prepared as ``source`` look like a network's training images
+    (``trained``): none when they agree or either is unknown, ``trained`` for raw images; an enhanced source that
+    the network was not trained on cannot be undone, so it is fed as it is, with a warning naming ``what``."""
+    if source is None or trained is None or source == trained:
+        return dict(RAW)
+    if source["enhance"] == "none":
+        return trained
+    log.warning("%s: the images are prepared as %s but the network was trained on images prepared as %s; they are "
+                "fed as they are (use the raw frames, e.g. the simulator's truth, to have them prepared alike)",
+                what, source, trained)
+    return dict(RAW)
 
 
 def apply(rgb: np.ndarray, prep: dict[str, Any]) -> np.ndarray:

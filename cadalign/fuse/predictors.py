@@ -9,36 +9,48 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from cadalign.data import image_prep
 from cadalign.errors import InputError
 from cadalign.fuse.inputs import DepthPredictor, SegPredictor
 from cadalign.types import Camera
 
 
-def seg_predictor(run: Path, classes: Sequence[str], device: str = "cpu") -> SegPredictor:
+def _feed(run: Path, source_prep: dict[str, Any] | None) -> dict[str, Any]:
+    """What the frames (prepared as ``source_prep``, None: unknown) need before ``run``'s network sees them
+    (:mod:`cadalign.data.image_prep`): raw frames get the enhancement its training images had."""
+    return image_prep.to_feed(source_prep, image_prep.read_run_prep(image_prep.run_dir_of(run)), str(run))
+
+
+def seg_predictor(run: Path, classes: Sequence[str], device: str = "cpu",
+                  source_prep: dict[str, Any] | None = None) -> SegPredictor:
     """``rgb -> (C, H, W)`` probabilities of the segmentation network of ``run`` (its classes must match).
 
-    The last result is remembered (keyed by the image object), so the depth mask and the labels of one frame
-    share one network pass.
+    ``source_prep``: how the frames to be fed were prepared (:func:`cadalign.data.image_prep.read_prep` of their
+    scene); raw frames are then prepared as the network's training images were. The last result is remembered
+    (keyed by the image object), so the depth mask and the labels of one frame share one network pass.
     """
     from cadalign.infer.dense import load_dense_model, seg_probabilities
 
     dm = load_dense_model(Path(run), task="seg", classes=classes, device=device)
+    prep = _feed(run, source_prep)
     last: list = [None, None]
 
     def predict(rgb: np.ndarray) -> np.ndarray:
         if last[0] is not rgb:
-            last[0], last[1] = rgb, seg_probabilities(dm, rgb)[0].numpy()
+            last[0], last[1] = rgb, seg_probabilities(dm, image_prep.apply(rgb, prep))[0].numpy()
         return last[1]
 
     return predict
 
 
 def depth_predictor(run: Path, seg: SegPredictor | None = None, device: str = "cpu",
-                    foreground_only: bool = False) -> DepthPredictor:
-    """``(rgb, camera) -> (H, W)`` metric depth of the depth network of ``run``.
+                    foreground_only: bool = False, source_prep: dict[str, Any] | None = None) -> DepthPredictor:
+    """``(rgb, camera) -> (H, W)`` metric depth of the depth network of ``run``; ``source_prep`` as for
+    :func:`seg_predictor` (``seg`` prepares its own input).
 
     A network trained with a foreground-mask input gets ``seg``'s prediction (class != background) as mask.
     ``foreground_only`` zeroes (invalidates) the depth wherever ``seg`` predicts background: depth networks
@@ -47,6 +59,7 @@ def depth_predictor(run: Path, seg: SegPredictor | None = None, device: str = "c
     from cadalign.infer.dense import load_dense_model, metric_depth
 
     dm = load_dense_model(Path(run), task="depth", device=device)
+    prep = _feed(run, source_prep)
     if dm.mask_input and seg is None:
         raise InputError(f"{dm.checkpoint} was trained with a foreground-mask input: also pass --model-seg RUN "
                          "so the mask can be predicted")
@@ -56,7 +69,7 @@ def depth_predictor(run: Path, seg: SegPredictor | None = None, device: str = "c
 
     def predict(rgb: np.ndarray, camera: Camera) -> np.ndarray:
         fg = (seg(rgb).argmax(axis=0) != 0) if seg is not None and (dm.mask_input or foreground_only) else None
-        depth = metric_depth(dm, rgb, fg if dm.mask_input else None)[0].numpy()
+        depth = metric_depth(dm, image_prep.apply(rgb, prep), fg if dm.mask_input else None)[0].numpy()
         return np.where(fg, depth, 0.0).astype(np.float32) if foreground_only else depth
 
     return predict

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from cadalign.config import to_dict
+from cadalign.data.image_prep import read_prep
 from cadalign.errors import InputError
 from cadalign.eval.map_metrics import load_truth, map_metrics, point_truth_labels, sample_surface, visible_mask
 from cadalign.fuse.base import LabelledGeometry, SemanticMap
@@ -153,19 +154,21 @@ def _open(cfg: FuseConfig, source: Path, depth: str, labels: str, seg_model: Pat
     src = open_source(source, depth=depth, labels=labels, label_confidence=cfg.label_confidence, split=split,
                       max_frames=max_frames, id_range=id_range)  # validates the choices and finds the classes
     seg = dep = None
+    prep = read_prep(src.scene.dir) if labels == "pred" or depth == "pred" else None  # raw frames get enhanced
     if labels == "pred" or (depth == "pred" and seg_model is not None):
         if seg_model is None:
             raise InputError("--labels pred needs a segmentation model: pass --model-seg RUN "
                              "(a `cadalign train seg` run folder or checkpoint)")
         from cadalign.fuse.predictors import seg_predictor
 
-        seg = seg_predictor(seg_model, src.classes.names)
+        seg = seg_predictor(seg_model, src.classes.names, source_prep=prep)
     if depth == "pred":
         if depth_model is None:
             raise InputError("--depth pred needs a depth model: pass --model-depth RUN "
                              "(a `cadalign train depth` run folder or checkpoint)")
         from cadalign.fuse.predictors import depth_predictor
 
-        dep = depth_predictor(depth_model, seg, foreground_only=cfg.pred_depth_foreground_only and seg is not None)
+        dep = depth_predictor(depth_model, seg, foreground_only=cfg.pred_depth_foreground_only and seg is not None,
+                              source_prep=prep)
     return FrameSource(src.scene, src.classes, src.ids, src.depth, src.labels, src.label_confidence, dep,
                        seg if labels == "pred" else None)
