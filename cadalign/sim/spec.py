@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -177,10 +177,15 @@ class SceneSpec:
 
 
 def load_scene(path: Path) -> SceneSpec:
-    """Read and strictly validate a scene TOML/YAML file."""
+    """Read and strictly validate a scene TOML/YAML file.
+
+    A file may start from another scene: ``extends = "default.toml"`` (a path relative to the file) loads that
+    scene and applies this file's keys over it. Tables merge key by key (``[trajectory]`` can change one
+    knob); lists (``[[objects]]``, ``[[lights]]``, effects) replace the base's whole list. The base's mesh
+    paths stay relative to the base file.
+    """
     path = Path(path)
-    data = read_mapping(path)
-    spec = from_dict(SceneSpec, data, source=str(path))
+    spec = _read_scene(path, ())
     from cadalign.sim.effects_chain import build_chain
 
     try:
@@ -191,6 +196,33 @@ def load_scene(path: Path) -> SceneSpec:
         raise ConfigError(f"{path}: {exc}") from exc
     check_camera_clearance(spec, source=str(path))
     return spec
+
+
+def _read_scene(path: Path, seen: tuple[Path, ...]) -> SceneSpec:
+    """The scene of ``path`` with its ``extends`` chain applied (``seen``: the files extending it)."""
+    data = dict(read_mapping(path))
+    parent = data.pop("extends", None)
+    if parent is None:
+        return from_dict(SceneSpec, data, source=str(path))
+    if not isinstance(parent, str) or not parent:
+        raise ConfigError(f"{path}: extends must name a scene file, got {parent!r}")
+    base_path = (path.parent / parent).resolve()
+    if base_path in seen or base_path == path.resolve():
+        raise ConfigError(f"{path}: extends {parent!r} makes a loop ({' -> '.join(map(str, (*seen, path)))}); "
+                          "a scene cannot extend itself")
+    if not base_path.is_file():
+        raise ConfigError(f"{path}: extends {parent!r}, but {base_path} is not a file; the path is relative to "
+                          f"{path.parent}")
+    base = _read_scene(base_path, (*seen, path.resolve()))
+    objects = tuple(replace(o, source=_anchored(o.source, base_path)) for o in base.objects)
+    return from_dict(SceneSpec, data, source=str(path), base=replace(base, objects=objects))
+
+
+def _anchored(source: str, scene_path: Path) -> str:
+    """A mesh source as the scene at ``scene_path`` meant it, readable from any other folder."""
+    if source.startswith(("data:", "procedural:")) or Path(source).is_absolute():
+        return source
+    return str((scene_path.parent / source).resolve())
 
 
 def _inside_solid(spec: ObjectSpec, p_world: np.ndarray) -> np.ndarray:
