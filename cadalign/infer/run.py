@@ -236,7 +236,10 @@ def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, ou
     ids = frame_ids(gt_scene)
     label_of = {n: i for i, n in enumerate(cmap.names)}  # by class name: the detector's list may differ
     models = load_bop_models(models_dir_of(gt_scene))
-    undeclared = warn_undeclared({k: (m.points_m, m.diameter_m, m.symmetry) for k, m in models.items()})
+    cfg = eval_cfg or PoseEvalConfig()
+    targets = {k: m for k, m in models.items()  # only pose targets: the structure's symmetries count for nothing
+               if cmap.names[cmap.class_of_obj.get(k, 0)] not in cfg.ignore_classes}
+    undeclared = warn_undeclared({k: (m.points_m, m.diameter_m, m.symmetry) for k, m in targets.items()})
     im_ids = [ids[n] for n in names if n in ids]
     if not im_ids:
         raise InputError(f"none of the {len(names)} frames is in the ground truth {gt_scene} (names like "
@@ -245,8 +248,7 @@ def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, ou
     for which, attr in (("detector", "T_detector"), ("refined", "T_refined"), ("fused", "T_cam_from_obj")):
         preds = [PosePrediction(ids[r.frame_name], label_of.get(r.class_name, -1), r.score, r.box_xyxy,
                                 getattr(r, attr), r.obj_id, r.mask) for r in records if r.frame_name in ids]
-        rep = evaluate_scene(preds, gt_scene, models, cmap.names, cmap.class_of_obj, eval_cfg or PoseEvalConfig(),
-                             im_ids)
+        rep = evaluate_scene(preds, gt_scene, models, cmap.names, cmap.class_of_obj, cfg, im_ids)
         if which != "fused":
             rep.pop("matches")
         rep["config"]["undeclared_symmetries"] = {str(k): v for k, v in undeclared.items()}

@@ -57,3 +57,18 @@ def test_declared_symmetries_are_not_reported(caplog):
 def test_random_point_clouds_have_no_symmetry(seed: int):
     pts = np.random.default_rng(seed).normal(size=(60, 3))
     assert undeclared_symmetries(pts, _diam(pts), Symmetry.none()) == []
+
+
+def test_the_run_evaluation_checks_only_the_pose_targets(tiny_sim):
+    """The tiny scene's structure block is a box (invariant to half turns) but no pose target: an evaluation
+    names only the parts it scores (the valve and hot stab declare no symmetry there)."""
+    from cadalign.infer.run import evaluate_run
+    from cadalign.io import read_json
+
+    scene = tiny_sim / "gt" / "sim" / "000000"
+    objs = read_json(scene / "objects.json")["objects"]
+    obj_of = {o["name"]: str(o["obj_id"]) for o in objs}
+    rep = evaluate_run([], ["000000.png"], scene, None)
+    found = rep["fused"]["config"]["undeclared_symmetries"]
+    assert obj_of["block"] not in found
+    assert obj_of["valve"] in found and "Rz180" in found[obj_of["valve"]]
