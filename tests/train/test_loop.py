@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -171,3 +172,34 @@ def test_amp_bf16_on_cpu_trains(tmp_path):
     train_loop(_model(), _step, _Toy(), cfg, tmp_path)
     rows = read_json(tmp_path / "metrics.json")["rows"]
     assert all(math.isfinite(r["loss"]) for r in rows) and rows[-1]["loss_avg"] < rows[0]["loss_avg"]
+
+
+@pytest.mark.parametrize("native", [False, True])
+def test_amp_autocasts_only_where_bf16_is_native(tmp_path, monkeypatch, native):
+    """Emulated bf16 is slower than fp32, so ``amp`` autocasts only on a device with native bf16; without it the
+    run is the fp32 run, loss for loss."""
+    import cadalign.train.loop as loop
+
+    seen = []
+
+    def step(model, batch):
+        seen.append(torch.is_autocast_enabled("cpu"))
+        return _step(model, batch)
+
+    monkeypatch.setattr(loop, "bf16_native", lambda dev: native)
+    cfg = LoopConfig(steps=6, batch_size=4, lr=2e-2, log_every=1)
+    train_loop(_model(), step, _Toy(), replace(cfg, amp=True), tmp_path / "amp")
+    assert seen and all(s == native for s in seen)
+    train_loop(_model(), _step, _Toy(), cfg, tmp_path / "fp32")
+    losses = [[r["loss"] for r in read_json(tmp_path / d / "metrics.json")["rows"]] for d in ("amp", "fp32")]
+    assert (losses[0] == losses[1]) == (not native)
+
+
+def test_bf16_native_names_the_cpus_that_have_it(monkeypatch):
+    from cadalign.train.loop import bf16_native
+
+    for avx512_bf16, amx, want in ((True, False, True), (False, True, True), (False, False, False)):
+        monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda v=avx512_bf16: v)
+        monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda v=amx: v)
+        assert bf16_native(torch.device("cpu")) is want
+    assert bf16_native(torch.device("meta")) is False
