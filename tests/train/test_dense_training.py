@@ -105,7 +105,7 @@ def test_preset_config_file_is_strict(tmp_path):
 
 
 @pytest.mark.parametrize("name", ["seg_tiny", "seg_small_classes", "seg_thesis_weights", "seg_fast_240x320",
-                                  "seg_zoom_lamp", "depth_tiny", "depth_thesis", "depth_silog_mask"])
+                                  "seg_zoom_lamp", "seg_fast_fp32", "depth_tiny", "depth_thesis", "depth_silog_mask"])
 def test_training_configs_load(repo_root, name):
     from cadalign.config import resolve
     from cadalign.train import depth, seg
@@ -114,3 +114,12 @@ def test_training_configs_load(repo_root, name):
     for preset in mod.PRESETS:
         cfg = resolve(cls, mod.PRESETS, preset, repo_root / "training" / f"{name}.toml")
         assert isinstance(cfg, cls)
+
+
+def test_the_fast_seg_preset_autocasts_and_its_fp32_config_does_not(repo_root):
+    from cadalign.config import resolve
+    from cadalign.train import seg
+
+    assert seg.PRESETS["fast"].loop.amp
+    for name in ("seg_fast_fp32", "seg_fast_240x320"):
+        assert not resolve(SegTrainConfig, seg.PRESETS, "fast", repo_root / "training" / f"{name}.toml").loop.amp
