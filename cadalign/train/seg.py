@@ -99,11 +99,11 @@ class SegTrainConfig:
 # hot-stab IoU 0.31), so it is under-fitted, not only out of distribution. ``eval seg --flip-tta`` adds
 # +0.002..0.027 valve IoU.
 # bf16 autocast (loop.amp, on CPUs with native bf16: AVX512-BF16 or AMX; elsewhere fp32): one thread, quiet
-# machine, 3000 steps in 976-990 CPU-s (16.5 min) against ~1550 in fp32 (25.8 min); the same seeds on the same
-# default-scene build: seed 0 val 0.966/0.780/0.546, test 0.958/0.736/0.098; seed 1 val 0.966/0.815/0.544, test
-# 0.959/0.713/0.080 (fp32 above); on the two-lap capture (datasets/scenes/two_pass.toml) test 0.961/0.784/0.502
-# and 0.960/0.794/0.565 against fp32 0.962/0.796/0.527 and 0.961/0.780/0.502. training/seg_fast_fp32.toml is
-# the fp32 run.
+# machine, 3000 steps in 990-1018 CPU-s (user+sys, ~17 min) against 1557 in fp32 (26 min); the same seeds on
+# the same default-scene build: seed 0 val 0.966/0.780/0.546, test 0.958/0.736/0.098; seed 1 val
+# 0.966/0.815/0.544, test 0.959/0.713/0.080 (fp32 above); on the two-lap capture (datasets/scenes/two_pass.toml)
+# test 0.961/0.784/0.502 and 0.960/0.794/0.565 against fp32 0.962/0.796/0.527 and 0.961/0.780/0.502.
+# training/seg_fast_fp32.toml is the fp32 run.
 PRESETS: dict[str, SegTrainConfig] = {
     "fast": SegTrainConfig(model=ResUNetConfig(base_channels=12), scale=1.0, patch=(176, 240), focus_prob=0.7,
                            focus_power=0.5, class_weight_power=0.5, max_class_weight=2.0, dice_weight=1.0,
