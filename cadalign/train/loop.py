@@ -190,6 +190,7 @@ class _Run:
         self.cpu0 = 0.0
         self.t0 = time.perf_counter()
         self.c0 = time.process_time()
+        self.bf16 = False  # whether the steps autocast (LoopConfig.amp on a device with native bf16)
 
     def seconds(self) -> float:
         """Wall-clock training seconds over this run and the runs it resumed."""
@@ -249,7 +250,8 @@ class _Run:
     def write_metrics(self, *, plot: bool) -> None:
         if self.rank != 0:
             return
-        write_json(self.run_dir / "metrics.json", {"loop_config": to_dict(self.cfg), "rows": self.rows})
+        write_json(self.run_dir / "metrics.json", {"loop_config": to_dict(self.cfg), "bf16_autocast": self.bf16,
+                                                   "rows": self.rows})
         if plot and self.rows:
             from cadalign.train.plots import plot_metrics
 
@@ -310,8 +312,9 @@ def train_loop(model: nn.Module, step_fn: StepFn, dataset: Dataset, cfg: LoopCon
                         # its own generator: drawing the worker base seed must not advance the global RNG
                         generator=torch.Generator().manual_seed(cfg.seed + run.step))
     loss_v, interrupted = math.nan, False
+    run.bf16 = cfg.amp and bf16_native(dev)
     if cfg.amp:
-        log.info("bf16 autocast %s on %s", "on" if bf16_native(dev) else "off (no native bf16: fp32)", dev)
+        log.info("bf16 autocast %s on %s", "on" if run.bf16 else "off (no native bf16: fp32)", dev)
     model.train()
     with _stop_on_signals() as flag:
         try:
@@ -364,7 +367,7 @@ def _one_step(run: _Run, step_fn: StepFn, batch: dict, dev: torch.device,
     if augment is not None:
         g = torch.Generator(device=dev).manual_seed(augment_seed(cfg.seed, run.step, run.rank))
         batch = augment(batch, g)
-    with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.amp and bf16_native(dev)):
+    with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=run.bf16):
         loss, metrics = step_fn(run.model, batch)
     if not bool(torch.isfinite(loss.detach()).all()):
         raise TrainingError(f"non-finite loss ({float(loss.detach())}) on sample {sample_names(batch)} at step "

@@ -190,6 +190,7 @@ def test_amp_autocasts_only_where_bf16_is_native(tmp_path, monkeypatch, native):
     cfg = LoopConfig(steps=6, batch_size=4, lr=2e-2, log_every=1)
     train_loop(_model(), step, _Toy(), replace(cfg, amp=True), tmp_path / "amp")
     assert seen and all(s == native for s in seen)
+    assert read_json(tmp_path / "amp" / "metrics.json")["bf16_autocast"] is native  # the run says what it did
     train_loop(_model(), _step, _Toy(), cfg, tmp_path / "fp32")
     losses = [[r["loss"] for r in read_json(tmp_path / d / "metrics.json")["rows"]] for d in ("amp", "fp32")]
     assert (losses[0] == losses[1]) == (not native)
