@@ -79,22 +79,18 @@ def read_prep(scene_or_root: Path) -> dict[str, Any] | None:
     return None
 
 
-def read_run_prep(run_dir: Path) -> dict[str, Any] | None:
-    """The preparation of a training run's images: its ``train_config.json`` record (``images``), else that of
-    the dataset the run names, when it still exists; None when neither says."""
-    path = Path(run_dir) / "train_config.json"
+def read_run_prep(run: Path) -> dict[str, Any] | None:
+    """The preparation of a training run's images (``run``: its folder or one of its checkpoints,
+    ``RUN/checkpoints/*.pt``): its ``train_config.json`` record (``images``), else that of the dataset the run
+    names, when it still exists; None when neither says."""
+    run = Path(run)
+    path = (run if run.is_dir() else run.parent.parent) / "train_config.json"
     rec = read_json(path) if path.is_file() else {}
     if rec.get("images") is not None:
         return _checked(rec["images"], str(path))
     if rec.get("dataset") and Path(rec["dataset"]).exists():
         return read_prep(Path(rec["dataset"]))
     return None
-
-
-def run_dir_of(run: Path) -> Path:
-    """The run folder of a run folder or of one of its checkpoints (``RUN/checkpoints/last.pt``)."""
-    run = Path(run)
-    return run if run.is_dir() else run.parent.parent
 
 
 def to_feed(source: dict[str, Any] | None, trained: dict[str, Any] | None, what: str) -> dict[str, Any]:

@@ -22,7 +22,7 @@ from cadalign.types import Camera
 def _feed(run: Path, source_prep: dict[str, Any] | None) -> dict[str, Any]:
     """What the frames (prepared as ``source_prep``, None: unknown) need before ``run``'s network sees them
     (:mod:`cadalign.data.image_prep`): raw frames get the enhancement its training images had."""
-    return image_prep.to_feed(source_prep, image_prep.read_run_prep(image_prep.run_dir_of(run)), str(run))
+    return image_prep.to_feed(source_prep, image_prep.read_run_prep(run), str(run))
 
 
 def seg_predictor(run: Path, classes: Sequence[str], device: str = "cpu",

@@ -45,9 +45,11 @@ def runs(tiny_dense: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Pa
 
 
 def _frame(tiny_dense: Path) -> np.ndarray:
-    import imageio.v2 as imageio
+    """The scene's first frame, read as fusion reads it."""
+    from cadalign.data.bop import BopScene
 
-    return np.asarray(imageio.imread(sorted((tiny_dense / "rgb").iterdir())[0]))[..., :3]
+    scene = BopScene(tiny_dense)
+    return scene.rgb(scene.ids[0])
 
 
 def test_raw_frames_are_enhanced_as_the_training_images_were(runs, tiny_dense: Path) -> None:
