@@ -54,7 +54,7 @@ def size_spec(size: str) -> SizeSpec:
 
 def bench_scene(data_dir: Path, *, effects: tuple[str, ...] | None = None, extra: str = "",
                 name: str = "scene.toml") -> Path:
-    """Write the benchmark scene (default scene at 1 frame/s) to ``data_dir/name``; returns its path.
+    """Write the benchmark scene (the default scene, 1 frame/s) to ``data_dir/name``; returns its path.
 
     ``effects`` replaces the scene's effect list; ``extra`` is TOML appended at the end (e.g. an
     ``[effect_params.marine_snow]`` table). Mesh sources are made absolute so the copy loads anywhere.
@@ -63,9 +63,8 @@ def bench_scene(data_dir: Path, *, effects: tuple[str, ...] | None = None, extra
 
     src = default_scene_path()
     text = src.read_text()
-    if "\nfps = 0.5\n" not in text:
-        raise ConfigError(f"{src}: expected 'fps = 0.5' in [trajectory]; the benchmark scene derives from it")
-    text = text.replace("\nfps = 0.5\n", "\nfps = 1.0\n")
+    if "\nfps = 1.0\n" not in text:
+        raise ConfigError(f"{src}: expected 'fps = 1.0' in [trajectory]; the benchmarks' frame spacing derives from it")
     if effects is not None:
         start = text.index("\neffects = [")
         end = text.index("]", start)

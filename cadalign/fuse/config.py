@@ -37,7 +37,7 @@ class FuseConfig:
     """Initial hash map capacity in blocks (8^3 blocks take ~18 kB each, allocated up front: 1.3 GB). Open3D
     doubles it as soon as the blocks held plus one frame's blocks exceed it, and that stalls one frame for
     seconds (10 s measured at 50000: a rehash and copy of every block), so size it for the scene: the default
-    scene ends at 50k 8^3 blocks after 64 frames and touches ~12k a frame."""
+    scene ends at 50k 8^3 blocks after its orbit (measured on 64 frames at 0.5 frame/s) and touches ~12k a frame."""
     color_every: int = bounded(1, ge=1)
     """TSDF only: integrate colour on every n-th frame (depth and labels on every frame). Colour is about a
     third of Open3D's TSDF time at 640x480; with n > 1 a voxel's colour is still a weighted average of the

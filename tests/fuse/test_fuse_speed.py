@@ -113,7 +113,7 @@ def test_realtime_preset_is_a_valid_tsdf_config() -> None:
 
     rt = PRESETS["realtime"]
     assert rt.method == "tsdf" and rt.voxel_m == 0.02 and rt.block_resolution == 4 and rt.color_every > 1
-    # the default scene's 64 frames need ~196k 4^3 blocks: no table growth (seconds each) on the way
+    # the default scene's orbit needs ~196k 4^3 blocks: no table growth (seconds each) on the way
     assert rt.label_pixel_stride == 2 and rt.block_count >= 200_000
     assert rt.label_lookup == "frustum" and rt.trunc_voxels == PRESETS["default"].trunc_voxels
 
