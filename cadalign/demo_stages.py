@@ -23,7 +23,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class DemoConfig:
-    """How much each learning stage of the demo does (the defaults fit the demo in ~30 min on 2 cores)."""
+    """How much each learning stage of the demo does (the defaults fit the demo in ~10 min on 2 quiet cores)."""
 
     seg_steps: int = bounded(150, ge=1)
     """Training steps of the segmentation network ('fast' preset otherwise)."""
