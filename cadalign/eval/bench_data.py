@@ -59,12 +59,12 @@ def bench_scene(data_dir: Path, *, effects: tuple[str, ...] | None = None, extra
     ``effects`` replaces the scene's effect list; ``extra`` is TOML appended at the end (e.g. an
     ``[effect_params.marine_snow]`` table). Mesh sources are made absolute so the copy loads anywhere.
     """
-    from cadalign.sim.spec import default_scene_path
+    from cadalign.sim.spec import default_scene_path, load_scene
 
     src = default_scene_path()
+    if load_scene(src).trajectory.fps != 1.0:
+        raise ConfigError(f"{src}: expected [trajectory] fps = 1.0; the benchmarks' frame spacing derives from it")
     text = src.read_text()
-    if "\nfps = 1.0\n" not in text:
-        raise ConfigError(f"{src}: expected 'fps = 1.0' in [trajectory]; the benchmarks' frame spacing derives from it")
     if effects is not None:
         start = text.index("\neffects = [")
         end = text.index("]", start)

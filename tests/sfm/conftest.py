@@ -6,9 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from cadalign.sim.spec import load_scene
-
-REPO = Path(__file__).resolve().parents[2]
+from cadalign.sim.spec import default_scene_path, load_scene
 
 
 @pytest.fixture(scope="session")
@@ -17,7 +15,7 @@ def tiny_dive(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> Pa
     apart (0.55 m at 1 frame/s) like a real survey."""
     from cadalign.sim.run import simulate
 
-    scene = REPO / "datasets" / "scenes" / "default.toml"
+    scene = default_scene_path()
     assert load_scene(scene).trajectory.fps == 1.0, "the SfM tests' tolerances were measured at 1 frame/s"
     return simulate(scene, tmp_path_factory.mktemp("sim") / "dive", frames=10, resolution=(320, 240),
                     video=False, contact_sheet=False)
