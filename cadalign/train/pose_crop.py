@@ -52,7 +52,7 @@ def crop_origin(hw: tuple[int, int], crop_hw: tuple[int, int], boxes: Tensor, g:
     """
     h, w = hw
     ch, cw = crop_hw
-    u = torch.rand(4, generator=g).tolist()
+    u = torch.rand(4, generator=g, device=g.device).tolist()
     if len(boxes) and u[0] < object_prob:
         b = boxes[min(int(u[1] * len(boxes)), len(boxes) - 1)]
         cx, cy = float(b[0] + b[2]) / 2, float(b[1] + b[3]) / 2
@@ -91,12 +91,12 @@ def zoom_target(target: dict, out_hw: tuple[int, int]) -> dict:
     if len(masks):
         masks = F.interpolate(masks[:, None].float(), size=out_hw, mode="bilinear", align_corners=False)[:, 0] >= 0.5
     else:
-        masks = torch.zeros(0, oh, ow, dtype=torch.bool)
+        masks = torch.zeros(0, oh, ow, dtype=torch.bool, device=masks.device)
     keep = torch.nonzero(masks.flatten(1).any(1)).squeeze(1)
     out = {k: target[k][keep] for k in _PER_IMAGE if k != "masks"}
     out["masks"] = masks[keep]
     out["boxes"] = masks_to_boxes(out["masks"]).to(target["boxes"].dtype)
-    scale = torch.tensor([ow / w, oh / h, 1.0], dtype=target["K"].dtype)
+    scale = torch.tensor([ow / w, oh / h, 1.0], dtype=target["K"].dtype, device=target["K"].device)
     out["K"] = scale[:, None] * target["K"]
     return out
 
@@ -108,7 +108,7 @@ def draw_zoom(g: torch.Generator, prob: float, zoom_max: float) -> float:
     """
     if prob <= 0 or zoom_max <= 1:
         return 1.0
-    u = torch.rand(2, generator=g).tolist()
+    u = torch.rand(2, generator=g, device=g.device).tolist()
     return float(zoom_max ** u[1]) if u[0] < prob else 1.0
 
 
