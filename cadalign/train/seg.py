@@ -43,6 +43,12 @@ class SegTrainConfig:
     """Cross-entropy class weights."""
     max_class_weight: float = bounded(10.0, ge=1)
     """Clip of the median-frequency weights (a class seen in a few pixels must not dominate)."""
+    rare_class_share: float = bounded(0.0, ge=0, lt=1)
+    """Classes with fewer than this share of the training pixels are *rare* and capped at
+    ``max_rare_class_weight`` instead of ``max_class_weight`` (0 = off). Meant for parts of a few pixels (hot
+    stabs: 0.04 % of the default scene's training pixels, valves 0.8 %), which a common cap treats like the valves."""
+    max_rare_class_weight: float = bounded(4.0, ge=1)
+    """Clip of the weights of the rare classes (see ``rare_class_share``)."""
     dice_weight: float = bounded(0.5, ge=0)
     """Weight of the soft-Dice term added to the cross-entropy (0 = off)."""
     val_every: int = bounded(0, ge=0)
@@ -85,29 +91,25 @@ class SegTrainConfig:
     one thread (measured: 0.74 -> 0.55 s for a batch of 4 240x320 windows at width 12)."""
 
 
-# fast: full-resolution 176x240 windows, 70% of them centred on a small-class pixel (hot stabs most often),
-# square-root median-frequency weights capped at 2, focal cross-entropy (gamma 2) plus Dice 1.0. The thesis-style
-# weights (cap 10) over-predict valves 2.6x on the built default scene; weights of 1 under-predict them; this mix
-# predicts ~1.1x. Channels-last layout. 3000 steps of 176x240 cost what 1750 of 240x320 did (the step cost follows
-# the window area; measured back to back on the loaded shared 2-core machine: 1614 / 1553 CPU-s for seeds 0 / 1
-# against 1684 for 240x320 x 1750, which took 1139-1147 CPU-s under a lighter load: <= 20 CPU-minutes there).
-# Calibrated default-scene build, IoU structure/valve/hot stab, seed 0: val 0.966/0.787/0.540, test
-# 0.958/0.736/0.136; seed 1: val 0.966/0.808/0.466, test 0.959/0.759/0.042 (240x320 x 1750, training/
-# seg_fast_240x320.toml: seed 0 val 0.957/0.800/0.457, test 0.943/0.752/0.100; seed 1 val valve/hot stab
-# 0.793/0.511, test 0.732/0.080): structure +0.016, valve and hot stab equal within the seed noise. Test-block
-# hot stabs stay <= 0.14: the network misses hot_stab_2's thin bar along a beam even on training frames (train
-# hot-stab IoU 0.31), so it is under-fitted, not only out of distribution. ``eval seg --flip-tta`` adds
-# +0.002..0.027 valve IoU.
-# bf16 autocast (loop.amp, on CPUs with native bf16: AVX512-BF16 or AMX; elsewhere fp32): one thread, quiet
-# machine, 3000 steps in 990-1018 CPU-s (user+sys, ~17 min) against 1557 in fp32 (26 min); the same seeds on
-# the same default-scene build: seed 0 val 0.966/0.780/0.546, test 0.958/0.736/0.098; seed 1 val
-# 0.966/0.815/0.544, test 0.959/0.713/0.080 (fp32 above); on the two-lap capture (datasets/scenes/two_pass.toml)
-# test 0.961/0.784/0.502 and 0.960/0.794/0.565 against fp32 0.962/0.796/0.527 and 0.961/0.780/0.502.
-# training/seg_fast_fp32.toml is the fp32 run.
+# fast: full-resolution 176x240 windows, 80 % of them centred on a pixel of a small class drawn by inverse pixel
+# frequency (hot stabs most often), square-root median-frequency weights capped at 2, and at 4 for classes under
+# 0.1 % of the training pixels (hot stabs 0.04 %, valves 0.8 % on the default scene), focal cross-entropy (gamma 2)
+# plus Dice 1.0, bf16 autocast where native, channels-last. 3000 steps in 981-1022 CPU-s (one thread, ~17 min).
+# Default scene (1 frame/s, fresh-clone demo build), held-out test block, IoU structure/valve/hot stab, seeds
+# 0-3: 0.960/0.790/0.556, 0.963/0.796/0.563, 0.962/0.827/0.566, 0.963/0.804/0.545; val block hot stab
+# 0.477-0.492. The former recipe (training/seg_fast_s10.toml: 70 % windows by square-root frequency, one cap
+# of 2) gave test 0.965/0.817/0.527 and 0.963/0.808/0.492 for seeds 0/1: it predicted 0.78x the hot-stab
+# pixels (recall 0.58-0.62), this one 0.93-0.97x (recall 0.69-0.71, precision 0.73-0.74 against 0.76-0.78),
+# valves 0.98-1.01x. Screened first on a GPU (3 seeds each, same build): a hot-stab cap of 4 alone and the
+# inverse-frequency windows alone each gave ~+0.06 hot-stab IoU at mid-training, Dice 2.0 nothing.
+# The thesis-style weights (cap 10 on every class) over-predict valves 2.6x; weights of 1 under-predict them.
+# ``eval seg --flip-tta`` adds +0.002..0.03 IoU. History: training/seg_fast_240x320.toml (240x320 windows x 1750
+# steps, same CPU time), training/seg_fast_fp32.toml (no autocast: ~1.6x the CPU time, same IoU within the seed
+# noise).
 PRESETS: dict[str, SegTrainConfig] = {
-    "fast": SegTrainConfig(model=ResUNetConfig(base_channels=12), scale=1.0, patch=(176, 240), focus_prob=0.7,
-                           focus_power=0.5, class_weight_power=0.5, max_class_weight=2.0, dice_weight=1.0,
-                           focal_gamma=2.0,
+    "fast": SegTrainConfig(model=ResUNetConfig(base_channels=12), scale=1.0, patch=(176, 240), focus_prob=0.8,
+                           focus_power=1.0, class_weight_power=0.5, max_class_weight=2.0, rare_class_share=0.001,
+                           max_rare_class_weight=4.0, dice_weight=1.0, focal_gamma=2.0,
                            loop=LoopConfig(steps=3000, batch_size=4, lr=3e-3, checkpoint_every=100, log_every=10,
                                            amp=True)),
     "balanced": SegTrainConfig(model=ResUNetConfig(base_channels=32), scale=1.0, patch=(240, 320),
@@ -125,7 +127,10 @@ def class_weights(counts: np.ndarray, image_counts: np.ndarray, cfg: SegTrainCon
     """
     if cfg.class_weighting == "none":
         return None
-    w = np.minimum(median_frequency_weights(counts, image_counts) ** cfg.class_weight_power, cfg.max_class_weight)
+    counts = np.asarray(counts, dtype=np.float64)
+    share = counts / max(counts.sum(), 1.0)
+    cap = np.where((counts > 0) & (share < cfg.rare_class_share), cfg.max_rare_class_weight, cfg.max_class_weight)
+    w = np.minimum(median_frequency_weights(counts, image_counts) ** cfg.class_weight_power, cap)
     return np.where(counts > 0, np.maximum(w, 1.0 / cfg.max_class_weight), 0.0)
 
 

@@ -105,7 +105,8 @@ def test_preset_config_file_is_strict(tmp_path):
 
 
 @pytest.mark.parametrize("name", ["seg_tiny", "seg_small_classes", "seg_thesis_weights", "seg_fast_240x320",
-                                  "seg_zoom_lamp", "seg_fast_fp32", "depth_tiny", "depth_thesis", "depth_silog_mask"])
+                                  "seg_zoom_lamp", "seg_fast_fp32", "seg_fast_s10", "depth_tiny", "depth_thesis",
+                                  "depth_silog_mask"])
 def test_training_configs_load(repo_root, name):
     from cadalign.config import resolve
     from cadalign.train import depth, seg

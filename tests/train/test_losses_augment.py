@@ -205,6 +205,28 @@ def test_seg_class_and_focus_weights_by_hand():
     root = class_weights(counts, image_counts, SegTrainConfig(max_class_weight=5.0, class_weight_power=0.5))
     assert root == pytest.approx([max(math.sqrt(0.33), 0.2), math.sqrt(0.66), math.sqrt(0.198 / 0.096), 5.0, 0.0])
     assert class_weights(counts, image_counts, SegTrainConfig(class_weighting="none")) is None
+    # shares 0.6, 0.3, 0.096, 0.004: below 1 % only class 3 is rare and gets its own cap; the absent class stays 0
+    rare = class_weights(counts, image_counts, SegTrainConfig(max_class_weight=2.0, rare_class_share=0.01,
+                                                              max_rare_class_weight=4.0))
+    assert rare == pytest.approx([0.5, 0.66, 2.0, 4.0, 0.0], abs=0.01)
+    assert class_weights(counts, image_counts, SegTrainConfig(max_class_weight=2.0, rare_class_share=0.1,
+                                                              max_rare_class_weight=4.0)) == pytest.approx(
+        [0.5, 0.66, 0.198 / 0.096, 4.0, 0.0], abs=0.01)  # class 2 (9.6 %) now rare too: its 2.06 is under 4
     assert focus_weights(counts, SegTrainConfig()) is None
     assert focus_weights(counts, SegTrainConfig(focus_power=0.5)) == pytest.approx(
         [600**-0.5, 300**-0.5, 96**-0.5, 0.5, 0.0])
+
+
+def test_fast_seg_preset_weighs_hot_stabs_above_valves_and_the_s10_recipe_did_not(repo_root):
+    """On the default scene's training pixel counts (83 frames: hot stabs 0.04 %, valves 0.8 %) the fast preset
+    caps the hot stab at 4 and the valve at 2; training/seg_fast_s10.toml restores the former common cap of 2."""
+    from cadalign.config import resolve
+    from cadalign.train.seg import PRESETS, SegTrainConfig, class_weights
+
+    counts = np.array([16946623, 8341309, 198993, 10675])
+    image_counts = np.full(4, 25497600)
+    fast = resolve(SegTrainConfig, PRESETS, "fast")
+    assert class_weights(counts, image_counts, fast) == pytest.approx([0.502, 0.715, 2.0, 4.0], abs=1e-3)
+    s10 = resolve(SegTrainConfig, PRESETS, "fast", repo_root / "training" / "seg_fast_s10.toml")
+    assert class_weights(counts, image_counts, s10) == pytest.approx([0.502, 0.715, 2.0, 2.0], abs=1e-3)
+    assert (s10.focus_prob, s10.focus_power) == (0.7, 0.5) and (fast.focus_prob, fast.focus_power) == (0.8, 1.0)
