@@ -99,7 +99,7 @@ class SegTrainConfig:
 # 0-3: 0.960/0.790/0.556, 0.963/0.796/0.563, 0.962/0.827/0.566, 0.963/0.804/0.545; val block hot stab
 # 0.477-0.492. The former recipe (training/seg_fast_s10.toml: 70 % windows by square-root frequency, one cap
 # of 2) gave test 0.965/0.817/0.527 and 0.963/0.808/0.492 for seeds 0/1: it predicted 0.78x the hot-stab
-# pixels (recall 0.58-0.62), this one 0.93-0.97x (recall 0.69-0.71, precision 0.73-0.74 against 0.76-0.78),
+# pixels (recall 0.58-0.62), this one 0.90-0.97x (recall 0.69-0.71, precision 0.72-0.76 against 0.76-0.78),
 # valves 0.98-1.01x. Screened first on a GPU (3 seeds each, same build): a hot-stab cap of 4 alone and the
 # inverse-frequency windows alone each gave ~+0.06 hot-stab IoU at mid-training, Dice 2.0 nothing.
 # The thesis-style weights (cap 10 on every class) over-predict valves 2.6x; weights of 1 under-predict them.
