@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import random
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -49,10 +50,24 @@ def set_rng_state(state: dict[str, Any]) -> None:
 
 
 def save_checkpoint(path: Path, state: dict[str, Any]) -> Path:
-    """Write ``state`` with ``torch.save`` atomically (temp file + rename)."""
-    with atomic_path(Path(path)) as tmp:
-        torch.save(state, tmp)
-    return Path(path)
+    """Write ``state`` with ``torch.save`` atomically (temp file + rename).
+
+    Raises:
+        TrainingError: the write failed (a full disk shows up as torch's bare "iostream error"); the message
+            names the file and the free space, and the checkpoint already there is left as it was.
+    """
+    path = Path(path)
+    try:
+        with atomic_path(path) as tmp:
+            torch.save(state, tmp)
+    except (OSError, RuntimeError) as exc:
+        try:
+            free = f"{shutil.disk_usage(path.parent).free / 2**20:.0f} MiB free there"
+        except OSError:
+            free = "free space unknown"
+        raise TrainingError(f"could not write the checkpoint {path} ({exc}; {free}). The previous checkpoint is "
+                            "intact: free disk space, then continue with --resume") from exc
+    return path
 
 
 def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:

@@ -80,6 +80,30 @@ def test_resume_gives_identical_losses(tmp_path):
     assert (tmp_path / "full" / "loss.png").stat().st_size > 1000
 
 
+def test_a_failed_checkpoint_write_stops_clearly_and_resume_continues(tmp_path, monkeypatch):
+    """A full disk (torch.save's bare 'iostream error') at the step-10 checkpoint: a TrainingError naming the file
+    and --resume, the step-5 last.pt intact, no temp file left; --resume then ends like an uninterrupted run."""
+    full = train_loop(_model(), _step, _Toy(), CFG, tmp_path / "full")
+    real_save = torch.save
+
+    def full_disk(obj, f, *args, **kwargs):
+        if "step_000010" in str(f):
+            raise RuntimeError("basic_ios::clear: iostream error")
+        return real_save(obj, f, *args, **kwargs)
+
+    monkeypatch.setattr(torch, "save", full_disk)
+    with pytest.raises(TrainingError, match=r"step_000010\.pt.*iostream error.*MiB free.*--resume"):
+        train_loop(_model(), _step, _Toy(), CFG, tmp_path / "cut")
+    ck_dir = tmp_path / "cut" / "checkpoints"
+    assert load_checkpoint(ck_dir / "last.pt")["step"] == 5
+    assert sorted(p.name for p in ck_dir.iterdir()) == ["last.pt", "step_000005.pt"]
+    monkeypatch.setattr(torch, "save", real_save)
+    res = train_loop(_model(), _step, _Toy(), CFG, tmp_path / "cut", resume=True)
+    assert res.steps_done == 12 and res.final_loss == full.final_loss
+    rows_full = read_json(tmp_path / "full" / "metrics.json")["rows"]
+    assert [r["loss"] for r in read_json(tmp_path / "cut" / "metrics.json")["rows"]] == [r["loss"] for r in rows_full]
+
+
 def test_interrupt_then_resume_matches(tmp_path):
     full = train_loop(_model(), _step, _Toy(), CFG, tmp_path / "full")
     calls = {"n": 0}
