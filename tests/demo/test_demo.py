@@ -64,3 +64,19 @@ def test_an_interrupted_training_stops_the_demo() -> None:
     assert _stop_if_interrupted(done) is done
     with pytest.raises(KeyboardInterrupt, match="step 3"):
         _stop_if_interrupted(SimpleNamespace(interrupted=True, steps_done=3))
+
+
+def test_a_build_that_passed_its_gate_is_still_refused_when_unfit_for_learning() -> None:
+    """Seen once in CI: on the 6-frame scene the alignment gate passed a wrong alignment, the dataset had no test
+    frame and 1.2 cm depths, and every learning stage failed. The demo now falls back to the simulator's truth."""
+    from cadalign.demo import untrusted_build
+
+    good = {"splits": {"train": 83, "val": 17, "test": 16},
+            "vs_truth": {"alignment": {"rotation_deg": 0.067, "scale_rel": 0.0005, "translation_m": 0.011}}}
+    assert untrusted_build(good) is None
+    assert "no test frames" in untrusted_build({**good, "splits": {"train": 4, "val": 1, "test": 0}})
+    assert "no train and no test" in untrusted_build({**good, "splits": {"val": 2}})
+    for bad in ({"rotation_deg": 31.0, "scale_rel": 0.0}, {"rotation_deg": 0.1, "scale_rel": 0.9},
+                {"rotation_deg": float("nan"), "scale_rel": 0.0}):
+        assert "off the simulator's truth" in untrusted_build({**good, "vs_truth": {"alignment": bad}})
+    assert untrusted_build({"splits": good["splits"]}) is None  # no truth to compare with: the splits decide
