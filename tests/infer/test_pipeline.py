@@ -50,6 +50,41 @@ def test_identification_picks_the_model_whose_silhouette_fits(scene: Path, tiny_
     assert pipe.identify(replace(valve, obj_id=9), T, K) == (9, T)  # a reported model id wins
 
 
+def test_a_box_overlapping_the_previous_frames_reuses_its_model(scene: Path, tiny_structure, monkeypatch) -> None:
+    """With two models in the valve class, the same valve box on consecutive frames is identified once; frame gaps,
+    reuse_box_iou = 0 and a box that moved away identify again."""
+    models = dict(tiny_structure.models)
+    models[9] = CadModel("decoy", models[1].vertices_m * 0.3, models[1].faces, class_name="valve")
+    det = OracleDetector(scene, OracleConfig(noise_t_m=0.0, noise_r_deg=0.0))
+    valve = next(d for d in det.for_frame("000002.png").detect(None, None) if d.label == 2)
+    K = det.scene.frame(2).camera.K
+    image = np.zeros((120, 160, 3), np.uint8)
+
+    class Fixed:  # the same valve detection on every frame, its box shifted by `dx` pixels
+        dx = 0.0
+
+        def detect(self, image, K):
+            return [replace(valve, box_xyxy=np.asarray(valve.box_xyxy, float) + [self.dx, 0, self.dx, 0])]
+
+    def run(frames: list[int], reuse: float, shifts: dict[int, float] | None = None) -> int:
+        fixed = Fixed()
+        pipe = PosePipeline(fixed, models, tiny_structure.class_names, replace(PRESETS["fast"], reuse_box_iou=reuse))
+        calls = []
+        real = pipe.identify
+        monkeypatch.setattr(pipe, "identify", lambda *a, **k: calls.append(1) or real(*a, **k))
+        for f in frames:
+            fixed.dx = (shifts or {}).get(f, 0.0)
+            records, _ = pipe.process(f, f"{f:06d}.png", image, K)
+            assert [r.obj_id for r in records] == [2]
+        return len(calls)
+
+    assert run([0, 1, 2], 0.5) == 1
+    assert run([0, 1, 2], 0.0) == 3
+    assert run([0, 2, 4], 0.5) == 3  # not consecutive frames
+    width = float(valve.box_xyxy[2] - valve.box_xyxy[0])
+    assert run([0, 1], 0.5, {1: 0.8 * width}) == 2  # the box moved: IoU < 0.5
+
+
 def test_exact_poses_score_perfectly_and_a_shift_is_measured(scene: Path) -> None:
     cmap = load_class_map(scene)
     models = load_bop_models(scene.parent.parent / "models")
