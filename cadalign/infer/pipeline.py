@@ -176,28 +176,26 @@ class PosePipeline:
         _, best, T_best = min(scored, key=lambda x: x[0])
         return best, T_best
 
-    def _tracked_model(self, det: object, T: Rigid3, frame: int, T_world_from_cam: Rigid3 | None) -> int | None:
-        """The model id of an established track at the detection's place (skips identification), if any."""
+    def _known_model(self, det: object, T: Rigid3, frame: int, T_world_from_cam: Rigid3 | None) -> int | None:
+        """The model id of a detection whose class has several models, without identifying it, if any: that of
+        an established track at its place, else that of the previous frame's same-class detection its box overlaps
+        most (IoU >= ``reuse_box_iou``, consecutive frames only)."""
         if getattr(det, "obj_id", None) is not None:
             return None
-        cands = self.candidates(int(det.label))
+        label = int(det.label)
+        cands = self.candidates(label)
         if len(cands) <= 1:
             return None
         gate = min(self.cfg.temporal.gate_m, 0.5 * min(self.models[k].diameter_m for k in cands))
-        return self.fuser.known_model(int(det.label), T, frame, gate, T_world_from_cam)
-
-    def _model_of_previous_box(self, det: object, frame: int) -> int | None:
-        """The CAD model of the previous frame's same-class detection that ``det``'s box overlaps most, if that
-        IoU reaches ``reuse_box_iou`` (only for consecutive frames and classes with several models)."""
-        if (self.cfg.reuse_box_iou <= 0 or self._prev is None or self._prev[0] != frame - 1
-                or getattr(det, "obj_id", None) is not None or len(self.candidates(int(det.label))) <= 1):
-            return None
-        prev = [(box, oid) for label, box, oid in self._prev[1] if label == int(det.label)]
+        oid = self.fuser.known_model(label, T, frame, gate, T_world_from_cam)
+        if oid is not None or self.cfg.reuse_box_iou <= 0 or self._prev is None or self._prev[0] != frame - 1:
+            return oid
+        prev = [(box, k) for lab, box, k in self._prev[1] if lab == label]
         if not prev:
             return None
         ious = box_iou(np.asarray(det.box_xyxy, float), np.stack([b for b, _ in prev]))[0]
-        k = int(np.argmax(ious))
-        return prev[k][1] if ious[k] >= self.cfg.reuse_box_iou else None
+        best = int(np.argmax(ious))
+        return prev[best][1] if ious[best] >= self.cfg.reuse_box_iou else None
 
     def process(self, frame: int, name: str, image: np.ndarray, K: np.ndarray, depth_m: np.ndarray | None = None,
                 T_world_from_cam: Rigid3 | None = None) -> tuple[list[PoseRecord], dict[str, float]]:
@@ -222,8 +220,7 @@ class PosePipeline:
             ta = time.perf_counter()
             T0 = Rigid3(np.asarray(d.R_cam_from_obj, float), np.asarray(d.t_cam_from_obj_m, float))
             depth = depth_m if self.cfg.use_depth else None
-            oid = self._tracked_model(d, T0, frame, T_world_from_cam)
-            oid = oid if oid is not None else self._model_of_previous_box(d, frame)
+            oid = self._known_model(d, T0, frame, T_world_from_cam)
             oid, T_start = (oid, T0) if oid is not None else self.identify(d, T0, K, depth)
             tb = time.perf_counter()
             times["identify"] += tb - ta
