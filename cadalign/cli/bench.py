@@ -72,6 +72,63 @@ for _stage, _doc in (
     _stage_command(_stage, _doc)
 
 
+@app.command("infer")
+def infer(
+    model: Path | None = typer.Option(None, "--model", help="'cadalign train pose' run folder to time (default: a "
+                                      "network trained for the size's few steps on the bench clip)."),
+    frames: Path | None = typer.Option(None, "--frames", help="With --model: video or folder of frames."),
+    gt: Path | None = typer.Option(None, "--gt", help="With --model: simulation folder or BOP scene with the "
+                                   "frames' truth and intrinsics."),
+    cad: Path | None = typer.Option(None, "--cad", help="With --model: the scene spec it was trained on."),
+    depth: Path | None = typer.Option(None, "--depth", help="With --model: simulation or BOP scene with "
+                                      "depth for ICP."),
+    config: Path | None = typer.Option(None, "--config", help="With --model: TOML/YAML of InferConfig keys for every "
+                                       "setting, e.g. enhance = \"none\" for frames already enhanced."),
+    max_frames: int | None = typer.Option(None, "--max-frames", min=1, help="With --model: time at most this many "
+                                          "frames."),
+    out: Path = OUT, size: str = SIZE, repeats: int | None = REPEATS, seed: int = SEED, overwrite: bool = OVERWRITE,
+) -> None:
+    """Infer presets (detector only, fast, balanced ...): ADD(-S) recall vs ms per frame, and each preset's cost
+    over the detector alone measured in the same run; per-stage ms and frames/s in bench.json."""
+    from cadalign.config import read_mapping, resolve
+    from cadalign.errors import InputError
+    from cadalign.eval.bench import run_bench
+    from cadalign.eval.bench_infer import InferSource, infer_sweep
+    from cadalign.infer.pipeline import PRESETS, InferConfig
+
+    with user_errors():
+        sweeps = None
+        if model is not None:
+            missing = [n for n, v in (("--frames", frames), ("--gt", gt), ("--cad", cad)) if v is None]
+            if missing:
+                raise InputError(f"--model {model} also needs {', '.join(missing)} (the frames to time, their truth "
+                                 "and the scene spec the network was trained on)")
+            overrides = dict(read_mapping(config)) if config else {}
+            resolve(InferConfig, PRESETS, "fast", overrides=overrides)  # a bad key fails here, not per setting
+            src = InferSource(model, frames, gt, cad, depth, overrides, max_frames)
+            sweeps = {"infer": lambda data, cfg: infer_sweep(data, cfg, src)}
+        elif any(v is not None for v in (frames, gt, cad, depth, config, max_frames)):
+            raise InputError("--frames/--gt/--cad/--depth/--config/--max-frames go with --model RUN")
+        run_bench(["infer"], out, _config(size, repeats, seed), overwrite=overwrite, progress=track, sweeps=sweeps)
+        _print_infer(out)
+    console.print(f"[green]written {out / 'bench.json'} and {out / 'bench.html'}[/]")
+
+
+def _print_infer(out: Path) -> None:
+    from cadalign.eval.bench import current_records, load_bench
+
+    st = load_bench(out)["stages"]["infer"]
+    for r in current_records(st, st["current"]):
+        if r["status"] != "done":
+            console.print(f"  {r['name']:<26} [red]failed[/]: {r.get('error')}")
+            continue
+        m = r["metrics"]
+        console.print(f"  {r['name']:<26} {m['ms_per_frame']:7.1f} ms/frame ({m['frames_per_s']:.2f} frames/s; "
+                      f"detector {m['ms_detector']:.0f} / pose {m['ms_pose']:.0f} / refinement "
+                      f"{m['ms_refinement']:.0f} ms), x{r['cost_ratio'] or float('nan'):.2f} the detector alone; "
+                      f"ADD(-S) recall {m['add_s_01d']:.3f}, F1 {m['f1']:.3f}")
+
+
 @app.command("all")
 def all_stages(
     out: Path = OUT, size: str = SIZE, repeats: int | None = REPEATS, seed: int = SEED, overwrite: bool = OVERWRITE,
@@ -80,7 +137,7 @@ def all_stages(
     models: Path | None = typer.Option(None, "--models", help="For robustness: folder with seg/, depth/ and/or "
                                        "pose/ training runs to score under each condition."),
 ) -> None:
-    """Every stage's sweep (sim, sfm, align, render, seg, depth, refine, fuse, emulate), then robustness."""
+    """Every stage's sweep (sim, sfm, align, render, seg, depth, refine, infer, fuse, emulate), then robustness."""
     from cadalign.eval.bench import STAGES
 
     bad = [s for s in skip if s not in STAGES]

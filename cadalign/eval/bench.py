@@ -95,6 +95,9 @@ class Sweep:
     """Releases the shared state (e.g. closes a GL context) after the sweep."""
     repeats: int | None = None
     """Repeats for this stage (default: the run's); 1 for stages whose single run already repeats inside."""
+    baseline: str | None = None
+    """Name of the setting the others' costs are divided by (``cost_ratio`` in each record), measured in the same
+    run; None: no ratio."""
 
 
 @dataclass(frozen=True)
@@ -215,7 +218,7 @@ class BenchStore:
     def stage(self, sweep: Sweep) -> dict[str, Any]:
         st = self.data["stages"].setdefault(sweep.stage, {"points": {}})
         st.update(description=sweep.description, accuracy=sweep.accuracy.__dict__, cost=sweep.cost.__dict__,
-                  order=[p.name for p in sweep.points])
+                  order=[p.name for p in sweep.points], baseline=sweep.baseline)
         return st
 
     def save(self) -> Path:
@@ -287,6 +290,9 @@ def summarise_stage(stage: str, st: dict[str, Any], keys: list[str], out_dir: Pa
     accs = [num(r["accuracy"]) for r in recs]
     front = pareto_front(costs, accs, higher_is_better=acc["higher_is_better"])
     rec = recommend(costs, accs, higher_is_better=acc["higher_is_better"])
+    base = [r for r in recs if r["name"] == st.get("baseline") and r["status"] == "done"]
+    for r in recs:  # every setting's cost over the baseline's, both from this run's records
+        r["cost_ratio"] = num(r["cost"]) / num(base[0]["cost"]) if base and num(base[0]["cost"]) > 0 else None
     st["current"] = keys
     st["pareto"] = [recs[i]["name"] for i in front]
     st["recommended"] = recs[rec]["name"] if rec is not None else None
@@ -336,21 +342,23 @@ def stage_rows(bench: dict[str, Any], stage: str) -> list[dict[str, Any]]:
     for r in current_records(st, st.get("current", list(st["points"]))):
         rows.append({"setting": r["name"], "knobs": knob_note(r["knobs"], 80), "status": r["status"],
                      st["accuracy"]["label"]: num(r["accuracy"]), st["cost"]["label"]: num(r["cost"]),
+                     **({f"cost / {st['baseline']}": num(r.get("cost_ratio"))} if st.get("baseline") else {}),
                      "wall s (median)": num(r.get("seconds")), "peak RSS MB": num(r.get("peak_rss_mb")),
                      "Pareto": r["name"] in st.get("pareto", []),
                      "recommended": r["name"] == st.get("recommended")})
     return rows
 
 
-STAGES = ("sim", "sfm", "align", "render", "seg", "depth", "refine", "fuse", "emulate")
+STAGES = ("sim", "sfm", "align", "render", "seg", "depth", "refine", "infer", "fuse", "emulate")
 """Every benchmarked stage, in the order ``bench all`` runs them."""
 
 
 def make_sweep(stage: str, data: Any, cfg: BenchConfig) -> Sweep:
     """The :class:`Sweep` of ``stage`` on ``data`` (a :class:`~cadalign.eval.bench_data.BenchData`)."""
-    from cadalign.eval import bench_models, bench_stages
+    from cadalign.eval import bench_infer, bench_models, bench_stages
 
-    makers = {"sim": bench_stages.sim_sweep, "render": bench_stages.render_sweep, "align": bench_stages.align_sweep,
+    makers = {"infer": bench_infer.infer_sweep,
+              "sim": bench_stages.sim_sweep, "render": bench_stages.render_sweep, "align": bench_stages.align_sweep,
               "fuse": bench_stages.fuse_sweep, "emulate": bench_stages.emulate_sweep, "sfm": bench_models.sfm_sweep,
               "seg": bench_models.seg_sweep, "depth": bench_models.depth_sweep, "refine": bench_models.refine_sweep}
     if stage not in makers:
@@ -359,15 +367,20 @@ def make_sweep(stage: str, data: Any, cfg: BenchConfig) -> Sweep:
 
 
 def run_bench(stages: Iterable[str], out_dir: Path, cfg: BenchConfig, *, overwrite: bool = False,
-              progress: Progress | None = None, report: bool = True) -> dict[str, Any]:
-    """Sweep ``stages`` into ``out_dir`` (bench.json, pareto_<stage>.png, bench.html); returns bench.json's dict."""
+              progress: Progress | None = None, report: bool = True,
+              sweeps: dict[str, Callable[[Any, BenchConfig], Sweep]] | None = None) -> dict[str, Any]:
+    """Sweep ``stages`` into ``out_dir`` (bench.json, pareto_<stage>.png, bench.html); returns bench.json's dict.
+
+    ``sweeps`` maps a stage to its own ``(data, cfg) -> Sweep`` maker instead of :func:`make_sweep` (e.g. the
+    infer sweep on a user's network)."""
     from cadalign.eval.bench_data import BenchData, size_spec
 
     out_dir = Path(out_dir)
     store = BenchStore(out_dir, cfg, overwrite=overwrite)
     data = BenchData(out_dir / "data", size_spec(cfg.size), cfg.seed)
     for stage in stages:
-        run_sweep(make_sweep(stage, data, cfg), store, progress=progress)
+        maker = (sweeps or {}).get(stage)
+        run_sweep(maker(data, cfg) if maker else make_sweep(stage, data, cfg), store, progress=progress)
     if report:
         from cadalign.eval.bench_report import write_bench_report
 

@@ -103,3 +103,20 @@ def test_peak_memory_sees_an_allocation():
         del a
     assert mem["peak_rss_mb"] - mem["start_rss_mb"] > 80
     assert "VmRSS" in mem["method"]
+
+
+def test_costs_are_divided_by_the_baseline_of_the_same_run(tmp_path):
+    calls: list = []
+    sweep = toy_sweep(calls)
+    st = run_sweep(Sweep(**{**sweep.__dict__, "baseline": "n2"}), BenchStore(tmp_path, BenchConfig("tiny", 1, 0)))
+    recs = [st["points"][k] for k in st["current"]]
+    assert [r["cost_ratio"] for r in recs] == pytest.approx([0.5, 1.0, 2.0, 4.0])
+    rows = stage_rows(load_bench(tmp_path), "toy")
+    assert [r["cost / n2"] for r in rows] == pytest.approx([0.5, 1.0, 2.0, 4.0])
+    # a failed baseline leaves no ratio rather than a wrong one
+    st = run_sweep(Sweep(**{**toy_sweep([], fail=2).__dict__, "baseline": "n2"}),
+                   BenchStore(tmp_path / "failed", BenchConfig("tiny", 1, 0)))
+    assert all(st["points"][k]["cost_ratio"] is None for k in st["current"])
+    # no baseline: no ratio column
+    run_sweep(toy_sweep([]), BenchStore(tmp_path / "plain", BenchConfig("tiny", 1, 0)))
+    assert not any(k.startswith("cost /") for k in stage_rows(load_bench(tmp_path / "plain"), "toy")[0])
