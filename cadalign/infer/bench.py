@@ -60,7 +60,8 @@ def refine_sweep(scene_dir: Path, models: dict[int, CadModel], iters: tuple[int,
     rng = np.random.default_rng(cfg.seed)
     runs_on = {
         "silhouette": [d.mask.sum() >= cfg.min_mask_px for _, _, d, _, _ in cases],
-        "depth": [len(masked_depth_points(depth, d.mask, K, cfg.max_depth_points, rng)) >= cfg.min_depth_points
+        "depth": [len(masked_depth_points(depth, d.mask, K, cfg.max_depth_points, rng, cfg.min_depth_points))
+                  >= cfg.min_depth_points
                   for K, depth, d, _, _ in cases],
     }
     runs_on["both"] = [a or b for a, b in zip(runs_on["silhouette"], runs_on["depth"], strict=True)]

@@ -182,7 +182,8 @@ def _icp_yaw_hypotheses(geom: ModelGeometry, T0: Rigid3, K: np.ndarray, depth_m:
     best = refine_depth_icp(geom, T0, K, depth_m, mask, cfg)
     if cfg.yaw_hypotheses <= 1 or best[1] == 0:
         return best
-    Q = masked_depth_points(depth_m, mask, np.asarray(K, float), cfg.max_depth_points, np.random.default_rng(cfg.seed))
+    Q = masked_depth_points(depth_m, mask, np.asarray(K, float), cfg.max_depth_points, np.random.default_rng(cfg.seed),
+                            cfg.min_depth_points)
     score = depth_fit(geom, best[0], Q)
     for angle in yaw_hypotheses_rad(cfg.yaw_hypotheses, symmetry)[1:]:
         yaw = axis_angle_to_matrix(np.array([0.0, 0.0, angle]))

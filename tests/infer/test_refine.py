@@ -156,3 +156,25 @@ def test_yaw_restarts_spread_over_the_symmetry_period(valve_view, yaw_err_deg: f
     spread = refine(geom, T0, view.camera.K, view.mask, cfg, view.depth_m, symmetry=half).T_cam_from_obj
     assert rotation_error_deg(over_360.R, T_gt.R, half) > 10  # measured 15.6 / 21.8 deg
     assert rotation_error_deg(spread.R, T_gt.R, half) < 1 and translation_error_m(spread.t, T_gt.t) < 0.005
+
+
+def test_a_thin_mask_still_gives_depth_points_and_icp_runs(valve_view) -> None:
+    """A mask two pixels tall is all edge: its one-pixel erosion is empty. With min_points it falls back to
+    all of its pixels, so ICP runs (the default scene's hot stabs were never refined before)."""
+    from cadalign.infer.depth_icp import masked_depth_points
+
+    model, geom, view = valve_view
+    rows = np.flatnonzero(view.mask.any(1))
+    band = np.zeros_like(view.mask)
+    mid = int(rows[len(rows) // 2])
+    band[mid:mid + 2] = view.mask[mid:mid + 2]
+    K, rng = view.camera.K, np.random.default_rng(0)
+    assert len(masked_depth_points(view.depth_m, band, K, 1000, rng)) == 0
+    Q = masked_depth_points(view.depth_m, band, K, 1000, rng, min_points=10)
+    assert len(Q) == np.count_nonzero(band & np.isfinite(view.depth_m) & (view.depth_m > 0)) >= 10
+    # a mask with an interior keeps the erosion: mixed edge depths stay out
+    assert len(masked_depth_points(view.depth_m, view.mask, K, 10**6, rng, min_points=10)) < view.mask.sum()
+    T0 = perturb(view.T_cam_from_obj, 0.02, 3.0, 0)
+    T1, iters, _ = refine_depth_icp(geom, T0, K, view.depth_m, band, RefineConfig(min_depth_points=10))
+    assert iters >= 1
+    assert translation_error_m(T1.t, view.T_cam_from_obj.t) < translation_error_m(T0.t, view.T_cam_from_obj.t)
