@@ -96,7 +96,13 @@ def read_run_prep(run: Path) -> dict[str, Any] | None:
 def to_feed(source: dict[str, Any] | None, trained: dict[str, Any] | None, what: str) -> dict[str, Any]:
     """The preparation that makes images prepared as ``source`` look like a network's training images
     (``trained``): none when they agree or either is unknown, ``trained`` for raw images; an enhanced source that
-    the network was not trained on cannot be undone, so it is fed as it is, with a warning naming ``what``."""
+    the network was not trained on cannot be undone, so it is fed as it is, with a warning naming ``what``. Raw
+    frames for a network whose run does not say (``trained`` None) are fed raw with a warning too, as ``infer``
+    warns (they may have needed the CLAHE of a built dataset)."""
+    if trained is None and source is not None and source["enhance"] == "none":
+        log.warning("%s does not record how its training images were prepared; raw frames are fed as they are. If "
+                    "it was trained on a built dataset (CLAHE-enhanced by SfM), retrain it or use a run that says",
+                    what)
     if source is None or trained is None or source == trained:
         return dict(RAW)
     if source["enhance"] == "none":

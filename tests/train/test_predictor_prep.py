@@ -73,6 +73,12 @@ def test_an_enhancement_the_network_never_saw_is_not_undone_but_said(caplog: pyt
     with caplog.at_level(logging.WARNING):
         assert to_feed(CLAHE, dict(RAW), "RUN") == RAW
     assert "RUN" in caplog.text and "fed as they are" in caplog.text
-    assert to_feed(None, CLAHE, "RUN") == RAW and to_feed(CLAHE, None, "RUN") == RAW  # unknown: nothing done
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert to_feed(None, CLAHE, "RUN") == RAW and to_feed(CLAHE, None, "RUN") == RAW  # unknown: nothing done
+    assert caplog.text == ""  # an enhanced source for a silent run: nothing to say
+    with caplog.at_level(logging.WARNING):
+        assert to_feed(dict(RAW), None, "OLDRUN") == RAW  # raw frames, a run that does not say: fed raw, said
+    assert "OLDRUN does not record" in caplog.text
     wb = prep_named("clahe_wb")
     assert to_feed(dict(RAW), wb, "RUN") == wb and to_feed(CLAHE, CLAHE, "RUN") == RAW
