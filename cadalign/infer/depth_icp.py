@@ -98,6 +98,20 @@ def refine_depth_icp(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, depth_m
     if cfg.depth_init:
         T_init = depth_along_ray(geom, T_init, np.asarray(K, float), depth_m, np.asarray(mask, bool),
                                  cfg.icp_max_corr * geom.diameter_m)
+    T, done, costs = _icp(geom, T_init, Q, cfg, n)
+    if done == 0:  # nothing within the coarse gate: start again with the model's centre on the points
+        T_c = Rigid3(T_init.R, np.median(Q, axis=0) - T_init.R @ geom.samples.mean(0))
+        T_c = depth_along_ray(geom, T_c, np.asarray(K, float), depth_m, np.asarray(mask, bool))  # centre -> surface
+        T_2, done_2, costs_2 = _icp(geom, T_c, Q, cfg, n)
+        if done_2:
+            return T_2, done_2, costs_2
+    return T, done, costs
+
+
+def _icp(geom: ModelGeometry, T_init: Rigid3, Q: np.ndarray, cfg: RefineConfig, n: int
+         ) -> tuple[Rigid3, int, list[float]]:
+    """At most ``n`` point-to-plane ICP iterations of the model at ``T_init`` to the points ``Q`` (camera frame),
+    with the pose prior centred on ``T_init``."""
     T, costs, done = T_init, [], 0
     for _ in range(n):
         q_obj = T.inverse().apply(Q)
