@@ -52,6 +52,14 @@ def bounded(default: Any, **bounds: float) -> Any:
     return dataclasses.field(default=default, metadata=bounds)
 
 
+def merge_mappings(a: Mapping[str, Any], b: Mapping[str, Any]) -> dict[str, Any]:
+    """``a`` with ``b``'s keys over it; tables present in both merge key by key (override dicts of a config)."""
+    out = dict(a)
+    for k, v in b.items():
+        out[k] = merge_mappings(out[k], v) if isinstance(v, Mapping) and isinstance(out.get(k), Mapping) else v
+    return out
+
+
 def read_mapping(path: Path) -> dict[str, Any]:
     """Read a TOML, YAML or JSON file into a dict, with errors naming the file."""
     path = Path(path)

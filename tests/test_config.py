@@ -82,3 +82,14 @@ def test_unparseable_and_missing_files_name_the_file(tmp_path):
         read_mapping(tmp_path / "nope.toml")
     with pytest.raises(ConfigError, match="unsupported config format"):
         read_mapping(_write(tmp_path, "cfg.ini", "a=1"))
+
+
+def test_merge_mappings_merges_tables_and_replaces_the_rest():
+    from cadalign.config import merge_mappings
+
+    a = {"overlay": False, "refine": {"yaw_hypotheses": 4, "method": "both"}, "ids": [1, 2]}
+    b = {"refine": {"yaw_hypotheses": 1}, "ids": [3], "enhance": "none"}
+    assert merge_mappings(a, b) == {"overlay": False, "refine": {"yaw_hypotheses": 1, "method": "both"}, "ids": [3],
+                                    "enhance": "none"}
+    assert a["refine"]["yaw_hypotheses"] == 4  # the inputs are left alone
+    assert merge_mappings({"refine": 1}, {"refine": {"x": 2}}) == {"refine": {"x": 2}}

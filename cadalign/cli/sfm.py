@@ -37,13 +37,6 @@ def _calibration(path: Path) -> dict[str, Any]:
     return {"camera": {"intrinsics": list(intrinsics_from_cameras_json(path))}}
 
 
-def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
-    out = dict(a)
-    for k, v in b.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
-
-
 def command(
     source: Path = typer.Argument(..., help="A video file or a folder of frames (sorted by name = capture order)."),
     out: Path = typer.Option(..., "--out", help="Output folder (model, cameras.json, depth/, report)."),
@@ -57,12 +50,12 @@ def command(
     overwrite: bool = typer.Option(False, "--overwrite", help="Delete SfM results of another config in --out."),
 ) -> None:
     """Structure from motion: frames -> SIFT -> matching -> mapping -> cameras.json, SfM depth, report."""
-    from cadalign.config import resolve
+    from cadalign.config import merge_mappings, resolve
     from cadalign.sfm import PRESETS, SfMConfig, run
 
     _colmap_log_level()
     with user_errors():
-        extra = _merge(_calibration(calib), parse_overrides(overrides)) if calib else parse_overrides(overrides)
+        extra = merge_mappings(_calibration(calib), parse_overrides(overrides)) if calib else parse_overrides(overrides)
         cfg = resolve(SfMConfig, PRESETS, preset, config, extra)
         out_dir = run(cfg, source, out, overwrite=overwrite, progress=track)
         report = out_dir / "sfm_report.json"

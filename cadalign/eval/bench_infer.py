@@ -87,7 +87,7 @@ def infer_sweep(data: BenchData, cfg: BenchConfig, source: InferSource | None = 
 
     def setup() -> dict[str, Any]:
         from cadalign.build_dataset import load_structure
-        from cadalign.infer.detect import TorchDetector, resolve_scene_dir
+        from cadalign.infer.detect import resolve_scene_dir
         from cadalign.infer.run import calibration_from_scene
         from cadalign.models.maskrcnn.detector import load_pose_model
 
@@ -102,22 +102,23 @@ def infer_sweep(data: BenchData, cfg: BenchConfig, source: InferSource | None = 
         return {"src": src, "gt": gt, "depth": resolve_scene_dir(src.depth) if src.depth is not None else None,
                 "net": net, "info": {"kind": "network", "run": str(src.model), "step": meta.get("step")},
                 "classes": tuple(meta.get("classes", structure.class_names)), "models": structure.models,
-                "calib": calibration_from_scene(gt), "TorchDetector": TorchDetector}
+                "calib": calibration_from_scene(gt)}
 
     def measure(s: dict[str, Any], knobs: dict[str, Any], _: Any) -> dict[str, float]:
         import torch
 
-        from cadalign.config import resolve
+        from cadalign.config import merge_mappings, resolve
+        from cadalign.infer.detect import TorchDetector
         from cadalign.infer.pipeline import PRESETS, InferConfig
         from cadalign.infer.run import run
         from cadalign.io import read_json
 
         src: InferSource = s["src"]
-        overrides = _merge(_merge({"overlay": False}, src.overrides), knobs["overrides"])
+        overrides = merge_mappings(merge_mappings({"overlay": False}, src.overrides), knobs["overrides"])
         icfg = resolve(InferConfig, PRESETS, knobs["preset"], overrides=overrides)
         out = data.work("infer", "runs", knobs["preset"] + "".join(f"_{k}" for k in sorted(knobs["overrides"])))
         shutil.rmtree(out)  # every repeat runs from scratch (run() would reuse a finished folder)
-        detector = s["TorchDetector"](s["net"], icfg.score_thresh)
+        detector = TorchDetector(s["net"], icfg.score_thresh)
         t0 = time.perf_counter()
         run(icfg, src.frames, detector, s["models"], s["classes"], out, calib=s["calib"], detector_info=s["info"],
             depth_scene=s["depth"], gt_scene=s["gt"], max_frames=src.max_frames)
@@ -154,9 +155,3 @@ def infer_sweep(data: BenchData, cfg: BenchConfig, source: InferSource | None = 
                      "targets whose fused pose is within 10% of the part's diameter (ADD, ADD-S for symmetric "
                      "parts)."))
 
-
-def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
-    out = dict(a)
-    for k, v in b.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out

@@ -5,11 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from bench_testdata import CHEAP_STAGES
 from typer.testing import CliRunner
 
 from cadalign.cli.main import app
-
-CHEAP_STAGES = ("render", "align", "emulate", "fuse")
 
 
 @pytest.fixture(scope="session")

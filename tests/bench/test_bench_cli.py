@@ -6,7 +6,7 @@ import base64
 import json
 
 import pytest
-from conftest import CHEAP_STAGES
+from bench_testdata import CHEAP_STAGES
 from typer.testing import CliRunner
 
 from cadalign.cli.main import app
