@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from cadalign.cad.symmetry import Symmetry, axis_angle_matrix
 from cadalign.eval.pose_metrics import rotation_error_deg
 from cadalign.geometry.rotations import axis_angle_to_matrix, random_rotation
+from cadalign.infer.ego import predict_camera, register_camera
 from cadalign.infer.temporal import (
     Observation,
     TemporalConfig,
@@ -52,11 +53,12 @@ def _camera_orbit(i: int) -> Rigid3:
 
 
 @pytest.mark.parametrize("sym", [Z2, CONT], ids=["discrete_z2", "continuous_z"])
-@pytest.mark.parametrize("world", [True, False], ids=["world", "filter"])
-def test_fusion_does_not_flip_between_symmetric_solutions(sym: Symmetry, world: bool) -> None:
+@pytest.mark.parametrize("mode", ["world", "filter", "ego"])
+def test_fusion_does_not_flip_between_symmetric_solutions(sym: Symmetry, mode: str) -> None:
     rng = np.random.default_rng(0)
+    world = mode == "world"
     T_world_from_obj = Rigid3(random_rotation(np.random.default_rng(1)), np.array([0.2, -0.1, 0.3]))
-    fuser = TemporalFuser(TemporalConfig())
+    fuser = TemporalFuser(TemporalConfig(mode="auto" if mode != "filter" else "filter"))
     prev, raw_jumps, fused_jumps = None, [], []
     raw_prev = None
     for i in range(20):
@@ -64,7 +66,7 @@ def test_fusion_does_not_flip_between_symmetric_solutions(sym: Symmetry, world: 
         T_true = T_wc.inverse() @ T_world_from_obj
         meas = _noisy(_flipped(T_true, sym, i, rng), rng)  # every frame a different equivalent solution
         out = fuser.update(i, [Observation(1, meas, 7, sym, 0.5)], T_wc if world else None)
-        assert len(out) == 1 and out[0].track_id == 0 and out[0].mode == ("world" if world else "filter")
+        assert len(out) == 1 and out[0].track_id == 0 and out[0].mode == mode  # auto without a pose: ego
         T_out = out[0].T_cam_from_obj
         assert rotation_error_deg(T_out.R, T_true.R, sym) < 2.0  # right up to the symmetry
         T_out_w = T_wc @ T_out
@@ -153,3 +155,105 @@ def test_known_model_needs_an_established_track() -> None:
     assert fuser.known_model(2, near, 3, 0.05) == 5
     assert fuser.known_model(2, Rigid3(np.eye(3), np.array([0.2, 0.0, 3.0])), 3, 0.05) is None  # beyond the gate
     assert fuser.known_model(3, near, 3, 0.05) is None  # another class
+
+
+def _panel(rng: np.random.Generator, n: int = 5) -> list[Rigid3]:
+    """``n`` static parts (world-from-obj) spread over a 2 m panel around the origin."""
+    return [Rigid3(random_rotation(rng), np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-0.3, 0.3)]))
+            for _ in range(n)]
+
+
+def _far_orbit(i: int) -> Rigid3:
+    """``T_world_from_cam`` on a circle of radius 10 m (the default orbit's distance), 2 deg per frame."""
+    a = math.radians(2.0 * i)
+    eye = np.array([10 * math.cos(a), 10 * math.sin(a), 2.0])
+    z = -eye / np.linalg.norm(eye)
+    x = np.cross(z, [0, 0, 1.0])
+    x /= np.linalg.norm(x)
+    return Rigid3(np.stack([x, np.cross(z, x), z], axis=1), eye)
+
+
+def _fused_errors(mode: str, frames: int = 16) -> tuple[float, float, TemporalFuser, list[str]]:
+    """Worst fused translation (m) and rotation (deg) error over the last 8 frames of a 10 m orbit around five
+    static parts seen without camera poses: 2 mm / 0.3 deg noise, one part flipped by 180 deg in frames 5-7."""
+    rng = np.random.default_rng(4)
+    parts = _panel(rng)
+    fuser = TemporalFuser(TemporalConfig(mode=mode))
+    worst_t, worst_r, modes = 0.0, 0.0, []
+    flip = axis_angle_to_matrix(np.array([0.0, math.pi, 0.0]))
+    for i in range(frames):
+        C = _far_orbit(i)
+        truth = [C.inverse() @ P for P in parts]
+        obs = []
+        for k, T in enumerate(truth):
+            meas = _noisy(T, rng, 0.002, 0.3)
+            if k == 2 and 5 <= i <= 7:
+                meas = Rigid3(meas.R @ flip, meas.t)
+            obs.append(Observation(1, meas, 10 + k, Symmetry.none(), 0.6))
+        out = fuser.update(i, obs)
+        modes += [o.mode for o in out]
+        if i >= frames - 8:
+            pairs = list(zip(out, truth, strict=True))
+            worst_t = max(worst_t, *[float(np.linalg.norm(o.T_cam_from_obj.t - T.t)) for o, T in pairs])
+            worst_r = max(worst_r, *[rotation_error_deg(o.T_cam_from_obj.R, T.R) for o, T in pairs])
+    return worst_t, worst_r, fuser, modes
+
+
+def test_ego_fuses_static_parts_without_camera_poses_and_the_filter_lags() -> None:
+    t_ego, r_ego, fuser, modes = _fused_errors("auto")
+    assert set(modes) == {"ego"} and len(fuser.tracks) == 5  # the flipped part kept its track
+    assert t_ego < 0.01 and r_ego < 1.0
+    t_f, r_f, _, _ = _fused_errors("filter")
+    assert t_f > 3 * t_ego  # each part's filter learns the camera's motion on its own, and lags it
+
+
+def test_register_camera_recovers_the_camera_and_rejects_a_misplaced_part() -> None:
+    rng = np.random.default_rng(7)
+    parts = _panel(rng, 4)
+    C = _far_orbit(3)
+    obs = [Observation(1, C.inverse() @ P, 0, Z2, 0.6) for P in parts]
+    obs[1] = Observation(1, Rigid3(obs[1].T_cam_from_obj.R, obs[1].T_cam_from_obj.t + [0.5, 0.0, 0.0]), 0, Z2, 0.6)
+    obs[3] = Observation(1, Rigid3.from_matrix(obs[3].T_cam_from_obj.matrix() @ Z2.discrete[0]), 0, Z2, 0.6)
+    cands = [list(range(4))] * 4
+    est, inliers = register_camera(obs, cands, parts, [0.3] * 4, 0.05, math.radians(5), None)
+    assert sorted(inliers) == [0, 2, 3]  # the half-turned equivalent of part 3 is as good as part 3
+    np.testing.assert_allclose(est.matrix(), C.matrix(), atol=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 4), layout=st.sampled_from(["spread", "collinear", "same"]))
+def test_register_camera_is_exact_on_degenerate_layouts(seed: int, n: int, layout: str) -> None:
+    rng = np.random.default_rng(seed)
+    parts = _panel(rng, n)
+    if layout != "spread":  # parts on one line, or all at one point: the positions do not fix the rotation
+        step = np.array([0.3, 0.1, 0.0]) if layout == "collinear" else np.zeros(3)
+        parts = [Rigid3(P.R, k * step) for k, P in enumerate(parts)]
+    C = Rigid3(random_rotation(rng), rng.normal(scale=20.0, size=3))
+    obs = [Observation(1, C.inverse() @ P, k) for k, P in enumerate(parts)]
+    est, inliers = register_camera(obs, [[k] for k in range(n)], parts, [0.3] * n, 0.05, math.radians(5), None)
+    assert sorted(inliers) == list(range(n))
+    np.testing.assert_allclose(est.matrix(), C.matrix(), atol=1e-7)
+
+
+def test_register_camera_without_a_known_part_gives_none() -> None:
+    obs = [Observation(1, Rigid3(np.eye(3), np.array([0.0, 0.0, 5.0])), 3)]
+    assert register_camera(obs, [[]], [], [0.3], 0.05, 0.1, None) == (None, [])
+    assert predict_camera([], 3) is None
+
+
+def test_ego_bridges_a_frame_without_known_parts_then_starts_a_new_world() -> None:
+    rng = np.random.default_rng(2)
+    parts = _panel(rng, 3)
+    fuser = TemporalFuser(TemporalConfig(mode="ego", max_missed=2))
+    for i in range(4):
+        fuser.update(i, [Observation(1, _far_orbit(i).inverse() @ P, k) for k, P in enumerate(parts)])
+    new = Rigid3(np.eye(3), np.array([0.0, 0.0, 4.0]))
+    out = fuser.update(4, [Observation(2, new, 9)])  # a part never seen: the camera is predicted
+    expect = _far_orbit(0).inverse() @ _far_orbit(4)  # the orbit's constant motion, in the world of frame 0
+    np.testing.assert_allclose(fuser._ego[-1][1].matrix(), expect.matrix(), atol=1e-6)
+    assert out[0].mode == "ego" and np.allclose(out[0].T_cam_from_obj.matrix(), new.matrix())
+    other = Rigid3(np.eye(3), np.array([1.0, 0.0, 6.0]))
+    for i in (8, 9):  # beyond max_missed frames with nothing known: a new world, the old tracks retire
+        out = fuser.update(i, [Observation(3, other, 11)])
+    assert out[0].mode == "ego" and np.allclose(out[0].T_cam_from_obj.matrix(), other.matrix())
+    assert {tr.space for tr in fuser.tracks} == {"retired", "ego"}

@@ -1,0 +1,144 @@
+"""Camera poses from the static parts themselves, for video without camera poses (temporal mode ``ego``).
+
+A part that does not move fixes the camera: an observation ``T_cam_from_obj`` of a part whose world pose a
+track holds gives ``T_world_from_cam = T_world_from_obj T_cam_from_obj^-1``. Every (observation, compatible
+track) pair, with every discrete symmetric equivalent of the observation, is a hypothesis. The hypothesis that
+puts the most observations within their gate of a compatible track wins (ties: nearest to the constant-velocity
+prediction of the camera, else the smaller summed distance), and the camera pose is the robust mean of the
+hypotheses of its inliers, each observation taking the symmetric equivalent closest to the winner. A flipped or
+misplaced part (a network's 180 deg ball valve) outvotes nothing and is down-weighted in the mean. Parts with a
+continuous symmetry make no hypotheses (their spin, hence the camera's position about their axis, is unknown)
+but count as inliers and join the mean.
+
+The "world" of such a video is the camera frame of its first frame with observations. The camera itself follows a
+constant-velocity model on SE(3) (:func:`predict_camera`): the prediction breaks ties, and stands in for a frame
+that no known part registers (:class:`cadalign.infer.temporal.TemporalFuser` decides for how long).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from cadalign.cad.symmetry import Symmetry
+from cadalign.types import Rigid3
+
+if TYPE_CHECKING:
+    from cadalign.infer.temporal import Observation
+
+
+def fixed_point(symmetry: Symmetry | None) -> np.ndarray:
+    """(3,) a model-frame point every symmetry transform keeps: a point on the continuous axis, the centroid of
+    the origin's orbit under a discrete group, the origin without symmetry. Its world position does not depend on
+    which symmetric equivalent a pose is, so it compares poses before they are canonicalised."""
+    if symmetry is None or symmetry.kind == "none":
+        return np.zeros(3)
+    if symmetry.kind == "continuous":
+        return np.asarray(symmetry.offset_m, float)
+    return np.mean([np.zeros(3), *[np.asarray(S)[:3, 3] for S in symmetry.discrete]], axis=0)
+
+
+def _equivalents(T: Rigid3, symmetry: Symmetry) -> list[Rigid3]:
+    if symmetry.kind == "continuous":
+        return []
+    M = T.matrix()
+    return [T, *[Rigid3.from_matrix(M @ np.asarray(S)) for S in symmetry.discrete]]
+
+
+def register_camera(obs: Sequence[Observation], cands: Sequence[Sequence[int]], track_T: Sequence[Rigid3],
+                    gates: Sequence[float], huber_t_m: float, huber_r_rad: float,
+                    C_pred: Rigid3 | None = None, min_spread: float = 0.1) -> tuple[Rigid3 | None, list[int]]:
+    """``T_world_from_cam`` of a frame from its observations of static parts whose world poses are known.
+
+    ``obs``: the frame's observations; ``cands[i]``: indices into ``track_T`` (world-from-obj poses) of the tracks
+    observation ``i`` may belong to (same class / model); ``gates[i]``: its association distance (m). Returns the
+    camera pose and the indices of the inlier observations, or ``(None, [])`` when no hypothesis has an inlier.
+    The pose is then refitted to the inliers' positions (:func:`_fit_positions`, ``min_spread``).
+    """
+    from cadalign.infer.temporal import canonicalize, robust_mean  # temporal imports this module
+
+    fixed = [fixed_point(o.symmetry) for o in obs]
+    track_fixed = [[track_T[k].apply(fixed[i][None])[0] for k in cands[i]] for i in range(len(obs))]
+
+    def inliers(C: Rigid3) -> tuple[list[int], float]:
+        out, total = [], 0.0
+        for i, o in enumerate(obs):
+            if not cands[i]:
+                continue
+            p = C.apply(o.T_cam_from_obj.apply(fixed[i][None]))[0]
+            d = min(float(np.linalg.norm(p - q)) for q in track_fixed[i])
+            if d < gates[i]:
+                out.append(i)
+                total += d
+        return out, total
+
+    best = None  # (key, C, inlier list)
+    for i, o in enumerate(obs):
+        for k in cands[i]:
+            for T_eq in _equivalents(o.T_cam_from_obj, o.symmetry):
+                C = track_T[k] @ T_eq.inverse()
+                ins, total = inliers(C)
+                tie = float(np.linalg.norm(C.t - C_pred.t)) if C_pred is not None else total
+                key = (-len(ins), tie)
+                if best is None or key < best[0]:
+                    best = (key, C, ins)
+    if best is None or not best[2]:
+        return None, []
+    _, C_best, ins = best
+    per_obs, p_cam, p_world = [], [], []
+    for i in ins:
+        o = obs[i]
+        M = C_best @ o.T_cam_from_obj  # world-from-obj as the winner places it
+        k = min(cands[i], key=lambda k: float(np.linalg.norm(track_T[k].t - M.t)))
+        M = canonicalize(M, o.symmetry, track_T[k].R)
+        per_obs.append(track_T[k] @ M.inverse() @ C_best)  # the camera pose this observation alone implies
+        p_cam.append(o.T_cam_from_obj.apply(fixed[i][None])[0])
+        p_world.append(track_T[k].apply(fixed[i][None])[0])
+    C = robust_mean(per_obs, huber_t_m, huber_r_rad)
+    return _fit_positions(C, np.array(p_cam), np.array(p_world), huber_t_m, min_spread), ins
+
+
+def _fit_positions(C: Rigid3, p_cam: np.ndarray, p_world: np.ndarray, huber_t_m: float, min_spread: float,
+                   iters: int = 5) -> Rigid3:
+    """``C`` refitted to the parts' positions (N, 3) in camera and world: Huber-IRLS Kabsch when at least three
+    parts spread beyond a line (second principal spread >= ``min_spread`` times the first), else only the
+    translation (the rotation of ``C`` kept).
+
+    A part's position is known far better than its orientation (the default orbit's refined valves: 1 mm vs
+    0.2 deg median at 10 m), and a camera pose taken from one part's orientation is off by that angle times
+    the distance at the other parts: the mean of such poses put them 4 cm off."""
+    w = np.ones(len(p_cam))
+    x = p_cam - p_cam.mean(0)
+    sv = np.linalg.svd(x, compute_uv=False) if len(x) >= 3 else np.zeros(2)
+    rotate = len(x) >= 3 and sv[0] > 0 and sv[1] >= min_spread * sv[0]
+    R = C.R
+    for _ in range(iters):
+        if rotate:
+            mc, mw = (w[:, None] * p_cam).sum(0) / w.sum(), (w[:, None] * p_world).sum(0) / w.sum()
+            U, _, Vt = np.linalg.svd(((p_world - mw) * w[:, None]).T @ (p_cam - mc))
+            d = np.array([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+            R = (U * d) @ Vt
+        r = p_world - p_cam @ R.T
+        t = (w[:, None] * r).sum(0) / w.sum()
+        dist = np.linalg.norm(r - t, axis=1)
+        w = np.where(dist <= huber_t_m, 1.0, huber_t_m / np.maximum(dist, 1e-12))
+    return Rigid3(R, t)
+
+
+def predict_camera(history: Sequence[tuple[int, Rigid3]], frame: int) -> Rigid3 | None:
+    """The constant-velocity prediction of ``T_world_from_cam`` at ``frame`` from the last two (frame, pose)
+    entries of ``history`` (the last pose alone with one entry; None with none). The per-frame motion is the
+    left twist between them (:func:`cadalign.infer.temporal.twist_between`) scaled by the frame gap."""
+    from cadalign.infer.temporal import _apply_twist, twist_between
+
+    if not history:
+        return None
+    f1, C1 = history[-1]
+    if len(history) < 2:
+        return C1
+    f0, C0 = history[-2]
+    xi = twist_between(C0, C1) / max(f1 - f0, 1)
+    return _apply_twist(xi * (frame - f1), C1) if math.isfinite(float(xi.sum())) else C1
