@@ -61,44 +61,41 @@ def register_camera(obs: Sequence[Observation], cands: Sequence[Sequence[int]], 
     from cadalign.infer.temporal import canonicalize, robust_mean  # temporal imports this module
 
     fixed = [fixed_point(o.symmetry) for o in obs]
-    track_fixed = [[track_T[k].apply(fixed[i][None])[0] for k in cands[i]] for i in range(len(obs))]
-
-    def inliers(C: Rigid3) -> tuple[list[int], float]:
-        out, total = [], 0.0
-        for i, o in enumerate(obs):
-            if not cands[i]:
-                continue
-            p = C.apply(o.T_cam_from_obj.apply(fixed[i][None]))[0]
-            d = min(float(np.linalg.norm(p - q)) for q in track_fixed[i])
-            if d < gates[i]:
-                out.append(i)
-                total += d
-        return out, total
-
-    best = None  # (key, C, inlier list)
-    for i, o in enumerate(obs):
-        for k in cands[i]:
-            for T_eq in _equivalents(o.T_cam_from_obj, o.symmetry):
-                C = track_T[k] @ T_eq.inverse()
-                ins, total = inliers(C)
-                tie = float(np.linalg.norm(C.t - C_pred.t)) if C_pred is not None else total
-                key = (-len(ins), tie)
-                if best is None or key < best[0]:
-                    best = (key, C, ins)
-    if best is None or not best[2]:
+    pair_i = np.array([i for i in range(len(obs)) for _ in cands[i]], dtype=np.int64)
+    pair_k = [k for i in range(len(obs)) for k in cands[i]]
+    hyps = [track_T[k] @ T_eq.inverse() for i, k in zip(pair_i, pair_k, strict=True)
+            for T_eq in _equivalents(obs[i].T_cam_from_obj, obs[i].symmetry)]
+    if not hyps:
         return None, []
-    _, C_best, ins = best
-    per_obs, p_cam, p_world = [], [], []
+    p_cam = np.array([o.T_cam_from_obj.apply(fixed[i][None])[0] for i, o in enumerate(obs)])  # (n, 3)
+    p_world = np.array([track_T[k].apply(fixed[i][None])[0] for i, k in zip(pair_i, pair_k, strict=True)])  # (P, 3)
+    R = np.stack([C.R for C in hyps])  # (H, 3, 3)
+    t = np.stack([C.t for C in hyps])  # (H, 3)
+    placed = np.einsum("hab,nb->hna", R, p_cam) + t[:, None]  # every observation placed by every hypothesis
+    d = np.linalg.norm(placed[:, pair_i] - p_world[None], axis=2)  # (H, P)
+    starts = np.flatnonzero(np.r_[True, pair_i[1:] != pair_i[:-1]])  # pairs are grouped by observation
+    obs_with = pair_i[starts]
+    d_min = np.minimum.reduceat(d, starts, axis=1)  # (H, observations with a candidate)
+    ok = d_min < np.asarray(gates, float)[obs_with][None]
+    count = ok.sum(1)
+    tie = np.linalg.norm(t - C_pred.t, axis=1) if C_pred is not None else np.where(ok, d_min, 0.0).sum(1)
+    b = int(np.lexsort((tie, -count))[0])
+    if count[b] == 0:
+        return None, []
+    C_best = hyps[b]
+    ins = obs_with[ok[b]].tolist()
+    per_obs, p_c, p_w = [], [], []
     for i in ins:
         o = obs[i]
-        M = C_best @ o.T_cam_from_obj  # world-from-obj as the winner places it
-        k = min(cands[i], key=lambda k: float(np.linalg.norm(track_T[k].t - M.t)))
-        M = canonicalize(M, o.symmetry, track_T[k].R)
-        per_obs.append(track_T[k] @ M.inverse() @ C_best)  # the camera pose this observation alone implies
-        p_cam.append(o.T_cam_from_obj.apply(fixed[i][None])[0])
-        p_world.append(track_T[k].apply(fixed[i][None])[0])
+        j = np.flatnonzero(pair_i == i)
+        j = int(j[np.argmin(d[b, j])])  # the nearest candidate track under the winner
+        T_wo = track_T[pair_k[j]]
+        M = canonicalize(C_best @ o.T_cam_from_obj, o.symmetry, T_wo.R)  # world-from-obj, nearest equivalent
+        per_obs.append(T_wo @ M.inverse() @ C_best)  # the camera pose this observation alone implies
+        p_c.append(p_cam[i])
+        p_w.append(p_world[j])
     C = robust_mean(per_obs, huber_t_m, huber_r_rad)
-    return _fit_positions(C, np.array(p_cam), np.array(p_world), huber_t_m, min_spread), ins
+    return _fit_positions(C, np.array(p_c), np.array(p_w), huber_t_m, min_spread), ins
 
 
 def _fit_positions(C: Rigid3, p_cam: np.ndarray, p_world: np.ndarray, huber_t_m: float, min_spread: float,
