@@ -183,16 +183,19 @@ class TemporalFuser:
 
         No ego track yet: this camera is the world. Unregistered (no observation near a known part): the
         constant-velocity prediction for up to ``max_missed`` frames, then a new world (the old tracks retire).
+        A frame whose parts all have a continuous symmetry cannot fix the camera's turn about them: filter.
         """
+        if all(o.symmetry.kind == "continuous" for o in obs):
+            return None
         tracks = [tr for tr in self.tracks if tr.space == "ego"]
         C_pred = predict_camera(self._ego, frame)
         if not tracks:
-            C = Rigid3.identity() if obs else None
+            C = Rigid3.identity()
         else:
             cands = [[k for k, tr in enumerate(tracks) if _compatible(o, tr)] for o in obs]
             C, _ = register_camera(obs, cands, [tr.T for tr in tracks], [_gate(self.cfg, o) for o in obs],
                                    self.cfg.huber_t_m, math.radians(self.cfg.huber_r_deg), C_pred)
-            if C is None and obs:
+            if C is None:
                 if C_pred is not None and frame - self._ego[-1][0] <= self.cfg.max_missed:
                     C = C_pred
                 else:

@@ -66,7 +66,8 @@ def test_fusion_does_not_flip_between_symmetric_solutions(sym: Symmetry, mode: s
         T_true = T_wc.inverse() @ T_world_from_obj
         meas = _noisy(_flipped(T_true, sym, i, rng), rng)  # every frame a different equivalent solution
         out = fuser.update(i, [Observation(1, meas, 7, sym, 0.5)], T_wc if world else None)
-        assert len(out) == 1 and out[0].track_id == 0 and out[0].mode == mode  # auto without a pose: ego
+        expect = "filter" if mode == "ego" and sym.kind == "continuous" else mode  # auto without a pose: ego
+        assert len(out) == 1 and out[0].track_id == 0 and out[0].mode == expect
         T_out = out[0].T_cam_from_obj
         assert rotation_error_deg(T_out.R, T_true.R, sym) < 2.0  # right up to the symmetry
         T_out_w = T_wc @ T_out
@@ -257,3 +258,13 @@ def test_ego_bridges_a_frame_without_known_parts_then_starts_a_new_world() -> No
         out = fuser.update(i, [Observation(3, other, 11)])
     assert out[0].mode == "ego" and np.allclose(out[0].T_cam_from_obj.matrix(), other.matrix())
     assert {tr.space for tr in fuser.tracks} == {"retired", "ego"}
+
+
+def test_ego_leaves_parts_with_a_continuous_symmetry_alone_to_the_filter() -> None:
+    fuser = TemporalFuser(TemporalConfig(mode="ego"))
+    T = Rigid3(np.eye(3), np.array([0.0, 0.0, 3.0]))
+    for i in range(3):  # such a part cannot fix the camera's turn about its axis
+        out = fuser.update(i, [Observation(1, T, 4, CONT, 0.5)])
+        assert out[0].mode == "filter"
+    out = fuser.update(3, [Observation(1, T, 4, CONT, 0.5), Observation(2, T, 5, Z2, 0.5)])
+    assert [o.mode for o in out] == ["ego", "ego"]  # a part that can joins it to an ego world
