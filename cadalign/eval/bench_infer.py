@@ -61,6 +61,12 @@ class InferSource:
     """Time at most this many frames."""
 
 
+def run_folder_name(preset: str, overrides: dict[str, Any]) -> str:
+    """The folder of one infer setting: the preset and a hash of its override values (two settings with the same
+    override keys but other values must not share a folder)."""
+    return preset + (f"_{fingerprint(overrides)[:8]}" if overrides else "")
+
+
 def _train_small(data: BenchData, cfg: BenchConfig) -> Path:
     """A small pose network trained on the bench clip for the size's step budget (reused when finished)."""
     import dataclasses
@@ -116,7 +122,7 @@ def infer_sweep(data: BenchData, cfg: BenchConfig, source: InferSource | None = 
         src: InferSource = s["src"]
         overrides = merge_mappings(merge_mappings({"overlay": False}, src.overrides), knobs["overrides"])
         icfg = resolve(InferConfig, PRESETS, knobs["preset"], overrides=overrides)
-        out = data.work("infer", "runs", knobs["preset"] + "".join(f"_{k}" for k in sorted(knobs["overrides"])))
+        out = data.work("infer", "runs", run_folder_name(knobs["preset"], knobs["overrides"]))
         shutil.rmtree(out)  # every repeat runs from scratch (run() would reuse a finished folder)
         detector = TorchDetector(s["net"], icfg.score_thresh)
         t0 = time.perf_counter()

@@ -60,3 +60,12 @@ def test_model_options_are_checked_before_anything_runs(tmp_path: Path):
                               "--out", str(tmp_path / "b")])
     assert res.exit_code == 1 and "no_such_key" in res.output
     assert not (tmp_path / "b" / "bench.json").exists()
+
+
+def test_settings_with_the_same_override_keys_get_their_own_folders():
+    from cadalign.eval.bench_infer import run_folder_name
+
+    a = run_folder_name("balanced", {"refine": {"yaw_hypotheses": 4}})
+    b = run_folder_name("balanced", {"refine": {"yaw_hypotheses": 8}})
+    assert a != b and a.startswith("balanced_") and a == run_folder_name("balanced", {"refine": {"yaw_hypotheses": 4}})
+    assert run_folder_name("fast", {}) == "fast"
