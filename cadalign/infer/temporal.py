@@ -229,6 +229,25 @@ class TemporalFuser:
                 best, best_d = tr.obj_id, d
         return best
 
+    def tracks_in_view(self, label: int, frame: int, T_world_from_cam: Rigid3 | None = None, min_obs: int = 3
+                       ) -> list[tuple[int, Rigid3]]:
+        """(model id, predicted ``T_cam_from_obj`` in this frame) of every track of class ``label`` that has a model
+        id and at least ``min_obs`` observations, in the space this frame will be fused in (the given camera pose,
+        the predicted ego camera, or the filter's own prediction)."""
+        if self.cfg.mode == "none":
+            return []
+        space = self._space(T_world_from_cam)
+        T_wc = T_world_from_cam if space == "world" else predict_camera(self._ego, frame) if space == "ego" else None
+        if space == "ego" and T_wc is None:
+            return []
+        out = []
+        for tr in self.tracks:
+            if tr.space != space or tr.label != label or tr.obj_id is None or len(tr.obs) < min_obs:
+                continue
+            T = self._predict(tr, frame)
+            out.append((tr.obj_id, T_wc.inverse() @ T if T_wc is not None else T))
+        return out
+
     def _associate(self, obs: list[Observation], frame: int, T_wc: Rigid3 | None, space: str
                    ) -> list[_Track | None]:
         pairs = []

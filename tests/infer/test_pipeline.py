@@ -13,6 +13,7 @@ from cadalign.data.bop import BopScene
 from cadalign.data.torch_datasets import load_class_map
 from cadalign.eval.pose_eval import PoseEvalConfig, PosePrediction, evaluate_scene, gt_instances, load_bop_models
 from cadalign.eval.pose_metrics import rotation_error_deg
+from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.infer.detect import OracleConfig, OracleDetector, resolve_scene_dir
 from cadalign.infer.pipeline import PRESETS, PosePipeline
 from cadalign.types import Rigid3
@@ -157,3 +158,42 @@ def test_min_box_side_makes_small_targets_dont_care(scene: Path) -> None:
     rep = evaluate_scene(preds, scene, models, cmap.names, cmap.class_of_obj, cfg, [0])
     assert rep["detection"]["fn"] == 0 and rep["detection"]["tp"] == len(big) and rep["detection"]["f1"] == 1.0
     assert rep["config"]["min_box_side_px"] == cut
+
+
+def test_a_detection_on_an_established_track_starts_from_the_track(scene: Path, tiny_structure, monkeypatch) -> None:
+    """A static camera sees the same valve each frame; from frame 3 the network's pose is 60 deg and 30 % of its
+    distance off (beyond the 3D gate of the model reuse by track, :meth:`TemporalFuser.known_model`). The track
+    fused from frames 0-2 gives the model without identifying again and a start that refinement keeps; without
+    track_init every frame is identified and the refined pose stays near the network's."""
+    models = dict(tiny_structure.models)
+    models[9] = CadModel("decoy", models[1].vertices_m * 0.3, models[1].faces, class_name="valve")
+    det = OracleDetector(scene, OracleConfig(noise_t_m=0.0, noise_r_deg=0.0))
+    valve = next(d for d in det.for_frame("000002.png").detect(None, None) if d.label == 2)
+    K, depth = det.scene.frame(2).camera.K, det.scene.depth_m(2)
+    truth = next(g.T_cam_from_obj for g in det.scene.frame(2).instances if g.obj_id == 2)
+    off = axis_angle_to_matrix(np.array([0.0, 0.0, np.radians(60.0)])) @ valve.R_cam_from_obj
+
+    class Turning:
+        frame = 0
+
+        def detect(self, image, K):
+            far = np.asarray(valve.t_cam_from_obj_m, float) * 1.3  # and its distance 30 % long, as networks are
+            return [valve if self.frame < 3 else replace(valve, R_cam_from_obj=off, t_cam_from_obj_m=far)]
+
+    def run(track_init: bool) -> tuple[int, float]:
+        net = Turning()
+        cfg = replace(PRESETS["fast"], reuse_box_iou=0.0, track_init=track_init)
+        pipe = PosePipeline(net, models, tiny_structure.class_names, cfg)
+        calls = []
+        real = pipe.identify
+        monkeypatch.setattr(pipe, "identify", lambda *a, **k: calls.append(1) or real(*a, **k))
+        for f in range(6):
+            net.frame = f
+            records, _ = pipe.process(f, f"{f:06d}.png", np.zeros((120, 160, 3), np.uint8), K, depth, Rigid3.identity())
+            assert [r.obj_id for r in records] == [2]
+        return len(calls), rotation_error_deg(records[0].T_refined.R, truth.R)
+
+    calls, err = run(True)
+    assert calls == 3 and err < 2.0
+    calls, err = run(False)
+    assert calls == 6 and err > 20.0
