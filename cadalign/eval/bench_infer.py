@@ -29,12 +29,14 @@ from cadalign.eval.bench_data import BenchData
 from cadalign.io import fingerprint
 
 BASELINE = "detector only"
+NO_REUSE: dict[str, Any] = {"reuse_box_iou": 0.0, "track_init": False}
+"""Every detection identified and refined from the network's pose (no model or pose taken from a track)."""
 
 INFER_POINTS: dict[int, tuple[tuple[str, str, dict[str, Any]], ...]] = {
     0: ((BASELINE, "none", {}), ("fast", "fast", {}), ("balanced", "balanced", {})),
-    1: ((BASELINE, "none", {}), ("fast", "fast", {}), ("fast, no model reuse", "fast", {"reuse_box_iou": 0.0}),
+    1: ((BASELINE, "none", {}), ("fast", "fast", {}), ("fast, no model reuse", "fast", NO_REUSE),
         ("balanced", "balanced", {})),
-    2: ((BASELINE, "none", {}), ("fast", "fast", {}), ("fast, no model reuse", "fast", {"reuse_box_iou": 0.0}),
+    2: ((BASELINE, "none", {}), ("fast", "fast", {}), ("fast, no model reuse", "fast", NO_REUSE),
         ("balanced", "balanced", {}), ("balanced, 4 yaw restarts", "balanced", {"refine": {"yaw_hypotheses": 4}}),
         ("accurate", "accurate", {})),
 }
