@@ -29,7 +29,7 @@ from cadalign.eval.bench_data import BenchData
 from cadalign.io import fingerprint
 
 BASELINE = "detector only"
-NO_REUSE: dict[str, Any] = {"reuse_box_iou": 0.0, "track_init": False}
+NO_REUSE: dict[str, Any] = {"reuse_box_iou": 0.0, "track_init": "off"}
 """Every detection identified and refined from the network's pose (no model or pose taken from a track)."""
 
 INFER_POINTS: dict[int, tuple[tuple[str, str, dict[str, Any]], ...]] = {

@@ -55,12 +55,19 @@ class InferConfig:
     established track). The track gate compares 3D poses, and the network's are ~1 m off: on the default scene's
     33 held-out frames 6 of 263 detections met it. There, 2 threads: 'fast' 522 -> 474 ms/frame, accuracy unchanged;
     'balanced' with 4 yaw restarts 1375 -> 1067 ms/frame and refined valve rotation error 16.3 -> 13.4 deg mean."""
-    track_init: bool = True
-    """A detection whose box holds the projected centre of an established track of its class (fused from at least
-    three frames; with depth, the masked depth within half the part's diameter of that centre) takes the track's
-    CAD model, and its refinement starts from the track's pose in this frame instead of the network's (frame to
-    frame tracking). The network's pose is ~1 m and tens of degrees off at 10 m; the track's is within a few cm and
-    degrees. Detections on no track are identified (or reused by ``reuse_box_iou``) as before."""
+    track_init: Literal["off", "model", "pose"] = "pose"
+    """Frame-to-frame tracking. A detection whose box holds the projected centre of an established track of its
+    class (fused from at least three frames; with depth, the masked depth within half the part's diameter of that
+    centre) takes the track's CAD model instead of being identified again (``model``), and (``pose``) starts its
+    refinement from the track's pose in this frame instead of the network's (~1 m and tens of degrees off at 10 m).
+    ``off``: identify every detection not reused by ``reuse_box_iou`` / a 3D gate on the network's translation.
+    Default orbit, 33 held-out frames, ``accurate``, true camera poses, fused valve R mean (without the ball valve)
+    / t mean / ms per frame (2 threads): 3300-step network off 3.52 (3.36) deg / 0.026 m / 2208; model 3.44 (3.91)
+    / 0.026 / 1171; pose 2.67 (3.05) / 0.025 / ~1100. 6600-step network off 7.23 (2.28) / 0.049 / 2160; model
+    5.90 (1.80) / 0.048 / 1116; pose 12.75 (1.53) / 0.003 / 1087. Without the ball valve, ``pose`` is the best
+    every time; the ball valve (no symmetry, but its lever the only difference from a half turn) is a coin toss
+    at 10-13 m, and ``pose`` keeps the orientation of its first frames (right for one network, flipped for 11 of
+    28 detections with the other), where ``off`` / ``model`` fuse independent per-frame guesses."""
     identify_iters: int = bounded(3, ge=0)
     """ICP iterations per candidate model (and yaw restart) when a detection's class has several models. Three
     leave every big valve type of the default scene 10-18 mm (median point distance) from the ball valve's
@@ -217,7 +224,7 @@ class PosePipeline:
         The track's model centre must project into the detection's box (the nearest to the box centre wins), and
         with depth lie within half the part's diameter of the median depth in the mask; ``taken`` holds the tracks
         (indices of :meth:`TemporalFuser.tracks_in_view`) earlier detections of this frame took."""
-        if not self.cfg.track_init or getattr(det, "obj_id", None) is not None:
+        if self.cfg.track_init == "off" or getattr(det, "obj_id", None) is not None:
             return None
         z_obs = None
         if depth_m is not None and det.mask is not None:
@@ -270,7 +277,7 @@ class PosePipeline:
             depth = depth_m if self.cfg.use_depth else None
             start = self._track_start(d, K, frame, T_world_from_cam, depth, taken)
             if start is not None:
-                oid, T_start = start
+                oid, T_start = start[0], (start[1] if self.cfg.track_init == "pose" else T0)
             else:
                 oid = self._known_model(d, T0, frame, T_world_from_cam)
                 oid, T_start = (oid, T0) if oid is not None else self.identify(d, T0, K, depth)

@@ -163,8 +163,8 @@ def test_min_box_side_makes_small_targets_dont_care(scene: Path) -> None:
 def test_a_detection_on_an_established_track_starts_from_the_track(scene: Path, tiny_structure, monkeypatch) -> None:
     """A static camera sees the same valve each frame; from frame 3 the network's pose is 60 deg and 30 % of its
     distance off (beyond the 3D gate of the model reuse by track, :meth:`TemporalFuser.known_model`). The track
-    fused from frames 0-2 gives the model without identifying again and a start that refinement keeps; without
-    track_init every frame is identified and the refined pose stays near the network's."""
+    fused from frames 0-2 gives the model without identifying again and a start that refinement keeps ("pose");
+    "off" identifies every frame, and the refined pose stays near the network's."""
     models = dict(tiny_structure.models)
     models[9] = CadModel("decoy", models[1].vertices_m * 0.3, models[1].faces, class_name="valve")
     det = OracleDetector(scene, OracleConfig(noise_t_m=0.0, noise_r_deg=0.0))
@@ -180,7 +180,7 @@ def test_a_detection_on_an_established_track_starts_from_the_track(scene: Path, 
             far = np.asarray(valve.t_cam_from_obj_m, float) * 1.3  # and its distance 30 % long, as networks are
             return [valve if self.frame < 3 else replace(valve, R_cam_from_obj=off, t_cam_from_obj_m=far)]
 
-    def run(track_init: bool) -> tuple[int, float]:
+    def run(track_init: str) -> tuple[int, float]:
         net = Turning()
         cfg = replace(PRESETS["fast"], reuse_box_iou=0.0, track_init=track_init)
         pipe = PosePipeline(net, models, tiny_structure.class_names, cfg)
@@ -193,7 +193,9 @@ def test_a_detection_on_an_established_track_starts_from_the_track(scene: Path, 
             assert [r.obj_id for r in records] == [2]
         return len(calls), rotation_error_deg(records[0].T_refined.R, truth.R)
 
-    calls, err = run(True)
+    calls, err = run("pose")
     assert calls == 3 and err < 2.0
-    calls, err = run(False)
+    calls, err = run("model")  # the track's model without identifying, the network's pose as the start
+    assert calls == 3 and err > 20.0
+    calls, err = run("off")
     assert calls == 6 and err > 20.0
