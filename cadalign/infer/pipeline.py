@@ -26,7 +26,14 @@ from cadalign.infer.detect import Detector
 from cadalign.infer.hypotheses import yaw_hypotheses_rad
 from cadalign.infer.model_geom import ModelGeometry, project_points, render_silhouette
 from cadalign.infer.refine import PRESETS as REFINE_PRESETS
-from cadalign.infer.refine import RefineConfig, masked_depth_points, refine, refine_depth_icp, refine_silhouette
+from cadalign.infer.refine import (
+    RefineConfig,
+    masked_depth_points,
+    pick_fit,
+    refine,
+    refine_depth_icp,
+    refine_silhouette,
+)
 from cadalign.infer.temporal import Observation, TemporalConfig, TemporalFuser
 from cadalign.types import Rigid3
 
@@ -193,7 +200,7 @@ class PosePipeline:
             else:  # with refinement off, the detector's pose is scored as it is
                 Tk = refine_silhouette(g, T, K, mask, cfg, iters=n)[0] if cfg.method in ("silhouette", "both") else T
                 scored.append((-_window_iou(g, Tk, K, mask), k, Tk))
-        _, best, T_best = min(scored, key=lambda x: x[0])
+        _, best, T_best = pick_fit(scored, [x[2] for x in scored], T, cfg.tie_m if use_depth else 0.0)
         return best, T_best
 
     def _known_model(self, det: object, T: Rigid3, frame: int, T_world_from_cam: Rigid3 | None) -> int | None:

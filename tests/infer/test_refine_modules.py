@@ -28,3 +28,19 @@ def test_huber_weights_and_damped_solve_on_a_hand_case():
     assert refine_math.solve_step(J[:5], r[:5], np.ones(5), 0.0) is None  # under-determined
     big = refine_math.clamp_step(np.array([1.0, 0, 0, 0, 0, 4.0]), diameter_m=2.0)
     np.testing.assert_allclose(big, [0.2, 0, 0, 0, 0, 0.5])
+
+
+def test_pick_fit_breaks_ties_by_the_turn_from_the_start() -> None:
+    from cadalign.geometry.rotations import axis_angle_to_matrix
+    from cadalign.types import Rigid3
+
+    def turned(deg: float) -> Rigid3:
+        return Rigid3(axis_angle_to_matrix(np.array([0.0, 0.0, np.radians(deg)])), np.zeros(3))
+
+    poses = [turned(170.0), turned(5.0), turned(0.0)]
+    scored = [(0.0040, "a"), (0.0042, "b"), (0.0100, "c")]
+    start = turned(0.0)
+    assert refine.pick_fit(scored, poses, start, 0.0)[1] == "a"  # the best fit outright
+    assert refine.pick_fit(scored, poses, start, 0.0005)[1] == "b"  # a tie: the one nearer the start
+    assert refine.pick_fit(scored, poses, start, 0.01)[1] == "c"
+    assert refine.pick_fit(scored[:1], poses[:1], start, 1.0)[1] == "a"
