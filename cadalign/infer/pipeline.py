@@ -68,13 +68,14 @@ class InferConfig:
     centre) takes the track's CAD model instead of being identified again (``model``), and (``pose``) starts its
     refinement from the track's pose in this frame instead of the network's (~1 m and tens of degrees off at 10 m).
     ``off``: identify every detection not reused by ``reuse_box_iou`` / a 3D gate on the network's translation.
-    Default orbit, 33 held-out frames, ``accurate``, true camera poses, fused valve R mean (without the ball valve)
-    / t mean / ms per frame (2 threads): 3300-step network off 3.52 (3.36) deg / 0.026 m / 2208; model 3.44 (3.91)
-    / 0.026 / 1171; pose 2.67 (3.05) / 0.025 / 1128. 6600-step network off 7.23 (2.28) / 0.049 / 2160; model
-    5.90 (1.80) / 0.048 / 1116; pose 12.75 (1.53) / 0.003 / 1087. Without the ball valve, ``pose`` is the best
-    every time; the ball valve (no symmetry, but its lever the only difference from a half turn) is a coin toss
-    at 10-13 m, and ``pose`` keeps the orientation of its first frames (right for one network, flipped for 11 of
-    28 detections with the other), where ``off`` / ``model`` fuse independent per-frame guesses."""
+    Default orbit, 33 held-out frames, ``accurate`` before ``refine.tie_m``, true camera poses; fused valve R mean
+    (without the ball valve) / t mean / ms per frame (2 threads): 3300-step network off 3.52 (3.36) deg / 0.026 m /
+    2208; model 3.44 (3.91) / 0.026 / 1171; pose 2.67 (3.05) / 0.025 / 1128. 6600-step network off 7.23 (2.28) /
+    0.049 / 2160; model 5.90 (1.80) / 0.048 / 1116; pose 12.75 (1.53) / 0.003 / 1087. Without the ball valve,
+    ``pose`` is the best every time; the ball valve (no symmetry, but its lever the only difference from a half
+    turn) was a coin toss at 10-13 m, and ``pose`` keeps the orientation of its first frames (right for one network,
+    flipped for 11 of 28 detections with the other), where ``off`` / ``model`` fuse independent per-frame guesses.
+    With ``tie_m`` (the start wins ties) the 6600-step network's ``pose`` run gives 1.12 deg / 0.009 m."""
     identify_iters: int = bounded(3, ge=0)
     """ICP iterations per candidate model (and yaw restart) when a detection's class has several models. Three
     leave every big valve type of the default scene 10-18 mm (median point distance) from the ball valve's

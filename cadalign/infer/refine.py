@@ -201,7 +201,7 @@ def _icp_yaw_hypotheses(geom: ModelGeometry, T0: Rigid3, K: np.ndarray, depth_m:
     return pick_fit(scored, [c[0] for _, c in scored], T0, cfg.tie_m)[1]
 
 
-def pick_fit(scored: list, poses: list[Rigid3], T_ref: Rigid3, tie_m: float):
+def pick_fit(scored: list[tuple], poses: list[Rigid3], T_ref: Rigid3, tie_m: float) -> tuple:
     """The entry of ``scored`` (``(fit, ...)`` tuples, smaller is better, ``poses`` the matching poses) with the
     best fit, or among those within ``tie_m`` of it the one whose pose turns least from ``T_ref``."""
     best = min(s[0] for s in scored)
