@@ -38,5 +38,6 @@ def write_run_record(out: Path, task: str, cfg: Any, identity: dict[str, Any], e
     return path
 
 
-_RESUMABLE = {"loop.steps", "loop.checkpoint_every", "loop.log_every", "loop.num_workers", "val_every"}
+_RESUMABLE = {"loop.steps", "loop.checkpoint_every", "loop.keep_checkpoints", "loop.log_every", "loop.num_workers",
+              "val_every"}
 """Config keys a resumed run may change (how long and how often it logs, not what it learns)."""

@@ -65,6 +65,9 @@ class LoopConfig:
     """Gradient norm clip; 0 = off."""
     checkpoint_every: int = bounded(50, ge=1)
     """Steps between checkpoints; one is also written on KeyboardInterrupt/SIGTERM and at the end."""
+    keep_checkpoints: int = bounded(5, ge=0)
+    """Numbered checkpoints kept (the newest; ``last.pt`` always), 0 = all. A 6600-step pose run kept all 66 of
+    its 58 MB checkpoints (3.8 GB) and filled a disk."""
     log_every: int = bounded(10, ge=1)
     """Steps between metric rows in metrics.json."""
     seed: int = 0
@@ -79,7 +82,7 @@ class LoopConfig:
 
 
 # Fields that may change between a run and its resumption (they do not change the optimisation).
-_RESUMABLE_CHANGES = {"steps", "checkpoint_every", "log_every", "num_workers"}
+_RESUMABLE_CHANGES = {"steps", "checkpoint_every", "keep_checkpoints", "log_every", "num_workers"}
 
 
 class StepFn(Protocol):
@@ -219,6 +222,9 @@ class _Run:
         if numbered:
             save_checkpoint(self.ckpt_dir / f"step_{self.step:06d}.pt", state)
         save_checkpoint(self.ckpt_dir / LAST, state)
+        if numbered and self.cfg.keep_checkpoints:  # after last.pt is safe: a kill never leaves fewer than kept
+            for old in sorted(self.ckpt_dir.glob("step_*.pt"))[:-self.cfg.keep_checkpoints]:
+                old.unlink(missing_ok=True)
 
     def restore(self, path: Path, device: torch.device) -> None:
         ck = load_checkpoint(path, map_location=device)

@@ -228,3 +228,12 @@ def test_bf16_native_names_the_cpus_that_have_it(monkeypatch):
         monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda v=amx: v)
         assert bf16_native(torch.device("cpu")) is want
     assert bf16_native(torch.device("meta")) is False
+
+
+def test_only_the_newest_numbered_checkpoints_are_kept(tmp_path):
+    cfg = replace(CFG, checkpoint_every=2, keep_checkpoints=2)
+    train_loop(_model(), _step, _Toy(), cfg, tmp_path / "two")
+    names = sorted(q.name for q in (tmp_path / "two" / "checkpoints").iterdir())
+    assert names == ["last.pt", "step_000008.pt", "step_000010.pt"]  # the end writes last.pt only
+    train_loop(_model(), _step, _Toy(), replace(cfg, keep_checkpoints=0), tmp_path / "all")
+    assert len(list((tmp_path / "all" / "checkpoints").glob("step_*.pt"))) == 5
