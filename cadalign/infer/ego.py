@@ -24,6 +24,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from cadalign.cad.symmetry import Symmetry
+from cadalign.errors import DegenerateGeometryError
+from cadalign.geometry.umeyama import kabsch
+from cadalign.infer.refine_math import huber_weights
 from cadalign.types import Rigid3
 
 if TYPE_CHECKING:
@@ -114,14 +117,13 @@ def _fit_positions(C: Rigid3, p_cam: np.ndarray, p_world: np.ndarray, huber_t_m:
     R = C.R
     for _ in range(iters):
         if rotate:
-            mc, mw = (w[:, None] * p_cam).sum(0) / w.sum(), (w[:, None] * p_world).sum(0) / w.sum()
-            U, _, Vt = np.linalg.svd(((p_world - mw) * w[:, None]).T @ (p_cam - mc))
-            d = np.array([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-            R = (U * d) @ Vt
+            try:
+                R = kabsch(p_cam, p_world, w).R
+            except DegenerateGeometryError:  # the correspondences do not fix a rotation: keep the last one
+                rotate = False
         r = p_world - p_cam @ R.T
         t = (w[:, None] * r).sum(0) / w.sum()
-        dist = np.linalg.norm(r - t, axis=1)
-        w = np.where(dist <= huber_t_m, 1.0, huber_t_m / np.maximum(dist, 1e-12))
+        w = huber_weights(np.linalg.norm(r - t, axis=1), huber_t_m)
     return Rigid3(R, t)
 
 

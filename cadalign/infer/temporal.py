@@ -178,6 +178,13 @@ class TemporalFuser:
             return "world"
         return "ego" if self.cfg.mode in ("auto", "ego") else "cam"
 
+    def _predicted_view(self, frame: int, T_world_from_cam: Rigid3 | None) -> tuple[str, Rigid3 | None] | None:
+        """(space, camera pose) a detection of ``frame`` is compared in before the frame is fused: the given pose,
+        the ego camera's prediction, or none (filter); None when the ego camera has no prediction yet."""
+        space = self._space(T_world_from_cam)
+        T_wc = T_world_from_cam if space == "world" else predict_camera(self._ego, frame) if space == "ego" else None
+        return None if space == "ego" and T_wc is None else (space, T_wc)
+
     def _register(self, frame: int, obs: list[Observation]) -> Rigid3 | None:
         """This frame's estimated ``T_world_from_cam`` (mode ``ego``); None leaves the frame to the filter.
 
@@ -215,10 +222,10 @@ class TemporalFuser:
         """
         if self.cfg.mode == "none":
             return None
-        space = self._space(T_world_from_cam)
-        T_wc = T_world_from_cam if space == "world" else predict_camera(self._ego, frame) if space == "ego" else None
-        if space == "ego" and T_wc is None:
+        view = self._predicted_view(frame, T_world_from_cam)
+        if view is None:
             return None
+        space, T_wc = view
         t_o = (T_wc @ T_cam_from_obj).t if T_wc is not None else T_cam_from_obj.t
         best, best_d = None, gate_m
         for tr in self.tracks:
@@ -236,10 +243,10 @@ class TemporalFuser:
         the predicted ego camera, or the filter's own prediction)."""
         if self.cfg.mode == "none":
             return []
-        space = self._space(T_world_from_cam)
-        T_wc = T_world_from_cam if space == "world" else predict_camera(self._ego, frame) if space == "ego" else None
-        if space == "ego" and T_wc is None:
+        view = self._predicted_view(frame, T_world_from_cam)
+        if view is None:
             return []
+        space, T_wc = view
         out = []
         for tr in self.tracks:
             if tr.space != space or tr.label != label or tr.obj_id is None or len(tr.obs) < min_obs:
