@@ -7,7 +7,10 @@ convention). Widths are ``x2 - x1`` (no "+1").
 The semantics follow torchvision's reference kernels (``torchvision.ops.roi_align``, ``nms``,
 ``batched_nms``, ``BoxCoder``) so that weights and thresholds carry over. torchvision's compiled ops are
 used as an accelerator only when they import (``use_accel=True`` and the import works); the pure-torch path
-is the one that is tested and always available.
+is always available and is the one the CPU test suite runs. ``tests/pose/test_accelerators.py`` checks that
+the accelerated path gives the pure path's numbers where it loads (run on an H100 with torchvision 0.26, Nov
+2026: RoIAlign and its gradient equal to 1e-9 in float64 on CPU and CUDA, NMS keeps the same boxes; the
+trained detector gave the same detections on 4 held-out frames with boxes within 1e-4 px).
 """
 
 from __future__ import annotations

@@ -8,50 +8,27 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from pose_testutils import tiny_cfg
+from pose_testutils import TINY_K as K
+from pose_testutils import tiny_cfg, tiny_pose_loss, tiny_scene
 from typer.testing import CliRunner
 
-from cadalign.cad.symmetry import Symmetry
 from cadalign.cli.main import app
 from cadalign.errors import TrainingError
 from cadalign.models.maskrcnn import Detection, MaskRCNNPose, load_pose_model
 from cadalign.models.maskrcnn.roi_heads import SampledRoIs, mask_targets, paste_masks
-from cadalign.train.pose_losses import ObjectGeometry, PoseLoss, PoseLossConfig
 
 REPO = Path(__file__).resolve().parents[2]
-K = torch.tensor([[60.0, 0, 32], [0, 60, 24], [0, 0, 1]])
-
-
-def _scene(seed: int) -> tuple[torch.Tensor, dict]:
-    """A 64x48 image with a red square and a blue bar on a textured background, and their targets."""
-    g = torch.Generator().manual_seed(seed)
-    img = 0.3 + 0.1 * torch.rand(3, 48, 64, generator=g)
-    masks = torch.zeros(2, 48, 64, dtype=torch.bool)
-    masks[0, 8:24, 10:26] = True
-    masks[1, 28:40, 30:58] = True
-    img[:, masks[0]] = torch.tensor([0.9, 0.1, 0.1])[:, None]
-    img[:, masks[1]] = torch.tensor([0.1, 0.2, 0.9])[:, None]
-    target = {"boxes": torch.tensor([[10.0, 8, 26, 24], [30, 28, 58, 40]]), "labels": torch.tensor([1, 2]),
-              "masks": masks, "R": torch.eye(3).expand(2, 3, 3).clone(), "t": torch.tensor([[-0.5, -0.3, 2.0],
-                                                                                             [0.6, 0.4, 3.0]]),
-              "K": K, "obj_ids": torch.tensor([1, 2])}
-    return img, target
-
-
-def _loss() -> PoseLoss:
-    pts = np.random.default_rng(0).uniform(-0.1, 0.1, (32, 3))
-    return PoseLoss({i: ObjectGeometry(pts, 0.35, Symmetry.none()) for i in (1, 2)}, PoseLossConfig())
 
 
 @pytest.mark.parametrize("param", ["improved", "thesis"])
 def test_losses_decrease_on_a_tiny_image(param: str):
     torch.manual_seed(0)
     model = MaskRCNNPose(tiny_cfg(pose=param), ["background", "square", "bar"])
-    img, tgt = _scene(0)
+    img, tgt = tiny_scene(0)
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
     totals = []
     for _ in range(25):
-        losses = model(img[None], [tgt], pose_loss=_loss())
+        losses = model(img[None], [tgt], pose_loss=tiny_pose_loss())
         total = sum(losses.values())
         opt.zero_grad()
         total.backward()
@@ -67,7 +44,7 @@ def test_losses_decrease_on_a_tiny_image(param: str):
 def test_eval_outputs_and_detect_interface():
     torch.manual_seed(1)
     model = MaskRCNNPose(tiny_cfg(), ["background", "square", "bar"]).eval()
-    img, _ = _scene(1)
+    img, _ = tiny_scene(1)
     out = model(img[None])
     assert isinstance(out, list) and len(out) == 1
     o = out[0]
