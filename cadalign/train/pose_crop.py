@@ -45,16 +45,26 @@ def masks_to_boxes(masks: Tensor) -> Tensor:
 
 
 def crop_origin(hw: tuple[int, int], crop_hw: tuple[int, int], boxes: Tensor, g: torch.Generator,
-                object_prob: float) -> tuple[int, int]:
+                object_prob: float, labels: Tensor | None = None) -> tuple[int, int]:
     """Top-left ``(y0, x0)`` of a crop: with ``object_prob`` one holding a random instance's box centre, else uniform.
 
     Instances are drawn uniformly, so the many small parts are in most crops, not only the large structure.
+    With ``labels`` (G,) the draw is balanced by class instead: a class present in the image uniformly, then
+    one of its instances, so a class with few instances per frame is centred as often as a frequent one. Both
+    draws use the same random numbers (the stream does not change).
     """
     h, w = hw
     ch, cw = crop_hw
     u = torch.rand(4, generator=g, device=g.device).tolist()
     if len(boxes) and u[0] < object_prob:
-        b = boxes[min(int(u[1] * len(boxes)), len(boxes) - 1)]
+        pick = min(int(u[1] * len(boxes)), len(boxes) - 1)
+        if labels is not None:
+            classes = torch.unique(labels)  # sorted
+            c = min(int(u[1] * len(classes)), len(classes) - 1)
+            members = torch.nonzero(labels == classes[c]).squeeze(1)
+            frac = u[1] * len(classes) - c  # uniform in [0, 1) given the class
+            pick = int(members[min(int(frac * len(members)), len(members) - 1)])
+        b = boxes[pick]
         cx, cy = float(b[0] + b[2]) / 2, float(b[1] + b[3]) / 2
         # the centre lands uniformly inside the crop, then the crop is clamped into the image
         x0, y0 = cx - u[2] * cw, cy - u[3] * ch
@@ -113,12 +123,13 @@ def draw_zoom(g: torch.Generator, prob: float, zoom_max: float) -> float:
 
 
 def crop_batch(batch: dict, g: torch.Generator, crop_hw: tuple[int, int], object_prob: float = 0.8,
-               zoom_prob: float = 0.0, zoom_max: float = 2.0) -> dict:
+               zoom_prob: float = 0.0, zoom_max: float = 2.0, balance_classes: bool = False) -> dict:
     """A :func:`cadalign.data.torch_datasets.detection_collate` batch with each image randomly cropped.
 
     ``image`` (B, 3, H, W) -> (B, 3, ch, cw); the per-image lists follow (see :func:`crop_target`). With
     probability ``zoom_prob`` an image's crop is instead a window ``z`` times smaller (``z`` log-uniform in
-    ``[1, zoom_max]``) upsampled to ``crop_hw`` (see :func:`zoom_target`).
+    ``[1, zoom_max]``) upsampled to ``crop_hw`` (see :func:`zoom_target`). ``balance_classes``: the instance a
+    crop is placed around is drawn class-balanced (see :func:`crop_origin`).
 
     Raises:
         ValueError: the crop is larger than the images.
@@ -134,7 +145,8 @@ def crop_batch(batch: dict, g: torch.Generator, crop_hw: tuple[int, int], object
         target = {k: batch[k][i] for k in (*_PER_IMAGE, "K")}
         z = draw_zoom(g, zoom_prob, zoom_max)
         src = (max(int(round(ch / z)), 1), max(int(round(cw / z)), 1))
-        y0, x0 = crop_origin((h, w), src, target["boxes"], g, object_prob)
+        y0, x0 = crop_origin((h, w), src, target["boxes"], g, object_prob,
+                             target["labels"] if balance_classes else None)
         image = batch["image"][i, :, y0:y0 + src[0], x0:x0 + src[1]]
         cropped = crop_target(target, y0, x0, src)
         if src != (ch, cw):

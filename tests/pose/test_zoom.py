@@ -89,3 +89,32 @@ def test_zoom_draws_and_config():
     assert make_augment(AugmentConfig(enabled=False), zoom_prob=0.5, input_hw=(48, 64)) is not None
     with pytest.raises(ValueError, match="input_hw"):
         make_augment(AugmentConfig(enabled=False), zoom_prob=0.5)
+
+
+def test_class_balanced_crop_centres():
+    """Nine valves and one hot stab: uniform over instances centres the hot stab in ~1 of 10 crops, class-balanced
+    in ~1 of 2; the same random numbers are drawn either way, so the stream after a crop does not change."""
+    from cadalign.train.pose_crop import crop_origin
+
+    hw, crop = (200, 400), (20, 20)
+    valves = torch.tensor([[10.0 + 20 * i, 10, 14 + 20 * i, 14] for i in range(9)])
+    boxes = torch.cat([valves, torch.tensor([[380.0, 180, 386, 186]])])
+    labels = torch.tensor([1] * 9 + [2])
+
+    def hot_stab_share(balanced: bool) -> float:
+        g = torch.Generator().manual_seed(0)
+        hits = 0
+        for _ in range(400):
+            y0, x0 = crop_origin(hw, crop, boxes, g, 1.0, labels if balanced else None)
+            hits += (x0 <= 383 < x0 + crop[1]) and (y0 <= 183 < y0 + crop[0])
+        return hits / 400
+
+    assert 0.05 < hot_stab_share(False) < 0.16
+    assert 0.42 < hot_stab_share(True) < 0.58
+    g1, g2 = torch.Generator().manual_seed(1), torch.Generator().manual_seed(1)
+    crop_origin(hw, crop, boxes, g1, 1.0)
+    crop_origin(hw, crop, boxes, g2, 1.0, labels)
+    assert torch.equal(torch.rand(3, generator=g1), torch.rand(3, generator=g2))
+    # one class present: the balanced draw is the uniform one
+    assert [crop_origin(hw, crop, valves, torch.Generator().manual_seed(s), 1.0, labels[:9]) for s in range(20)] == \
+        [crop_origin(hw, crop, valves, torch.Generator().manual_seed(s), 1.0) for s in range(20)]
