@@ -19,18 +19,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cadalign.cad.symmetry import Symmetry
 from cadalign.errors import DegenerateGeometryError
 from cadalign.geometry.umeyama import kabsch
+from cadalign.infer.pose_math import Observation, apply_twist_camera, canonicalize, robust_mean, twist_between
 from cadalign.infer.refine_math import huber_weights
 from cadalign.types import Rigid3
-
-if TYPE_CHECKING:
-    from cadalign.infer.temporal import Observation
 
 
 def fixed_point(symmetry: Symmetry | None) -> np.ndarray:
@@ -61,7 +58,6 @@ def register_camera(obs: Sequence[Observation], cands: Sequence[Sequence[int]], 
     camera pose and the indices of the inlier observations, or ``(None, [])`` when no hypothesis has an inlier.
     The pose is then refitted to the inliers' positions (:func:`_fit_positions`, ``min_spread``).
     """
-    from cadalign.infer.temporal import canonicalize, robust_mean  # temporal imports this module
 
     fixed = [fixed_point(o.symmetry) for o in obs]
     pair_i = np.array([i for i in range(len(obs)) for _ in cands[i]], dtype=np.int64)
@@ -131,7 +127,6 @@ def predict_camera(history: Sequence[tuple[int, Rigid3]], frame: int) -> Rigid3 
     """The constant-velocity prediction of ``T_world_from_cam`` at ``frame`` from the last two (frame, pose)
     entries of ``history`` (the last pose alone with one entry; None with none). The per-frame motion is the
     left twist between them (:func:`cadalign.infer.temporal.twist_between`) scaled by the frame gap."""
-    from cadalign.infer.temporal import _apply_twist, twist_between
 
     if not history:
         return None
@@ -140,4 +135,4 @@ def predict_camera(history: Sequence[tuple[int, Rigid3]], frame: int) -> Rigid3 
         return C1
     f0, C0 = history[-2]
     xi = twist_between(C0, C1) / max(f1 - f0, 1)
-    return _apply_twist(xi * (frame - f1), C1) if math.isfinite(float(xi.sum())) else C1
+    return apply_twist_camera(xi * (frame - f1), C1) if math.isfinite(float(xi.sum())) else C1

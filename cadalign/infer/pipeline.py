@@ -25,6 +25,7 @@ from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.infer.detect import Detector
 from cadalign.infer.hypotheses import yaw_hypotheses_rad
 from cadalign.infer.model_geom import ModelGeometry, project_points, render_silhouette
+from cadalign.infer.pose_math import Observation
 from cadalign.infer.refine import PRESETS as REFINE_PRESETS
 from cadalign.infer.refine import (
     RefineConfig,
@@ -34,7 +35,7 @@ from cadalign.infer.refine import (
     refine_depth_icp,
     refine_silhouette,
 )
-from cadalign.infer.temporal import Observation, TemporalConfig, TemporalFuser
+from cadalign.infer.temporal import TemporalConfig, TemporalFuser
 from cadalign.types import Rigid3
 
 log = logging.getLogger(__name__)

@@ -28,10 +28,9 @@ from typing import Literal
 
 import numpy as np
 
-from cadalign.cad.symmetry import Symmetry, rotation_about_line
 from cadalign.config import bounded
-from cadalign.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle, orthonormalize, skew
 from cadalign.infer.ego import predict_camera, register_camera
+from cadalign.infer.pose_math import Observation, apply_twist_camera, canonicalize, robust_mean, twist_between
 from cadalign.types import Rigid3
 
 
@@ -75,69 +74,6 @@ def _gate(cfg: TemporalConfig, o: Observation) -> float:
     return min(cfg.gate_m, 0.5 * o.diameter_m) if o.diameter_m > 0 else cfg.gate_m
 
 
-def _angle(R: np.ndarray) -> float:
-    s = np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
-    return float(math.atan2(s, (np.trace(R) - 1.0) / 2.0))
-
-
-def canonicalize(T: Rigid3, symmetry: Symmetry | None, R_ref: np.ndarray) -> Rigid3:
-    """The symmetric equivalent ``T @ S`` whose rotation is closest (geodesic) to ``R_ref`` (3, 3)."""
-    if symmetry is None or symmetry.kind == "none":
-        return T
-    M0 = T.matrix()
-    best, best_ang = T, math.inf
-    for D in [np.eye(4), *symmetry.discrete]:
-        S = D
-        if symmetry.kind == "continuous":
-            a = np.asarray(symmetry.axis, float)
-            N = D[:3, :3] @ R_ref.T @ T.R  # maximise trace(N Rot(a, th)) = A cos th + B sin th + const
-            A = np.trace(N) - a @ N @ a
-            B = np.trace(N @ skew(a))
-            S = rotation_about_line(a, np.asarray(symmetry.offset_m, float), math.atan2(B, A)) @ D
-        cand = Rigid3.from_matrix(M0 @ S)
-        ang = _angle(R_ref.T @ cand.R)
-        if ang < best_ang - 1e-12:
-            best, best_ang = cand, ang
-    return best
-
-
-def robust_mean(poses: list[Rigid3], huber_t_m: float, huber_r_rad: float, iters: int = 5) -> Rigid3:
-    """Huber-IRLS mean of rigid poses: weighted translation mean and chordal rotation mean (SVD projection)."""
-    t = np.array([p.t for p in poses])
-    Rs = np.array([p.R for p in poses])
-    mu_t, mu_R = np.median(t, axis=0), orthonormalize(Rs.mean(axis=0))
-    for _ in range(iters):
-        dt = np.linalg.norm(t - mu_t, axis=1)
-        dr = np.array([_angle(mu_R.T @ R) for R in Rs])
-        wt = np.where(dt <= huber_t_m, 1.0, huber_t_m / np.maximum(dt, 1e-12))
-        wr = np.where(dr <= huber_r_rad, 1.0, huber_r_rad / np.maximum(dr, 1e-12))
-        mu_t = (wt[:, None] * t).sum(0) / wt.sum()
-        mu_R = orthonormalize((wr[:, None, None] * Rs).sum(0))
-    return Rigid3(mu_R, mu_t)
-
-
-def twist_between(T_from: Rigid3, T_to: Rigid3) -> np.ndarray:
-    """The left twist ``xi`` with ``apply_twist(xi, T_from) == T_to`` (rotation vector exact)."""
-    dR = T_to.R @ T_from.R.T
-    return np.concatenate([matrix_to_axis_angle(dR), T_to.t - dR @ T_from.t])
-
-
-def _apply_twist(xi: np.ndarray, T: Rigid3) -> Rigid3:
-    dR = axis_angle_to_matrix(np.asarray(xi[:3], float))
-    return Rigid3(dR @ T.R, dR @ T.t + np.asarray(xi[3:], float))
-
-
-@dataclass(frozen=True)
-class Observation:
-    """One refined detection of a frame."""
-
-    label: int
-    T_cam_from_obj: Rigid3
-    obj_id: int | None = None
-    symmetry: Symmetry = field(default_factory=Symmetry.none)
-    diameter_m: float = 0.0
-
-
 @dataclass(frozen=True)
 class FusedPose:
     """The fused pose of one observation: its track and ``T_cam_from_obj`` (canonicalised, filtered)."""
@@ -171,7 +107,7 @@ class TemporalFuser:
         """The last two (frame, estimated ``T_world_from_cam``) of mode ``ego``."""
 
     def _predict(self, tr: _Track, frame: int) -> Rigid3:
-        return tr.T if tr.space != "cam" else _apply_twist(tr.xi * (frame - tr.frame), tr.T)
+        return tr.T if tr.space != "cam" else apply_twist_camera(tr.xi * (frame - tr.frame), tr.T)
 
     def _space(self, T_world_from_cam: Rigid3 | None) -> str:
         if T_world_from_cam is not None and self.cfg.mode in ("auto", "world"):
@@ -317,7 +253,7 @@ class TemporalFuser:
         if outlier:  # lost: restart from the measurement
             tr.T, tr.xi, tr.missed, tr.frame, tr.obs = meas, np.zeros(6), 0, frame, [meas]
             return
-        tr.T = _apply_twist(cfg.alpha * delta, pred)
+        tr.T = apply_twist_camera(cfg.alpha * delta, pred)
         tr.xi = tr.xi + cfg.beta * delta / dt
         tr.missed, tr.frame = 0, frame
         tr.obs = [*tr.obs, meas][-cfg.window:]

@@ -13,15 +13,8 @@ from cadalign.cad.symmetry import Symmetry, axis_angle_matrix
 from cadalign.eval.pose_metrics import rotation_error_deg
 from cadalign.geometry.rotations import axis_angle_to_matrix, random_rotation
 from cadalign.infer.ego import predict_camera, register_camera
-from cadalign.infer.temporal import (
-    Observation,
-    TemporalConfig,
-    TemporalFuser,
-    _apply_twist,
-    canonicalize,
-    robust_mean,
-    twist_between,
-)
+from cadalign.infer.pose_math import Observation, apply_twist_camera, canonicalize, robust_mean, twist_between
+from cadalign.infer.temporal import TemporalConfig, TemporalFuser
 from cadalign.types import Rigid3
 
 Z2 = Symmetry.from_name("discrete_z2")
@@ -116,7 +109,7 @@ def test_twist_roundtrip() -> None:
     rng = np.random.default_rng(4)
     A = Rigid3(random_rotation(rng), rng.normal(size=3))
     B = Rigid3(random_rotation(rng), rng.normal(size=3))
-    np.testing.assert_allclose(_apply_twist(twist_between(A, B), A).matrix(), B.matrix(), atol=1e-9)
+    np.testing.assert_allclose(apply_twist_camera(twist_between(A, B), A).matrix(), B.matrix(), atol=1e-9)
 
 
 def test_filter_tracks_constant_velocity_and_rejects_an_outlier() -> None:
@@ -131,7 +124,7 @@ def test_filter_tracks_constant_velocity_and_rejects_an_outlier() -> None:
         if i >= 8:
             assert np.linalg.norm(out.T_cam_from_obj.t - T.t) < 0.02
             assert rotation_error_deg(out.T_cam_from_obj.R, T.R) < 1.0
-        T = _apply_twist(xi, T)
+        T = apply_twist_camera(xi, T)
     assert len(fuser.tracks) == 1
 
 
