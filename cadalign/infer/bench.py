@@ -17,7 +17,7 @@ from cadalign.data.bop import BopScene
 from cadalign.eval.pose_metrics import add, rotation_error_deg, translation_error_m
 from cadalign.infer.detect import OracleConfig, OracleDetector, frame_ids
 from cadalign.infer.model_geom import ModelGeometry
-from cadalign.infer.refine import RefineConfig, masked_depth_points, refine_depth_icp, refine_silhouette
+from cadalign.infer.refine import RefineConfig, icp_points, refine_depth_icp, refine_silhouette
 from cadalign.types import Rigid3
 
 
@@ -60,9 +60,7 @@ def refine_sweep(scene_dir: Path, models: dict[int, CadModel], iters: tuple[int,
     rng = np.random.default_rng(cfg.seed)
     runs_on = {
         "silhouette": [d.mask.sum() >= cfg.min_mask_px for _, _, d, _, _ in cases],
-        "depth": [len(masked_depth_points(depth, d.mask, K, cfg.max_depth_points, rng, cfg.min_depth_points))
-                  >= cfg.min_depth_points
-                  for K, depth, d, _, _ in cases],
+        "depth": [len(icp_points(depth, d.mask, K, cfg, rng)) >= cfg.min_depth_points for K, depth, d, _, _ in cases],
     }
     runs_on["both"] = [a or b for a, b in zip(runs_on["silhouette"], runs_on["depth"], strict=True)]
     for method in ("silhouette", "depth", "both"):

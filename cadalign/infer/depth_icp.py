@@ -44,6 +44,14 @@ def masked_depth_points(depth_m: np.ndarray, mask: np.ndarray, K: np.ndarray, ma
     return np.stack([x, y, z], axis=1)
 
 
+def icp_points(depth_m: np.ndarray, mask: np.ndarray, K: np.ndarray, cfg: RefineConfig,
+               rng: np.random.Generator | None = None) -> np.ndarray:
+    """:func:`masked_depth_points` with the refinement's ``max_depth_points`` / ``min_depth_points`` (the points
+    every depth fit of a detection uses; ``rng`` defaults to a fresh one seeded with ``cfg.seed``)."""
+    rng = np.random.default_rng(cfg.seed) if rng is None else rng
+    return masked_depth_points(depth_m, mask, np.asarray(K, float), cfg.max_depth_points, rng, cfg.min_depth_points)
+
+
 def depth_along_ray(geom: ModelGeometry, T: Rigid3, K: np.ndarray, depth_m: np.ndarray, mask: np.ndarray,
                     min_shift: float = 0.0, iters: int = 3) -> Rigid3:
     """``T`` moved along the ray through its origin by the median depth offset between the observed depth and the
@@ -90,8 +98,7 @@ def refine_depth_icp(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, depth_m
 
     With ``cfg.depth_init`` the pose is first slid along its ray to the observed depth (:func:`depth_along_ray`)
     and the ICP prior is centred there."""
-    rng = np.random.default_rng(cfg.seed)
-    Q = masked_depth_points(depth_m, mask, np.asarray(K, float), cfg.max_depth_points, rng, cfg.min_depth_points)
+    Q = icp_points(depth_m, mask, K, cfg)
     n = cfg.depth_iters if iters is None else iters
     if len(Q) < cfg.min_depth_points or n == 0:
         return T_init, 0, []

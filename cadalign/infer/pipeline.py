@@ -29,7 +29,7 @@ from cadalign.infer.pose_math import Observation
 from cadalign.infer.refine import PRESETS as REFINE_PRESETS
 from cadalign.infer.refine import (
     RefineConfig,
-    masked_depth_points,
+    icp_points,
     pick_fit,
     refine,
     refine_depth_icp,
@@ -60,15 +60,17 @@ class InferConfig:
     reuse_box_iou: float = bounded(0.5, ge=0, le=1)
     """A detection whose box overlaps a same-class box of the previous frame by at least this IoU takes that
     detection's CAD model instead of being identified again (0 = off: identify every detection not on an
-    established track). The track gate compares 3D poses, and the network's are ~1 m off: on the default scene's
-    33 held-out frames 6 of 263 detections met it. There, 2 threads: 'fast' 522 -> 474 ms/frame, accuracy unchanged;
-    'balanced' with 4 yaw restarts 1375 -> 1067 ms/frame and refined valve rotation error 16.3 -> 13.4 deg mean."""
+    established track, see ``track_init``). Added when the only reuse was a 3D gate on the network's translation
+    (~1 m off), which met 6 of 263 detections on the default scene's 33 held-out frames. There, 2 threads:
+    'fast' 522 -> 474 ms/frame, accuracy unchanged; 'balanced' with 4 yaw restarts 1375 -> 1067 ms/frame and
+    refined valve rotation error 16.3 -> 13.4 deg mean."""
     track_init: Literal["off", "model", "pose"] = "pose"
     """Frame-to-frame tracking. A detection whose box holds the projected centre of an established track of its
     class (fused from at least three frames; with depth, the masked depth within half the part's diameter of that
     centre) takes the track's CAD model instead of being identified again (``model``), and (``pose``) starts its
     refinement from the track's pose in this frame instead of the network's (~1 m and tens of degrees off at 10 m).
-    ``off``: identify every detection not reused by ``reuse_box_iou`` / a 3D gate on the network's translation.
+    ``off``: identify every detection not reused by ``reuse_box_iou``. (Until session 14 a 3D gate of the
+    network's translation against the tracks also reused models; with tracking on it had stopped firing.)
     Default orbit, 33 held-out frames, ``accurate`` before ``refine.tie_m``, true camera poses; fused valve R mean
     (without the ball valve) / t mean / ms per frame (2 threads): 3300-step network off 3.52 (3.36) deg / 0.026 m /
     2208; model 3.44 (3.91) / 0.026 / 1171; pose 2.67 (3.05) / 0.025 / 1128. 6600-step network off 7.23 (2.28) /
@@ -187,8 +189,7 @@ class PosePipeline:
         cfg = self.cfg.refine
         n = self.cfg.identify_iters
         rng = np.random.default_rng(cfg.seed)
-        Q = masked_depth_points(depth_m, mask, K, cfg.max_depth_points, rng, cfg.min_depth_points) \
-            if depth_m is not None else None
+        Q = icp_points(depth_m, mask, K, cfg, rng) if depth_m is not None else None
         use_depth = Q is not None and len(Q) >= cfg.min_depth_points and cfg.method in ("depth", "both")
         scored = []
         for k in cands:
@@ -202,25 +203,19 @@ class PosePipeline:
             else:  # with refinement off, the detector's pose is scored as it is
                 Tk = refine_silhouette(g, T, K, mask, cfg, iters=n)[0] if cfg.method in ("silhouette", "both") else T
                 scored.append((-_window_iou(g, Tk, K, mask), k, Tk))
-        _, best, T_best = pick_fit(scored, [x[2] for x in scored], T, cfg.tie_m if use_depth else 0.0)
+        _, best, T_best = scored[pick_fit([x[0] for x in scored], [x[2] for x in scored], T,
+                                          cfg.tie_m if use_depth else 0.0)]
         return best, T_best
 
-    def _known_model(self, det: object, T: Rigid3, frame: int, T_world_from_cam: Rigid3 | None) -> int | None:
-        """The model id of a detection whose class has several models, without identifying it, if any: that of
-        an established track at its place, else that of the previous frame's same-class detection its box overlaps
-        most (IoU >= ``reuse_box_iou``, consecutive frames only)."""
-        if getattr(det, "obj_id", None) is not None:
+    def _reused_model(self, det: object, frame: int) -> int | None:
+        """The model id of the previous frame's same-class detection whose box this one overlaps most (IoU >=
+        ``reuse_box_iou``, consecutive frames only), for a class with several models; else None."""
+        if getattr(det, "obj_id", None) is not None or self.cfg.reuse_box_iou <= 0 or self._prev is None \
+                or self._prev[0] != frame - 1:
             return None
         label = int(det.label)
-        cands = self.candidates(label)
-        if len(cands) <= 1:
-            return None
-        gate = min(self.cfg.temporal.gate_m, 0.5 * min(self.models[k].diameter_m for k in cands))
-        oid = self.fuser.known_model(label, T, frame, gate, T_world_from_cam)
-        if oid is not None or self.cfg.reuse_box_iou <= 0 or self._prev is None or self._prev[0] != frame - 1:
-            return oid
         prev = [(box, k) for lab, box, k in self._prev[1] if lab == label]
-        if not prev:
+        if len(self.candidates(label)) <= 1 or not prev:
             return None
         ious = box_iou(np.asarray(det.box_xyxy, float), np.stack([b for b, _ in prev]))[0]
         best = int(np.argmax(ious))
@@ -288,7 +283,7 @@ class PosePipeline:
             if start is not None:
                 oid, T_start = start[0], (start[1] if self.cfg.track_init == "pose" else T0)
             else:
-                oid = self._known_model(d, T0, frame, T_world_from_cam)
+                oid = self._reused_model(d, frame)
                 oid, T_start = (oid, T0) if oid is not None else self.identify(d, T0, K, depth)
             tb = time.perf_counter()
             times["identify"] += tb - ta

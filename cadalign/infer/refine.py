@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -33,7 +34,14 @@ from cadalign.cad.symmetry import Symmetry
 from cadalign.config import bounded
 from cadalign.geometry.rotations import axis_angle_to_matrix, geodesic_angle
 from cadalign.infer.contour_fit import SignedDistance, refine_silhouette, silhouette_iou
-from cadalign.infer.depth_icp import ICP_DAMPING, depth_along_ray, depth_fit, masked_depth_points, refine_depth_icp
+from cadalign.infer.depth_icp import (
+    ICP_DAMPING,
+    depth_along_ray,
+    depth_fit,
+    icp_points,
+    masked_depth_points,
+    refine_depth_icp,
+)
 from cadalign.infer.half_turn import half_turned, needs_half_turn_check, pick_half_turn
 from cadalign.infer.hypotheses import yaw_hypotheses_rad
 from cadalign.infer.model_geom import ModelGeometry
@@ -42,7 +50,8 @@ from cadalign.types import Rigid3
 
 __all__ = [
     "ICP_DAMPING", "PRESETS", "RefineConfig", "RefineResult", "SignedDistance", "apply_twist", "depth_along_ray",
-    "depth_fit", "masked_depth_points", "pick_fit", "refine", "refine_depth_icp", "refine_silhouette", "silhouette_iou",
+    "depth_fit", "icp_points", "masked_depth_points", "pick_fit", "refine", "refine_depth_icp", "refine_silhouette",
+    "silhouette_iou",
 ]
 
 log = logging.getLogger(__name__)
@@ -191,21 +200,20 @@ def _icp_yaw_hypotheses(geom: ModelGeometry, T0: Rigid3, K: np.ndarray, depth_m:
     best = refine_depth_icp(geom, T0, K, depth_m, mask, cfg)
     if cfg.yaw_hypotheses <= 1 or best[1] == 0:
         return best
-    Q = masked_depth_points(depth_m, mask, np.asarray(K, float), cfg.max_depth_points, np.random.default_rng(cfg.seed),
-                            cfg.min_depth_points)
+    Q = icp_points(depth_m, mask, K, cfg)
     scored = [(depth_fit(geom, best[0], Q), best)]
     for angle in yaw_hypotheses_rad(cfg.yaw_hypotheses, symmetry)[1:]:
         yaw = axis_angle_to_matrix(np.array([0.0, 0.0, angle]))
         cand = refine_depth_icp(geom, Rigid3(T0.R @ yaw, T0.t), K, depth_m, mask, cfg)
         scored.append((depth_fit(geom, cand[0], Q), cand))
-    return pick_fit(scored, [c[0] for _, c in scored], T0, cfg.tie_m)[1]
+    return scored[pick_fit([f for f, _ in scored], [c[0] for _, c in scored], T0, cfg.tie_m)][1]
 
 
-def pick_fit(scored: list[tuple], poses: list[Rigid3], T_ref: Rigid3, tie_m: float) -> tuple:
-    """The entry of ``scored`` (``(fit, ...)`` tuples, smaller is better, ``poses`` the matching poses) with the
-    best fit, or among those within ``tie_m`` of it the one whose pose turns least from ``T_ref``."""
-    best = min(s[0] for s in scored)
-    near = [i for i, s in enumerate(scored) if s[0] <= best + tie_m]
+def pick_fit(fits: Sequence[float], poses: Sequence[Rigid3], T_ref: Rigid3, tie_m: float) -> int:
+    """Index of the best (smallest) fit, or among the fits within ``tie_m`` of it the one whose pose turns least
+    from ``T_ref`` (``poses[i]`` goes with ``fits[i]``; the first wins equal fits)."""
+    best = int(np.argmin(fits))
+    near = [i for i, f in enumerate(fits) if f <= fits[best] + tie_m]
     if len(near) == 1 or tie_m <= 0:
-        return min(scored, key=lambda s: s[0])
-    return scored[min(near, key=lambda i: float(geodesic_angle(poses[i].R, T_ref.R)))]
+        return best
+    return min(near, key=lambda i: float(geodesic_angle(poses[i].R, T_ref.R)))

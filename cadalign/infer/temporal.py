@@ -149,29 +149,6 @@ class TemporalFuser:
             self._ego = [*self._ego, (frame, C)][-2:]
         return C
 
-    def known_model(self, label: int, T_cam_from_obj: Rigid3, frame: int, gate_m: float,
-                    T_world_from_cam: Rigid3 | None = None, min_obs: int = 3) -> int | None:
-        """The model id of the nearest track of class ``label`` within ``gate_m`` seen at least ``min_obs`` times.
-
-        Tracks only take observations of one model id, so such a track's id was identified ``min_obs`` times
-        independently; the pipeline reuses it instead of identifying the model again.
-        """
-        if self.cfg.mode == "none":
-            return None
-        view = self._predicted_view(frame, T_world_from_cam)
-        if view is None:
-            return None
-        space, T_wc = view
-        t_o = (T_wc @ T_cam_from_obj).t if T_wc is not None else T_cam_from_obj.t
-        best, best_d = None, gate_m
-        for tr in self.tracks:
-            if tr.label != label or tr.obj_id is None or len(tr.obs) < min_obs or tr.space != space:
-                continue
-            d = float(np.linalg.norm(self._predict(tr, frame).t - t_o))
-            if d < best_d:
-                best, best_d = tr.obj_id, d
-        return best
-
     def tracks_in_view(self, label: int, frame: int, T_world_from_cam: Rigid3 | None = None, min_obs: int = 3
                        ) -> list[tuple[int, Rigid3]]:
         """(model id, predicted ``T_cam_from_obj`` in this frame) of every track of class ``label`` that has a model

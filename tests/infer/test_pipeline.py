@@ -162,7 +162,7 @@ def test_min_box_side_makes_small_targets_dont_care(scene: Path) -> None:
 
 def test_a_detection_on_an_established_track_starts_from_the_track(scene: Path, tiny_structure, monkeypatch) -> None:
     """A static camera sees the same valve each frame; from frame 3 the network's pose is 60 deg and 30 % of its
-    distance off (beyond the 3D gate of the model reuse by track, :meth:`TemporalFuser.known_model`). The track
+    distance off (far beyond half the valve's diameter from the track). The track
     fused from frames 0-2 gives the model without identifying again and a start that refinement keeps ("pose");
     "off" identifies every frame, and the refined pose stays near the network's."""
     models = dict(tiny_structure.models)

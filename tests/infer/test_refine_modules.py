@@ -38,9 +38,10 @@ def test_pick_fit_breaks_ties_by_the_turn_from_the_start() -> None:
         return Rigid3(axis_angle_to_matrix(np.array([0.0, 0.0, np.radians(deg)])), np.zeros(3))
 
     poses = [turned(170.0), turned(5.0), turned(0.0)]
-    scored = [(0.0040, "a"), (0.0042, "b"), (0.0100, "c")]
+    fits = [0.0040, 0.0042, 0.0100]
     start = turned(0.0)
-    assert refine.pick_fit(scored, poses, start, 0.0)[1] == "a"  # the best fit outright
-    assert refine.pick_fit(scored, poses, start, 0.0005)[1] == "b"  # a tie: the one nearer the start
-    assert refine.pick_fit(scored, poses, start, 0.01)[1] == "c"
-    assert refine.pick_fit(scored[:1], poses[:1], start, 1.0)[1] == "a"
+    assert refine.pick_fit(fits, poses, start, 0.0) == 0  # the best fit outright
+    assert refine.pick_fit(fits, poses, start, 0.0005) == 1  # a tie: the one nearer the start
+    assert refine.pick_fit(fits, poses, start, 0.01) == 2
+    assert refine.pick_fit(fits[:1], poses[:1], start, 1.0) == 0
+    assert refine.pick_fit([0.005, 0.004, 0.004], poses, start, 0.0) == 1  # equal fits: the first

@@ -139,16 +139,16 @@ def test_two_parts_get_two_tracks_and_none_mode_passes_through() -> None:
     assert raw[0].T_cam_from_obj is A and raw[0].track_id == -1
 
 
-def test_known_model_needs_an_established_track() -> None:
+def test_tracks_in_view_need_an_established_track() -> None:
     fuser = TemporalFuser(TemporalConfig())
     T = Rigid3(np.eye(3), np.array([0.0, 0.0, 3.0]))
-    near = Rigid3(np.eye(3), np.array([0.02, 0.0, 3.0]))
     for i in range(3):
-        assert fuser.known_model(2, near, i, 0.05) is None  # fewer than three observations so far
+        assert fuser.tracks_in_view(2, i) == []  # fewer than three observations so far
         fuser.update(i, [Observation(2, T, 5, Symmetry.none(), 0.5)])
-    assert fuser.known_model(2, near, 3, 0.05) == 5
-    assert fuser.known_model(2, Rigid3(np.eye(3), np.array([0.2, 0.0, 3.0])), 3, 0.05) is None  # beyond the gate
-    assert fuser.known_model(3, near, 3, 0.05) is None  # another class
+    (oid, T_pred), = fuser.tracks_in_view(2, 3)
+    assert oid == 5 and np.allclose(T_pred.matrix(), T.matrix())
+    assert fuser.tracks_in_view(3, 3) == []  # another class
+    assert TemporalFuser(TemporalConfig(mode="none")).tracks_in_view(2, 3) == []
 
 
 def _panel(rng: np.random.Generator, n: int = 5) -> list[Rigid3]:
