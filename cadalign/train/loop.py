@@ -44,6 +44,7 @@ from cadalign.train.checkpoint import (
     set_rng_state,
     unwrap,
 )
+from cadalign.train.devices import any_rank, bf16_native, dist_setup, is_main_rank, rank_device, to_device
 
 log = logging.getLogger(__name__)
 
@@ -111,13 +112,6 @@ def augment_seed(seed: int, step: int, rank: int) -> int:
     return seed * 7_919 + step * 104_729 + 1 + rank * 15_485_863
 
 
-def is_main_rank() -> bool:
-    """True outside DDP and on rank 0: the process that writes run files."""
-    import torch.distributed as dist
-
-    return not (dist.is_available() and dist.is_initialized()) or dist.get_rank() == 0
-
-
 def _lr_lambda(cfg: LoopConfig) -> Callable[[int], float]:
     warm = int(round(cfg.warmup * cfg.steps))
 
@@ -128,32 +122,6 @@ def _lr_lambda(cfg: LoopConfig) -> Callable[[int], float]:
         return 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(t, 1.0)))
 
     return f
-
-
-def _to_device(x: Any, device: torch.device) -> Any:
-    if isinstance(x, torch.Tensor):
-        return x.to(device, non_blocking=True)
-    if isinstance(x, dict):
-        return {k: _to_device(v, device) for k, v in x.items()}
-    if isinstance(x, list):
-        return [_to_device(v, device) for v in x]
-    return x
-
-
-def rank_device(device: str, local_rank: int) -> str:
-    """The device of a DDP rank: a bare ``cuda`` becomes ``cuda:<LOCAL_RANK>`` (one GPU per rank on a node);
-    an explicit index or another device type is kept."""
-    return f"cuda:{local_rank}" if device == "cuda" else device
-
-
-def _dist_setup(device: str) -> tuple[int, int]:
-    if "RANK" not in os.environ or int(os.environ.get("WORLD_SIZE", "1")) <= 1:
-        return 0, 1
-    import torch.distributed as dist
-
-    if not dist.is_initialized():
-        dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
-    return dist.get_rank(), dist.get_world_size()
 
 
 @contextlib.contextmanager
@@ -291,7 +259,7 @@ def train_loop(model: nn.Module, step_fn: StepFn, dataset: Dataset, cfg: LoopCon
         ConfigError: ``run_dir`` already holds checkpoints and ``resume`` is False, or the loop settings changed.
     """
     t0 = time.perf_counter()
-    rank, world = _dist_setup(device)
+    rank, world = dist_setup(device)
     if cfg.batch_size % world:
         raise ConfigError(f"batch_size {cfg.batch_size} must be a multiple of the {world} DDP ranks")
     dev = torch.device(rank_device(device, int(os.environ.get("LOCAL_RANK", rank))) if world > 1 else device)
@@ -329,7 +297,7 @@ def train_loop(model: nn.Module, step_fn: StepFn, dataset: Dataset, cfg: LoopCon
                 _after_step(run, loss_v, metrics, val_fn, val_every)
                 if progress is not None:
                     progress(run.step, cfg.steps, {"loss": loss_v, **metrics})
-                if flag["stop"] if world == 1 else _any_rank(flag["stop"], dev):  # all ranks stop at one step
+                if flag["stop"] if world == 1 else any_rank(flag["stop"], dev):  # all ranks stop at one step
                     interrupted = True
                     break
         except KeyboardInterrupt:
@@ -345,31 +313,11 @@ def train_loop(model: nn.Module, step_fn: StepFn, dataset: Dataset, cfg: LoopCon
     return TrainResult(Path(run_dir), run.step, loss_v, time.perf_counter() - t0, interrupted)
 
 
-def bf16_native(dev: torch.device) -> bool:
-    """Whether ``dev`` computes bf16 natively: a CUDA GPU with bf16, a CPU with AVX512-BF16 or AMX tiles (there
-    bf16 autocast cut a ResUNet step's CPU time by ~40 %; without them bf16 is emulated and slower)."""
-    if dev.type == "cuda":
-        return bool(torch.cuda.is_bf16_supported())
-    if dev.type == "cpu":
-        return any(bool(getattr(torch.cpu, f, lambda: False)()) for f in ("_is_avx512_bf16_supported",
-                                                                          "_is_amx_tile_supported"))
-    return False
-
-
-def _any_rank(flag: bool, dev: torch.device) -> bool:
-    """Whether ``flag`` is set on any DDP rank (a signal may reach the ranks between different steps)."""
-    import torch.distributed as dist
-
-    t = torch.tensor([1.0 if flag else 0.0], device=dev)
-    dist.all_reduce(t)
-    return bool(t.item() > 0)
-
-
 def _one_step(run: _Run, step_fn: StepFn, batch: dict, dev: torch.device,
               augment: Callable | None, world: int) -> tuple[float, dict[str, float]]:
     cfg = run.cfg
     check_finite_batch(batch, run.step)
-    batch = _to_device(batch, dev)
+    batch = to_device(batch, dev)
     if augment is not None:
         g = torch.Generator(device=dev).manual_seed(augment_seed(cfg.seed, run.step, run.rank))
         batch = augment(batch, g)
