@@ -19,7 +19,9 @@ def command(
         "with noisy poses (exercises refinement and fusion without a trained network)."),
     gt: Path | None = typer.Option(None, "--gt", help="Simulation folder or BOP scene: evaluate against its truth."),
     calib: Path | None = typer.Option(None, "--calib", help="cameras.json with intrinsics (and metric camera poses)."),
-    depth: Path | None = typer.Option(None, "--depth", help="Simulation folder or BOP scene with depth for ICP."),
+    depth: Path | None = typer.Option(
+        None, "--depth", help="Depth for ICP: a simulation folder or BOP scene with depth maps, or a 'cadalign "
+        "train depth' run (its predicted depth)."),
     preset: str = typer.Option("balanced", "--preset", help="none | fast | balanced | accurate."),
     config: Path | None = typer.Option(None, "--config", help="TOML/YAML with overrides of the preset."),
     refine_iters: int | None = typer.Option(None, "--refine-iters", min=0,
@@ -64,7 +66,9 @@ def command(
             console.print("[yellow]detector: ORACLE (ground-truth detections with noisy poses) - for tests and "
                           "demos of refinement/fusion only, not a trained network[/]")
         gt_scene = det.resolve_scene_dir(gt) if gt is not None else None
-        depth_scene = det.resolve_scene_dir(depth) if depth is not None else None
+        from cadalign.infer.run import is_depth_run
+
+        depth_scene = None if depth is None else depth if is_depth_run(depth) else det.resolve_scene_dir(depth)
         if calib is not None:
             cal = load_calibration(calib)
         elif oracle_gt is not None or gt_scene is not None:
@@ -73,7 +77,7 @@ def command(
             raise InputError("no camera intrinsics: pass --calib cameras.json (e.g. from 'cadalign sfm')")
         path = run(cfg, source, detector, structure.models, class_names, out, calib=cal, detector_info=info,
                    depth_scene=depth_scene, gt_scene=gt_scene, max_frames=max_frames, overwrite=overwrite,
-                   progress=track)
+                   progress=track, device=device)
     console.print(f"[green]poses written to {path}[/]")
     _print_summary(out)
 

@@ -91,14 +91,43 @@ def calibration_from_scene(scene_dir: Path, *, use_poses: bool = True) -> Calibr
     return Calibration(next(iter(K_of.values())) if K_of else None, K_of, T_of)
 
 
+def is_depth_run(path: Path) -> bool:
+    """Whether ``path`` names a trained network (a ``cadalign train depth`` run folder or its ``.pt``) rather
+    than a scene with depth maps."""
+    path = Path(path)
+    return path.suffix == ".pt" or (path / "checkpoints").is_dir()
+
+
 class _DepthSource:
-    def __init__(self, scene_dir: Path | None) -> None:
+    """Depth for ICP per frame: the depth maps of a BOP scene or simulation (``path`` a scene), or the metric depth
+    a ``cadalign train depth`` network predicts from the frame (``path`` a run, :func:`is_depth_run`).
+
+    A network gets the raw frame prepared as its own training images were when the frames are raw
+    (``raw_frames``: ``enhance = "auto"``), else the frame as the detector gets it."""
+
+    def __init__(self, path: Path | None, *, raw_frames: bool = True, device: str = "cpu") -> None:
         from cadalign.data.bop import BopScene
 
-        self.scene = BopScene(scene_dir) if scene_dir is not None else None
-        self.ids = frame_ids(scene_dir) if scene_dir is not None else {}
+        self.scene, self.ids, self.net, self.raw_frames = None, {}, None, raw_frames
+        if path is not None and is_depth_run(path):
+            from cadalign.infer.dense import load_dense_model
 
-    def get(self, name: str) -> np.ndarray | None:
+            self.net = load_dense_model(Path(path), task="depth", device=device)
+            if self.net.mask_input:
+                raise InputError(f"{self.net.checkpoint} was trained with a foreground-mask input, which infer "
+                                 "cannot give it; use a depth network trained without (mask_input = false)")
+            self.prep = image_prep.to_feed(dict(image_prep.RAW) if raw_frames else None,
+                                           image_prep.read_run_prep(Path(path)), str(path))
+        elif path is not None:
+            self.scene, self.ids = BopScene(path), frame_ids(path)
+
+    def get(self, name: str, raw: np.ndarray, prepared: np.ndarray) -> np.ndarray | None:
+        """(H, W) depth in metres of frame ``name`` (``raw`` as read, ``prepared`` as the detector sees it)."""
+        if self.net is not None:
+            from cadalign.infer.dense import metric_depth
+
+            rgb = image_prep.apply(raw, self.prep) if self.raw_frames else prepared
+            return metric_depth(self.net, rgb)[0].numpy().astype(np.float64)
         if self.scene is None or name not in self.ids:
             return None
         return self.scene.depth_m(self.ids[name])
@@ -122,8 +151,11 @@ def _draw(image: np.ndarray, records: list[PoseRecord], pipeline: PosePipeline, 
 def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, CadModel], class_names: tuple[str, ...],
         out_dir: Path, *, calib: Calibration, detector_info: dict, depth_scene: Path | None = None,
         gt_scene: Path | None = None, max_frames: int | None = None, overwrite: bool = False,
-        progress: Progress | None = None) -> Path:
-    """Run the pose pipeline over a video or frame folder; returns ``out_dir / "poses.jsonl"`` (see module doc)."""
+        progress: Progress | None = None, device: str = "cpu") -> Path:
+    """Run the pose pipeline over a video or frame folder; returns ``out_dir / "poses.jsonl"`` (see module doc).
+
+    ``depth_scene``: depth for ICP, a scene with depth maps or a ``cadalign train depth`` run (its predicted
+    depth, on ``device``; :class:`_DepthSource`)."""
     out_dir = Path(out_dir)
     prep = resolve_prep(cfg.enhance, detector_info)
     detector_info = {**detector_info, "images": prep}
@@ -135,7 +167,7 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
         log.info("infer: %s is complete for this config; reusing it", poses_path)
         return poses_path
     pipeline = PosePipeline(detector, models, class_names, cfg)
-    depth = _DepthSource(depth_scene)
+    depth = _DepthSource(depth_scene, raw_frames=cfg.enhance == "auto", device=device)
     frames = iter_frames(source, max_frames=max_frames)
     all_records: list[PoseRecord] = []
     names: list[str] = []
@@ -146,11 +178,17 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
         with open(tmp_poses, "w", encoding="utf-8") as fh:
             for vf in progress(frames, "infer", max_frames) if progress else frames:
                 K = calib.K(vf.name)
-                d_m = depth.get(vf.name)
                 cpu0 = time.process_time()
-                records, t = pipeline.process(vf.index, vf.name, image_prep.apply(vf.image, prep), K, d_m,
+                prepared = image_prep.apply(vf.image, prep)
+                t0, c0 = time.perf_counter(), time.process_time()
+                d_m = depth.get(vf.name, vf.image, prepared)
+                t_depth, c_depth = time.perf_counter() - t0, time.process_time() - c0
+                records, t = pipeline.process(vf.index, vf.name, prepared, K, d_m,
                                               calib.T_world_from_cam_of.get(vf.name))
-                t["pipeline_cpu"] = time.process_time() - cpu0  # wall times above inflate on a busy machine
+                if depth.net is not None:  # a depth network is a stage; reading a scene's depth map is not
+                    t["depth_net"] = t_depth
+                # wall times above inflate on a busy machine
+                t["pipeline_cpu"] = time.process_time() - cpu0 - (0.0 if depth.net is not None else c_depth)
                 for r in records:
                     fh.write(json.dumps(r.to_json()) + "\n")
                 if cfg.overlay:
@@ -204,7 +242,7 @@ def _video_writer(path: Path, fps: float):  # -> imageio writer
 def _timing_summary(times: dict[str, list[float]], n_frames: int, n_poses: int, detector_info: dict) -> dict:
     per_stage = {k: {"mean_ms": 1e3 * float(np.mean(v)), "median_ms": 1e3 * float(np.median(v)),
                      "total_s": float(np.sum(v))} for k, v in times.items()}
-    core = [k for k in ("detector", "identify", "refinement", "temporal") if k in times]  # wall clock
+    core = [k for k in ("depth_net", "detector", "identify", "refinement", "temporal") if k in times]  # wall clock
     per_frame = np.sum([times[k] for k in core], axis=0) if core and n_frames else np.zeros(0)
 
     def ms(key: str) -> float:
@@ -214,13 +252,16 @@ def _timing_summary(times: dict[str, list[float]], n_frames: int, n_poses: int, 
     # refinement against the CAD
     head = ms("detector.pose")
     summary = {"detector": ms("detector") - head, "pose": head + ms("identify"), "refinement": ms("refinement")}
+    if "depth_net" in times:
+        summary["depth_net"] = ms("depth_net")
     return {"detector": detector_info, "frames": n_frames, "poses": n_poses, "stages": per_stage,
             "stages_ms": summary,
             "pipeline_ms_per_frame": 1e3 * float(per_frame.mean()) if len(per_frame) else None,
             "pipeline_fps": float(1.0 / per_frame.mean()) if len(per_frame) and per_frame.mean() > 0 else None,
             "note": "stages_ms: detector (network without its pose head), pose (pose head + CAD model "
-                    "identification), refinement; pipeline = detector + identify + refinement + temporal, wall "
-                    "clock; pipeline_cpu = process CPU time of the same; overlay apart"}
+                    "identification), refinement (and depth_net, a depth network's prediction); pipeline = "
+                    "depth_net + detector + identify + refinement + temporal, wall clock; pipeline_cpu = process "
+                    "CPU time of the same; overlay apart"}
 
 
 def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, out_dir: Path | None,

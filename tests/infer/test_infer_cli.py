@@ -118,3 +118,42 @@ def test_detector_choice_errors(tiny_sim: Path, tmp_path: Path) -> None:
     res = runner.invoke(app, ["infer", str(tiny_sim / "frames"), "--cad", str(tiny_sim.parent / "tiny.toml"),
                               "--out", str(tmp_path / "o"), "--model", str(tmp_path / "no_run")])
     assert res.exit_code == 1 and "no trained model" in res.output
+
+
+def test_predicted_depth_from_a_depth_network(tiny_sim: Path, tmp_path: Path) -> None:
+    """``--depth RUN`` (a 'cadalign train depth' run): ICP runs on the network's metric depth of each frame, fed
+    the raw frame prepared as its training images were, and the network's time is its own stage."""
+    from cadalign.data import image_prep
+    from cadalign.infer.dense import load_dense_model, metric_depth
+    from cadalign.infer.detect import resolve_scene_dir
+    from cadalign.infer.run import _DepthSource, is_depth_run
+    from cadalign.io import read_image
+    from cadalign.models.dispnet import DispNetConfig
+    from cadalign.train.augment import AugmentConfig
+    from cadalign.train.depth import DepthTrainConfig, train_depth
+    from cadalign.train.loop import LoopConfig
+
+    run = tmp_path / "depth_run"
+    loop = LoopConfig(steps=2, batch_size=2, lr=1e-2, checkpoint_every=2, log_every=1, warmup=0.0)
+    train_depth(DepthTrainConfig(model=DispNetConfig(base_channels=4, levels=3), loop=loop,
+                                 augment=AugmentConfig(enabled=False), scale=0.5),
+                resolve_scene_dir(tiny_sim), run, split="all")
+    assert is_depth_run(run) and is_depth_run(run / "checkpoints" / "last.pt") and not is_depth_run(tiny_sim)
+    rgb = read_image(tiny_sim / "frames" / "000000.png")
+    src = _DepthSource(run)
+    dm = load_dense_model(run, task="depth")
+    want = metric_depth(dm, image_prep.apply(rgb, src.prep))[0].numpy()
+    got = src.get("000000.png", rgb, np.zeros_like(rgb))
+    assert got.shape == rgb.shape[:2] and np.allclose(got, want) and (got > 0).all()
+    prepared = rgb[:, ::-1].copy()  # frames said to be prepared already (enhance forced): fed as the detector's
+    assert np.allclose(_DepthSource(run, raw_frames=False).get("x", rgb, prepared),
+                       metric_depth(dm, prepared)[0].numpy())
+
+    out = tmp_path / "out"
+    res = _infer(tiny_sim, out, "--depth", str(run), "--preset", "fast")
+    assert res.exit_code == 0, res.output
+    recs = [json.loads(x) for x in (out / "poses.jsonl").read_text().splitlines()]
+    assert recs and any(r["refine_iters"].get("depth", 0) > 0 for r in recs)
+    t = read_json(out / "timings.json")
+    assert t["stages"]["depth_net"]["mean_ms"] > 0 and t["stages_ms"]["depth_net"] > 0
+    assert read_json(out / "cadalign_stage.json")["config"]["depth"] == str(run)
