@@ -70,7 +70,9 @@ class InferConfig:
     centre) takes the track's CAD model instead of being identified again (``model``), and (``pose``) starts its
     refinement from the track's pose in this frame instead of the network's (~1 m and tens of degrees off at 10 m).
     ``off``: identify every detection not reused by ``reuse_box_iou``. (Until session 14 a 3D gate of the
-    network's translation against the tracks also reused models; with tracking on it had stopped firing.)
+    network's translation against the tracks also reused models. Removing it left the 6600-step ``improved``
+    network's held-out results unchanged; the ``thesis`` network's translations (~0.5 m off) met it more often,
+    and its fused valve rotation error went 56.2 -> 51.2 deg without it.)
     Default orbit, 33 held-out frames, ``accurate`` before ``refine.tie_m``, true camera poses; fused valve R mean
     (without the ball valve) / t mean / ms per frame (2 threads): 3300-step network off 3.52 (3.36) deg / 0.026 m /
     2208; model 3.44 (3.91) / 0.026 / 1171; pose 2.67 (3.05) / 0.025 / 1128. 6600-step network off 7.23 (2.28) /
