@@ -22,24 +22,23 @@ MODEL_DEPTH_HELP = "Image sources: a 'cadalign train depth' run (or .pt) whose d
 MODEL_SEG_HELP = "Image sources: a 'cadalign train seg' run (or .pt) whose classes replace the ground truth."
 
 
-def _predictors(model_depth: Path | None, model_seg: Path | None, device: str) -> dict:
-    """``run`` keyword arguments using trained networks for an image source's depth / classes."""
+def _predictors(model_depth: Path | None, model_seg: Path | None, device: str, source: Path) -> dict:
+    """``run`` keyword arguments using trained networks for an image source's depth / classes.
+
+    The frame is prepared as each network's training images were (:mod:`cadalign.data.image_prep`: a built
+    dataset's frames are already CLAHE-enhanced, a simulator's are raw; an ``.npz`` says nothing and is fed as
+    it is)."""
     if model_depth is None and model_seg is None:
         return {}
-    seg_fn = None
-    if model_seg is not None:
-        from cadalign.infer.dense import load_dense_model, seg_probabilities
+    from cadalign.data.image_prep import read_prep
+    from cadalign.fuse.predictors import depth_predictor, seg_predictor
 
-        dm = load_dense_model(model_seg, task="seg", device=device)
-
-        def seg_fn(rgb):  # noqa: ANN001, ANN202
-            return seg_probabilities(dm, rgb)[0].numpy()
-
+    source = Path(source)
+    source_prep = read_prep(source.parent.parent) if source.suffix.lower() != ".npz" else None
+    seg_fn = seg_predictor(model_seg, None, device, source_prep) if model_seg is not None else None
     depth_fn = None
     if model_depth is not None:
-        from cadalign.fuse.predictors import depth_predictor
-
-        depth_fn = depth_predictor(model_depth, seg=seg_fn, device=device)
+        depth_fn = depth_predictor(model_depth, seg=seg_fn, device=device, source_prep=source_prep)
     models = {k: str(v) for k, v in (("depth", model_depth), ("seg", model_seg)) if v is not None}
     return {"depth_fn": depth_fn, "seg_fn": seg_fn, "models": models}
 
@@ -84,7 +83,7 @@ def _options(sensor: str, default_preset: str, what: str):
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
     ) -> None:
         with user_errors():
-            models = _predictors(model_depth, model_seg, device)
+            models = _predictors(model_depth, model_seg, device, source)
             path = _emulate(sensor, source, out, preset, config, pose, look_at, engine, overwrite, models)
         console.print(f"[green]{sensor} written to {path}[/]")
 
@@ -126,6 +125,6 @@ def mesh(
 ) -> None:
     """Layered mesh from one image: grid triangles cut at depth jumps, class/part/pane layers, planar panes."""
     with user_errors():
-        models = _predictors(model_depth, model_seg, device)
+        models = _predictors(model_depth, model_seg, device, source)
         path = _emulate("mesh", source, out, preset, config, None, None, None, overwrite, models)
     console.print(f"[green]layered mesh written to {path}[/]")

@@ -25,9 +25,10 @@ def _feed(run: Path, source_prep: dict[str, Any] | None) -> dict[str, Any]:
     return image_prep.to_feed(source_prep, image_prep.read_run_prep(run), str(run))
 
 
-def seg_predictor(run: Path, classes: Sequence[str], device: str = "cpu",
+def seg_predictor(run: Path, classes: Sequence[str] | None, device: str = "cpu",
                   source_prep: dict[str, Any] | None = None) -> SegPredictor:
-    """``rgb -> (C, H, W)`` probabilities of the segmentation network of ``run`` (its classes must match).
+    """``rgb -> (C, H, W)`` probabilities of the segmentation network of ``run`` (its classes must match
+    ``classes``; None: the network's own classes, unchecked).
 
     ``source_prep``: how the frames to be fed were prepared (:func:`cadalign.data.image_prep.read_prep` of their
     scene); raw frames are then prepared as the network's training images were. The last result is remembered

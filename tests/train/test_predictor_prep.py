@@ -82,3 +82,24 @@ def test_an_enhancement_the_network_never_saw_is_not_undone_but_said(caplog: pyt
     assert "OLDRUN does not record" in caplog.text
     wb = prep_named("clahe_wb")
     assert to_feed(dict(RAW), wb, "RUN") == wb and to_feed(CLAHE, CLAHE, "RUN") == RAW
+
+
+def test_emulate_prepares_an_image_source_as_the_networks_training_images(runs, tiny_dense: Path) -> None:
+    """``cadalign emulate ... --model-seg/--model-depth``: a simulator's raw frame gets the CLAHE the networks
+    were trained with (the source's preparation is read from its scene), like fusion's predictors."""
+    from cadalign.cli.emulate import _predictors
+    from cadalign.data.bop import BopScene
+
+    seg_run, depth_run = runs
+    scene = BopScene(tiny_dense)
+    im = scene.ids[0]
+    kw = _predictors(depth_run, seg_run, "cpu", tiny_dense / "rgb" / f"{im:06d}.png")
+    rgb = scene.rgb(im)
+    clahe = enhance(rgb, FrameConfig(enhance="clahe"))
+    dm = load_dense_model(seg_run, task="seg")
+    np.testing.assert_array_equal(kw["seg_fn"](rgb), seg_probabilities(dm, clahe)[0].numpy())
+    assert not np.array_equal(kw["seg_fn"](rgb.copy()), seg_probabilities(dm, rgb)[0].numpy())
+    cam = Camera(np.array([[100.0, 0, 80], [0, 100.0, 60], [0, 0, 1]]), rgb.shape[1], rgb.shape[0])
+    np.testing.assert_array_equal(kw["depth_fn"](rgb, cam),
+                                  metric_depth(load_dense_model(depth_run, task="depth"), clahe)[0].numpy())
+    assert kw["models"] == {"depth": str(depth_run), "seg": str(seg_run)}
