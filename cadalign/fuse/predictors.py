@@ -63,7 +63,8 @@ def depth_predictor(run: Path, seg: SegPredictor | None = None, device: str = "c
     prep = _feed(run, source_prep)
     if dm.mask_input and seg is None:
         raise InputError(f"{dm.checkpoint} was trained with a foreground-mask input: also pass --model-seg RUN "
-                         "so the mask can be predicted")
+                         "so the mask can be predicted (fuse, emulate; infer has no segmentation model to give, "
+                         "so use a depth network trained without the mask input there)")
 
     if foreground_only and seg is None:
         raise InputError("fusing only the foreground of predicted depth needs a segmentation model (--model-seg)")

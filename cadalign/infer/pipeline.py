@@ -190,8 +190,7 @@ class PosePipeline:
             return cands[0], T
         cfg = self.cfg.refine
         n = self.cfg.identify_iters
-        rng = np.random.default_rng(cfg.seed)
-        Q = icp_points(depth_m, mask, K, cfg, rng) if depth_m is not None else None
+        Q = icp_points(depth_m, mask, K, cfg) if depth_m is not None else None
         use_depth = Q is not None and len(Q) >= cfg.min_depth_points and cfg.method in ("depth", "both")
         scored = []
         for k in cands:

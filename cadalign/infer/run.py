@@ -100,7 +100,8 @@ def is_depth_run(path: Path) -> bool:
 
 class _DepthSource:
     """Depth for ICP per frame: the depth maps of a BOP scene or simulation (``path`` a scene), or the metric depth
-    a ``cadalign train depth`` network predicts from the frame (``path`` a run, :func:`is_depth_run`).
+    a ``cadalign train depth`` network predicts from the frame (``path`` a run, :func:`is_depth_run`; fusion's
+    :func:`~cadalign.fuse.predictors.depth_predictor`).
 
     A network gets the raw frame prepared as its own training images were when the frames are raw
     (``raw_frames``: ``enhance = "auto"``), else the frame as the detector gets it."""
@@ -108,26 +109,27 @@ class _DepthSource:
     def __init__(self, path: Path | None, *, raw_frames: bool = True, device: str = "cpu") -> None:
         from cadalign.data.bop import BopScene
 
-        self.scene, self.ids, self.net, self.raw_frames = None, {}, None, raw_frames
+        self.scene, self.ids, self.predict, self.raw_frames = None, {}, None, raw_frames
         if path is not None and is_depth_run(path):
-            from cadalign.infer.dense import load_dense_model
+            from cadalign.fuse.predictors import depth_predictor
 
-            self.net = load_dense_model(Path(path), task="depth", device=device)
-            if self.net.mask_input:
-                raise InputError(f"{self.net.checkpoint} was trained with a foreground-mask input, which infer "
-                                 "cannot give it; use a depth network trained without (mask_input = false)")
-            self.prep = image_prep.to_feed(dict(image_prep.RAW) if raw_frames else None,
-                                           image_prep.read_run_prep(Path(path)), str(path))
+            self.predict = depth_predictor(Path(path), device=device,
+                                           source_prep=dict(image_prep.RAW) if raw_frames else None)
         elif path is not None:
             self.scene, self.ids = BopScene(path), frame_ids(path)
 
-    def get(self, name: str, raw: np.ndarray, prepared: np.ndarray) -> np.ndarray | None:
-        """(H, W) depth in metres of frame ``name`` (``raw`` as read, ``prepared`` as the detector sees it)."""
-        if self.net is not None:
-            from cadalign.infer.dense import metric_depth
+    @property
+    def predicted(self) -> bool:
+        """Whether the depth comes from a network (a stage of its own) rather than from depth maps."""
+        return self.predict is not None
 
-            rgb = image_prep.apply(raw, self.prep) if self.raw_frames else prepared
-            return metric_depth(self.net, rgb)[0].numpy().astype(np.float64)
+    def get(self, name: str, raw: np.ndarray, prepared: np.ndarray, K: np.ndarray) -> np.ndarray | None:
+        """(H, W) depth in metres of frame ``name`` (``raw`` as read, ``prepared`` as the detector sees it)."""
+        if self.predict is not None:
+            from cadalign.types import Camera
+
+            rgb = raw if self.raw_frames else prepared
+            return np.asarray(self.predict(rgb, Camera(K, rgb.shape[1], rgb.shape[0])), dtype=np.float64)
         if self.scene is None or name not in self.ids:
             return None
         return self.scene.depth_m(self.ids[name])
@@ -181,14 +183,14 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
                 cpu0 = time.process_time()
                 prepared = image_prep.apply(vf.image, prep)
                 t0, c0 = time.perf_counter(), time.process_time()
-                d_m = depth.get(vf.name, vf.image, prepared)
+                d_m = depth.get(vf.name, vf.image, prepared, K)
                 t_depth, c_depth = time.perf_counter() - t0, time.process_time() - c0
                 records, t = pipeline.process(vf.index, vf.name, prepared, K, d_m,
                                               calib.T_world_from_cam_of.get(vf.name))
-                if depth.net is not None:  # a depth network is a stage; reading a scene's depth map is not
+                if depth.predicted:  # a depth network is a stage; reading a scene's depth map is not
                     t["depth_net"] = t_depth
                 # wall times above inflate on a busy machine
-                t["pipeline_cpu"] = time.process_time() - cpu0 - (0.0 if depth.net is not None else c_depth)
+                t["pipeline_cpu"] = time.process_time() - cpu0 - (0.0 if depth.predicted else c_depth)
                 for r in records:
                     fh.write(json.dumps(r.to_json()) + "\n")
                 if cfg.overlay:

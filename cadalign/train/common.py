@@ -10,6 +10,7 @@ from cadalign.config import config_differences, to_dict
 from cadalign.errors import ConfigError
 from cadalign.io import read_json, write_json
 from cadalign.train.checkpoint import LAST, check_extra_state
+from cadalign.train.loop import RESUMABLE_CHANGES
 
 RUN_CONFIG = "train_config.json"
 
@@ -38,6 +39,5 @@ def write_run_record(out: Path, task: str, cfg: Any, identity: dict[str, Any], e
     return path
 
 
-_RESUMABLE = {"loop.steps", "loop.checkpoint_every", "loop.keep_checkpoints", "loop.log_every", "loop.num_workers",
-              "val_every"}
+_RESUMABLE = {f"loop.{k}" for k in RESUMABLE_CHANGES} | {"val_every"}
 """Config keys a resumed run may change (how long and how often it logs, not what it learns)."""

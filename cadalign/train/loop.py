@@ -83,7 +83,7 @@ class LoopConfig:
 
 
 # Fields that may change between a run and its resumption (they do not change the optimisation).
-_RESUMABLE_CHANGES = {"steps", "checkpoint_every", "keep_checkpoints", "log_every", "num_workers"}
+RESUMABLE_CHANGES = {"steps", "checkpoint_every", "keep_checkpoints", "log_every", "num_workers"}
 
 
 class StepFn(Protocol):
@@ -199,7 +199,7 @@ class _Run:
         check_extra_state(ck.get("extra_state"), self.extra, path)
         old = ck.get("loop_config", {})
         now = to_dict(self.cfg)
-        diff = [k for k in config_differences(old, self.cfg) if k not in _RESUMABLE_CHANGES]
+        diff = [k for k in config_differences(old, self.cfg) if k not in RESUMABLE_CHANGES]
         if diff:
             changes = ", ".join(f"{k}: {old.get(k, '<missing>')!r} -> {now.get(k, '<removed>')!r}" for k in diff)
             raise ConfigError(

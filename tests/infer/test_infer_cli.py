@@ -142,11 +142,13 @@ def test_predicted_depth_from_a_depth_network(tiny_sim: Path, tmp_path: Path) ->
     rgb = read_image(tiny_sim / "frames" / "000000.png")
     src = _DepthSource(run)
     dm = load_dense_model(run, task="depth")
-    want = metric_depth(dm, image_prep.apply(rgb, src.prep))[0].numpy()
-    got = src.get("000000.png", rgb, np.zeros_like(rgb))
+    prep = image_prep.to_feed(dict(image_prep.RAW), image_prep.read_run_prep(run), str(run))
+    want = metric_depth(dm, image_prep.apply(rgb, prep))[0].numpy()
+    K = np.array([[100.0, 0, 80], [0, 100.0, 60], [0, 0, 1]])
+    got = src.get("000000.png", rgb, np.zeros_like(rgb), K)
     assert got.shape == rgb.shape[:2] and np.allclose(got, want) and (got > 0).all()
     prepared = rgb[:, ::-1].copy()  # frames said to be prepared already (enhance forced): fed as the detector's
-    assert np.allclose(_DepthSource(run, raw_frames=False).get("x", rgb, prepared),
+    assert np.allclose(_DepthSource(run, raw_frames=False).get("x", rgb, prepared, K),
                        metric_depth(dm, prepared)[0].numpy())
 
     out = tmp_path / "out"
