@@ -14,6 +14,7 @@ import numpy as np
 
 from cadalign.cad.symmetry import Symmetry, rotation_about_line
 from cadalign.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle, orthonormalize, skew
+from cadalign.infer.refine_math import huber_weights
 from cadalign.types import Rigid3
 
 
@@ -63,8 +64,7 @@ def robust_mean(poses: list[Rigid3], huber_t_m: float, huber_r_rad: float, iters
     for _ in range(iters):
         dt = np.linalg.norm(t - mu_t, axis=1)
         dr = np.array([_angle(mu_R.T @ R) for R in Rs])
-        wt = np.where(dt <= huber_t_m, 1.0, huber_t_m / np.maximum(dt, 1e-12))
-        wr = np.where(dr <= huber_r_rad, 1.0, huber_r_rad / np.maximum(dr, 1e-12))
+        wt, wr = huber_weights(dt, huber_t_m), huber_weights(dr, huber_r_rad)
         mu_t = (wt[:, None] * t).sum(0) / wt.sum()
         mu_R = orthonormalize((wr[:, None, None] * Rs).sum(0))
     return Rigid3(mu_R, mu_t)
