@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 
 from cadalign.cad.symmetry import Symmetry
 from cadalign.errors import InputError
+from cadalign.geometry.rotations import geodesic_angle
 
 MSSD_THRESHOLDS = tuple(round(0.05 * k, 2) for k in range(1, 11))
 """BOP19 MSSD thresholds as fractions of the object diameter."""
@@ -121,27 +122,17 @@ def symmetry_transforms(symmetry: Symmetry | None, diameter_m: float | None = No
     return symmetry.discretize(int(math.ceil(math.pi / BOP_SYM_DISC_STEP)))
 
 
-def _angle(R: np.ndarray) -> float:
-    # stable for small angles: atan2(|skew part|, trace part)
-    s = np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
-    c = (np.trace(R) - 1.0) / 2.0
-    return float(math.atan2(s, c))
-
-
 def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray, symmetry: Symmetry | None = None) -> float:
     """Geodesic angle (degrees) between two (3, 3) rotations, minimised over the object's symmetries."""
     R_est, R_gt = np.asarray(R_est, float), np.asarray(R_gt, float)
-    M = R_gt.T @ R_est
     sym = symmetry if symmetry is not None else Symmetry.none()
-    best = math.inf
-    for D in [np.eye(4), *sym.discrete]:
-        N = M @ D[:3, :3].T
-        if sym.kind == "continuous":
-            a = np.asarray(sym.axis, float)
-            ang = math.acos(float(np.clip(a @ N @ a, -1.0, 1.0)))
-        else:
-            ang = _angle(N)
-        best = min(best, ang)
+    D = np.stack([np.eye(3), *(d[:3, :3] for d in sym.discrete)])
+    if sym.kind == "continuous":  # the angle between the axis and its image: the spin about it is free
+        a = np.asarray(sym.axis, float)
+        N = R_gt.T @ R_est @ np.swapaxes(D, 1, 2)
+        best = math.acos(float(np.clip(np.einsum("i,nij,j->n", a, N, a).max(), -1.0, 1.0)))
+    else:
+        best = float(geodesic_angle(R_gt, R_est @ np.swapaxes(D, 1, 2)).min())
     return math.degrees(best)
 
 

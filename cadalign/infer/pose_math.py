@@ -13,7 +13,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cadalign.cad.symmetry import Symmetry, rotation_about_line
-from cadalign.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle, orthonormalize, skew
+from cadalign.geometry.rotations import (
+    axis_angle_to_matrix,
+    geodesic_angle,
+    matrix_to_axis_angle,
+    orthonormalize,
+    skew,
+)
 from cadalign.infer.refine_math import huber_weights
 from cadalign.types import Rigid3
 
@@ -28,11 +34,6 @@ class Observation:
     symmetry: Symmetry = field(default_factory=Symmetry.none)
     diameter_m: float = 0.0
 
-
-
-def _angle(R: np.ndarray) -> float:
-    s = np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
-    return float(math.atan2(s, (np.trace(R) - 1.0) / 2.0))
 
 
 def canonicalize(T: Rigid3, symmetry: Symmetry | None, R_ref: np.ndarray) -> Rigid3:
@@ -50,7 +51,7 @@ def canonicalize(T: Rigid3, symmetry: Symmetry | None, R_ref: np.ndarray) -> Rig
             B = np.trace(N @ skew(a))
             S = rotation_about_line(a, np.asarray(symmetry.offset_m, float), math.atan2(B, A)) @ D
         cand = Rigid3.from_matrix(M0 @ S)
-        ang = _angle(R_ref.T @ cand.R)
+        ang = float(geodesic_angle(R_ref, cand.R))
         if ang < best_ang - 1e-12:
             best, best_ang = cand, ang
     return best
@@ -63,7 +64,7 @@ def robust_mean(poses: list[Rigid3], huber_t_m: float, huber_r_rad: float, iters
     mu_t, mu_R = np.median(t, axis=0), orthonormalize(Rs.mean(axis=0))
     for _ in range(iters):
         dt = np.linalg.norm(t - mu_t, axis=1)
-        dr = np.array([_angle(mu_R.T @ R) for R in Rs])
+        dr = geodesic_angle(mu_R, Rs)
         wt, wr = huber_weights(dt, huber_t_m), huber_weights(dr, huber_r_rad)
         mu_t = (wt[:, None] * t).sum(0) / wt.sum()
         mu_R = orthonormalize((wr[:, None, None] * Rs).sum(0))
