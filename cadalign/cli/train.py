@@ -56,6 +56,7 @@ def seg(
     steps: int | None = typer.Option(None, "--steps", min=1, help="Override the preset's optimiser steps."),
     seed: int | None = typer.Option(None, "--seed", help="Override the seed."),
     split: str = typer.Option("train", "--split", help="Frames to train on: train | val | test | all."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace the run in OUT (its checkpoints and records)."),
     device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
 ) -> None:
     """Train the ResUNet segmentation network (classes from the dataset's objects.json)."""
@@ -65,7 +66,8 @@ def seg(
     with user_errors():
         cfg = resolve(SegTrainConfig, PRESETS, preset, config, overrides(steps, seed))
         with progress_bar("train seg") as progress:
-            result = train_seg(cfg, ds, out, split=split, resume=resume, device=device, progress=progress)
+            result = train_seg(cfg, ds, out, split=split, resume=resume, overwrite=overwrite, device=device,
+                               progress=progress)
     _report(result, out)
 
 
@@ -79,6 +81,7 @@ def depth(
     steps: int | None = typer.Option(None, "--steps", min=1, help="Override the preset's optimiser steps."),
     seed: int | None = typer.Option(None, "--seed", help="Override the seed."),
     split: str = typer.Option("train", "--split", help="Frames to train on: train | val | test | all."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace the run in OUT (its checkpoints and records)."),
     device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
 ) -> None:
     """Train the DispNet-style metric depth network (masked loss on valid depth pixels)."""
@@ -88,7 +91,8 @@ def depth(
     with user_errors():
         cfg = resolve(DepthTrainConfig, PRESETS, preset, config, overrides(steps, seed))
         with progress_bar("train depth") as progress:
-            result = train_depth(cfg, ds, out, split=split, resume=resume, device=device, progress=progress)
+            result = train_depth(cfg, ds, out, split=split, resume=resume, overwrite=overwrite, device=device,
+                                 progress=progress)
     _report(result, out)
 
 
@@ -102,7 +106,7 @@ def pose(
     resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoints/last.pt."),
     steps: int | None = typer.Option(None, "--steps", min=1, help="Override the preset's optimiser steps."),
     seed: int | None = typer.Option(None, "--seed", help="Override the seed."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace a run made with another config."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace the run in OUT (its checkpoints and records)."),
     device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
 ) -> None:
     """Train Mask R-CNN with the 6-DoF pose head; scores the held-out (val + test) frames at the end."""

@@ -134,8 +134,8 @@ def depth_step(cfg: DepthTrainConfig) -> Callable:
 
 
 def train_depth(cfg: DepthTrainConfig, ds: Path, out: Path, *, split: str = "train", resume: bool = False,
-                device: str = "cpu", progress: Callable[[int, int, dict[str, float]], None] | None = None
-                ) -> TrainResult:
+                overwrite: bool = False, device: str = "cpu",
+                progress: Callable[[int, int, dict[str, float]], None] | None = None) -> TrainResult:
     """Train a DispNet on the ``split`` frames of ``ds`` into the run folder ``out`` (see cadalign.train.loop)."""
     from cadalign.data.torch_datasets import DepthDataset
 
@@ -150,7 +150,8 @@ def train_depth(cfg: DepthTrainConfig, ds: Path, out: Path, *, split: str = "tra
     write_run_record(out, "depth", cfg, identity,
                      {"depth_range_m": [1 / (model_cfg.alpha + model_cfg.beta), 1 / model_cfg.beta],
                       "dataset": {"scene": str(sel.scene_dir), "split": split, "ids": list(sel.ids),
-                                  "source": sel.source}, "images": read_prep(sel.scene_dir)}, resume=resume)
+                                  "source": sel.source}, "images": read_prep(sel.scene_dir)}, resume=resume,
+                     overwrite=overwrite)
     log.info("depth: %d %s frames of %s, head range %.3f-%.3f m", len(sel.ids), split, sel.scene_dir,
              1 / (model_cfg.alpha + model_cfg.beta), 1 / model_cfg.beta)
     return train_loop(model, depth_step(cfg), data, cfg.loop, out,

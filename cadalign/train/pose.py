@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,14 +27,15 @@ from torch import nn
 from torch.utils.data import Dataset
 
 from cadalign.cad.models_info import symmetry_from_entry
-from cadalign.config import bounded, to_dict
+from cadalign.config import bounded
 from cadalign.data.bop import mask_bbox
 from cadalign.data.image_prep import read_prep
 from cadalign.data.torch_datasets import DetectionPoseDataset, detection_collate
 from cadalign.errors import InputError
-from cadalign.io import prepare_stage_dir, read_json, write_json
+from cadalign.io import read_json, write_json
 from cadalign.models.maskrcnn.detector import MODEL_KIND, MaskRCNNConfig, MaskRCNNPose
 from cadalign.train.augment import AugmentConfig, colour_jitter
+from cadalign.train.common import write_run_record
 from cadalign.train.data import select
 from cadalign.train.loop import LoopConfig, TrainResult, is_main_rank, train_loop
 from cadalign.train.pose_crop import crop_batch
@@ -239,26 +239,26 @@ def extra_state(cfg: PoseTrainConfig, classes: tuple[str, ...]) -> dict:
 
 def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = False, overwrite: bool = False,
         device: str = "cpu", progress: Callable[[int, int, dict[str, float]], None] | None = None) -> TrainResult:
-    """Train on the dataset's train split, write ``train_config.json`` and score the test split.
+    """Train on the dataset's train split, write ``train_config.json`` and score the held-out split.
+
+    The run record is :func:`cadalign.train.common.write_run_record`'s, as for the dense trainers.
 
     Raises:
-        ConfigError: ``out_dir`` holds a run of another config (unless ``overwrite``) or checkpoints without
-            ``resume``.
+        ConfigError: ``out_dir`` holds a run (unless ``resume`` or ``overwrite``), or a run of another config
+            is resumed.
+        TrainingError: a resumed run's classes or model differ.
         InputError: the dataset or its models are missing.
     """
     ds = locate_dataset(dataset)
-    prepare_stage_dir(out_dir, "train_pose", {"config": cfg, "dataset": str(Path(dataset).resolve())},
-                      overwrite=overwrite, ignore=("config.loop.steps",))  # a resumed run may extend the steps
-    if overwrite and not resume and (Path(out_dir) / "checkpoints").is_dir():
-        shutil.rmtree(Path(out_dir) / "checkpoints")
-    write_json(Path(out_dir) / "train_config.json", {"config": to_dict(cfg), "dataset": str(dataset),
-                                                     "splits": {k: len(v) for k, v in ds.splits.items()},
-                                                     "images": read_prep(ds.scene_dir)})
     train_ids = ds.splits.get("train") or []
     if not train_ids:
         raise InputError(f"{dataset}: the train split is empty; the dataset needs more frames")
     data = ResizedDetectionDataset(ds.scene_dir, train_ids, cfg.model.input_hw)
     classes = data.base.classes.names
+    identity = extra_state(cfg, classes)
+    write_run_record(Path(out_dir), "pose", cfg, identity,
+                     {"dataset": str(dataset), "splits": {k: len(v) for k, v in ds.splits.items()},
+                      "images": read_prep(ds.scene_dir)}, resume=resume, overwrite=overwrite)
     geometry = load_object_geometry(ds.models_dir, cfg.model_points, cfg.loop.seed)
     loss = PoseLoss(geometry, cfg.loss)
     torch.manual_seed(cfg.loop.seed)
@@ -267,7 +267,7 @@ def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = Fa
                            cfg.model.input_hw, cfg.crop_balance_classes)
     result = train_loop(model, make_step_fn(loss), data, cfg.loop, Path(out_dir), collate_fn=detection_collate,
                         augment=augment, resume=resume, device=device, progress=progress,
-                        extra_state=extra_state(cfg, classes))
+                        extra_state=identity)
     held_out = sorted((ds.splits.get("val") or []) + (ds.splits.get("test") or []))
     if held_out and not result.interrupted and is_main_rank():  # under DDP rank 0 scores and writes
         from cadalign.train.pose_eval import evaluate

@@ -222,7 +222,7 @@ def lamp_weights(focus: list[float] | None, n_classes: int) -> list[float]:
 
 
 def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train", val_split: str | None = "val",
-              resume: bool = False, device: str = "cpu",
+              resume: bool = False, overwrite: bool = False, device: str = "cpu",
               progress: Callable[[int, int, dict[str, float]], None] | None = None) -> TrainResult:
     """Train a ResUNet on the ``split`` frames of ``ds`` into the run folder ``out`` (see cadalign.train.loop).
 
@@ -248,7 +248,7 @@ def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train",
                                                  "dataset": {"scene": str(sel.scene_dir), "split": split,
                                                              "ids": list(sel.ids), "source": sel.source},
                                                  "images": read_prep(sel.scene_dir)},
-                     resume=resume)
+                     resume=resume, overwrite=overwrite)
     log.info("seg: %d %s frames of %s, classes %s, weights %s", len(sel.ids), split, sel.scene_dir, classes,
              None if weights is None else np.round(weights, 2).tolist())
     val_fn = None

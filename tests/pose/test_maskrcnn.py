@@ -102,12 +102,23 @@ def test_cli_train_pose_end_to_end_resume_and_load(pose_bop: Path, tmp_path: Pat
     assert res.exit_code == 0, res.output
     assert json.loads((out / "metrics.json").read_text())["rows"][-1]["step"] == 6
     res = _train_tiny(pose_bop, out, ["--pose", "thesis"])
-    assert res.exit_code == 1 and "another config" in res.output
+    said = " ".join(res.output.split())  # the console wraps lines
+    assert res.exit_code == 1 and "already holds a training run" in said and "--overwrite" in said
+    res = _train_tiny(pose_bop, out, ["--pose", "thesis", "--resume"])
+    assert res.exit_code == 1 and "different model_config" in " ".join(res.output.split())
     model, info = load_pose_model(out)
     assert info["step"] == 6 and info["classes"][0] == "background" and model.cfg.input_hw == (60, 80)
     item_img = torch.rand(3, 120, 160)
     K = torch.tensor([[120.0, 0, 80], [0, 120, 60], [0, 0, 1]])
     assert all(d.mask.shape == (120, 160) for d in model.detect(item_img, K, score_thresh=0.0))
+    # --overwrite replaces the run: a fresh thesis run, its own record and metrics
+    res = _train_tiny(pose_bop, out, ["--pose", "thesis", "--overwrite", "--steps", "2"])
+    assert res.exit_code == 0, res.output
+    record = json.loads((out / "train_config.json").read_text())
+    assert record["task"] == "pose" and record["config"]["model"]["pose"] == "thesis"
+    assert record["model_config"]["pose"] == "thesis" and record["classes"] == info["classes"]
+    assert [r["step"] for r in json.loads((out / "metrics.json").read_text())["rows"]][-1] == 2
+    assert load_pose_model(out)[1]["step"] == 2
 
 
 def test_load_pose_model_refuses_foreign_or_missing(tmp_path: Path):

@@ -95,6 +95,12 @@ def test_resume_refuses_other_classes_and_other_config(tiny_dense, tmp_path):
     longer = train_seg(replace(cfg, loop=replace(cfg.loop, steps=3)), tiny_dense, tmp_path / "run", resume=True,
                        val_split=None)
     assert longer.steps_done == 3
+    # --overwrite starts the run again with the other config (and other classes)
+    again = train_seg(replace(cfg, dice_weight=0.0), other, tmp_path / "run", overwrite=True, val_split=None)
+    assert again.steps_done == 2
+    record = read_json(tmp_path / "run" / "train_config.json")
+    assert record["config"]["dice_weight"] == 0.0 and record["classes"] == objects["classes"]
+    assert max(r["step"] for r in read_json(tmp_path / "run" / "metrics.json")["rows"]) == 2
 
 
 def test_preset_config_file_is_strict(tmp_path):
