@@ -7,9 +7,11 @@ size's resolution into ``DIR/data/`` once and reused by every stage and by later
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from cadalign.errors import ConfigError
 from cadalign.io import write_text
@@ -52,42 +54,36 @@ def size_spec(size: str) -> SizeSpec:
     return SIZES[size]
 
 
-def bench_scene(data_dir: Path, *, effects: tuple[str, ...] | None = None, extra: str = "",
-                name: str = "scene.toml") -> Path:
+def bench_scene(data_dir: Path, name: str = "scene.yaml") -> Path:
     """Write the benchmark scene (the default scene, 1 frame/s) to ``data_dir/name``; returns its path.
 
-    ``effects`` replaces the scene's effect list; ``extra`` is TOML appended at the end (e.g. an
-    ``[effect_params.marine_snow]`` table). Mesh sources are made absolute so the copy loads anywhere.
+    The file only ``extends`` the default scene (by absolute path, so it loads from any folder; the default
+    scene's meshes stay relative to it). Variants are written by :func:`write_scene_variant`.
     """
     from cadalign.sim.spec import default_scene_path, load_scene
 
     src = default_scene_path()
     if load_scene(src).trajectory.fps != 1.0:
         raise ConfigError(f"{src}: expected [trajectory] fps = 1.0; the benchmarks' frame spacing derives from it")
-    text = src.read_text()
-    if effects is not None:
-        start = text.index("\neffects = [")
-        end = text.index("]", start)
-        text = text[:start] + "\neffects = " + repr(list(effects)).replace("'", '"') + text[end + 1:]
-    path = Path(data_dir) / name
+    return write_scene_variant(Path(data_dir) / name, src, {})
+
+
+def write_scene_variant(path: Path, base: Path, changes: dict[str, Any]) -> Path:
+    """Write a scene that ``extends`` ``base`` with ``changes`` (tables merge key by key, lists replace the
+    base's, see :func:`cadalign.sim.spec.load_scene`), as JSON text in a ``.yaml`` file (YAML reads JSON; no
+    TOML writer needed). The file is rewritten only when its text changes, so finished work keyed on it stays.
+
+    Raises:
+        ValueError: ``path`` is not a ``.yaml`` file.
+    """
+    path = Path(path)
+    if path.suffix != ".yaml":
+        raise ValueError(f"{path}: scene variants are written as .yaml")
+    text = json.dumps({"extends": str(Path(base).resolve()), **changes}, indent=1) + "\n"
     path.parent.mkdir(parents=True, exist_ok=True)
-    _check_sources(src, path)
-    if not path.is_file() or path.read_text() != text + extra:
-        write_text(path, text + extra)
+    if not path.is_file() or path.read_text() != text:
+        write_text(path, text)
     return path
-
-
-def _check_sources(src: Path, dst: Path) -> None:
-    """The default scene names meshes by ``procedural:`` / ``data:`` only; nothing local to copy. Checked
-    so a future relative mesh path fails loudly here instead of deep inside the simulator."""
-    import tomllib
-
-    spec = tomllib.loads(src.read_text())
-    for o in spec.get("objects", []):
-        s = str(o.get("source", ""))
-        if not (s.startswith("procedural:") or s.startswith("data:")):
-            raise ConfigError(f"{src}: object '{o.get('name')}' has a scene-relative mesh source {s!r}; the "
-                              f"benchmark copies the scene to {dst.parent} and cannot follow it")
 
 
 def simulate_clip(scene: Path, out: Path, resolution: tuple[int, int], frames: int, seed: int = 0) -> Path:

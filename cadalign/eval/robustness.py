@@ -31,8 +31,8 @@ import numpy as np
 
 from cadalign.errors import ConfigError
 from cadalign.eval.bench import json_safe, num
-from cadalign.eval.bench_data import bench_scene, simulate_clip, size_spec
-from cadalign.io import fingerprint, read_image, read_json, write_json, write_text
+from cadalign.eval.bench_data import bench_scene, simulate_clip, size_spec, write_scene_variant
+from cadalign.io import fingerprint, read_image, read_json, write_json
 
 log = logging.getLogger(__name__)
 ROBUSTNESS_JSON = "robustness.json"
@@ -44,22 +44,31 @@ SEVERITIES: dict[str, tuple[Any, ...]] = {
     "light": (0.4, 0.15, 0.05, 0.02),
 }
 """Values from mild to severe; tiny/small runs take the first three, full all four."""
-_AMBIENT, _INTENSITY = "ambient = 0.35\n", "intensity = 160.0\n"
 
 
-def condition_scene(text: str, effect: str, value: Any) -> str:
-    """The scene TOML ``text`` with ``effect`` set to ``value`` (see the module doc)."""
+def condition_scene(base: Path, effect: str, value: Any) -> dict[str, Any]:
+    """The changes to the scene ``base`` that set ``effect`` to ``value`` (see the module doc), for
+    :func:`cadalign.eval.bench_data.write_scene_variant`; only that factor moves.
+
+    Raises:
+        ConfigError: an unknown effect, or a base scene whose factor is not the baseline's (``BASELINE``).
+    """
+    from cadalign.config import to_dict
+    from cadalign.sim.spec import load_scene
+
+    spec = load_scene(base)
     if effect == "turbidity":
-        if 'jerlov = "IB"' not in text:
-            raise ConfigError("the benchmark scene must declare jerlov = \"IB\" to derive turbidity conditions")
-        return text.replace('jerlov = "IB"', f'jerlov = "{value}"')
+        if spec.water.jerlov != BASELINE["turbidity"]:
+            raise ConfigError(f"{base}: the robustness baseline is Jerlov {BASELINE['turbidity']}, the scene has "
+                              f"{spec.water.jerlov!r}")
+        return {"water": {"jerlov": str(value)}}
     if effect == "marine_snow":
-        return text + f"\n[effect_params.marine_snow]\ndensity_per_m3 = {float(value)}\n"
+        return {"effect_params": {"marine_snow": {"density_per_m3": float(value)}}}
     if effect == "light":
-        if _AMBIENT not in text or _INTENSITY not in text:
-            raise ConfigError("the benchmark scene must hold 'ambient = 0.35' and lamps of 'intensity = 160.0'")
-        return text.replace(_AMBIENT, f"ambient = {0.35 * float(value):.6g}\n").replace(
-            _INTENSITY, f"intensity = {160.0 * float(value):.6g}\n")
+        if not spec.lights:
+            raise ConfigError(f"{base}: the light condition scales the scene's lamps, and it has none")
+        return {"ambient": spec.ambient * float(value),  # lists replace the base's: every lamp in full
+                "lights": [{**to_dict(lamp), "intensity": lamp.intensity * float(value)} for lamp in spec.lights]}
     raise ConfigError(f"unknown robustness effect {effect!r}; allowed: {', '.join(SEVERITIES)}")
 
 
@@ -141,17 +150,15 @@ def run_robustness(out_dir: Path, *, size: str = "small", seed: int = 0, models:
               "resolution": list(res), "frames": n_frames}
     old = read_json(path) if path.is_file() else {}
     done = {r["key"]: r for r in old.get("rows", [])} if old.get("config") == config else {}
-    base_text = bench_scene(out_dir / "data").read_text()
+    base = bench_scene(out_dir / "data")
     rows = []
     conds = conditions(size)
     for effect, sev, value in progress(conds, "robustness", len(conds)) if progress else conds:
         key = fingerprint([effect, sev, value, config])
         if key not in done:
-            text = base_text if effect == "baseline" else condition_scene(base_text, effect, value)
             name = f"{effect}_{sev}" if value is None else f"{effect}_{value}"
-            scene = data_dir / f"{name}.toml"
-            if not scene.is_file() or scene.read_text() != text:
-                write_text(scene, text)
+            changes = {} if effect == "baseline" else condition_scene(base, effect, value)
+            scene = write_scene_variant(data_dir / f"{name}.yaml", base, changes)
             sim = simulate_clip(scene, data_dir / name, res, n_frames, seed)
             metrics: dict[str, Any] = clip_contrast(sim)
             if with_sfm:

@@ -38,7 +38,7 @@ def test_tiny_infer_sweep_then_a_given_model(tmp_path: Path):
     clip = next((out / "data").glob("clip_160x120_6_s0"))
     net = next((out / "data" / "work" / "infer").glob("pose_*"))
     args = ["bench", "infer", "--size", "tiny", "--repeats", "1", "--out", str(out), "--model", str(net),
-            "--frames", str(clip / "frames"), "--gt", str(clip), "--cad", str(out / "data" / "scene.toml"),
+            "--frames", str(clip / "frames"), "--gt", str(clip), "--cad", str(out / "data" / "scene.yaml"),
             "--max-frames", "2"]
     res = runner.invoke(app, args)
     assert res.exit_code == 0, res.output

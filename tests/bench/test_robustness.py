@@ -2,31 +2,46 @@
 
 from __future__ import annotations
 
-import tomllib
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from cadalign.errors import ConfigError
-from cadalign.eval.bench_data import bench_scene
+from cadalign.eval.bench_data import bench_scene, write_scene_variant
 from cadalign.eval.bench_report import write_bench_report
 from cadalign.eval.robustness import SEVERITIES, condition_scene, conditions, contrast_metrics, run_robustness
+from cadalign.sim.spec import default_scene_path, load_scene
 
 
 def test_condition_scenes_change_one_factor(tmp_path):
-    text = bench_scene(tmp_path).read_text()
-    base = tomllib.loads(text)
-    turbid = tomllib.loads(condition_scene(text, "turbidity", "7C"))
-    assert turbid["water"]["jerlov"] == "7C" and base["water"]["jerlov"] == "IB"
-    snow = tomllib.loads(condition_scene(text, "marine_snow", 400.0))
-    assert snow["effect_params"]["marine_snow"]["density_per_m3"] == 400.0
-    assert snow["effect_params"]["low_light"] == base["effect_params"]["low_light"]
-    dark = tomllib.loads(condition_scene(text, "light", 0.1))
-    assert dark["ambient"] == pytest.approx(0.035)
-    assert [lt["intensity"] for lt in dark["lights"]] == pytest.approx([16.0, 16.0])
-    assert base["trajectory"]["fps"] == 1.0
+    base_path = bench_scene(tmp_path)
+    base = load_scene(base_path)
+    assert base == load_scene(default_scene_path()) and base.trajectory.fps == 1.0
+
+    def variant(effect, value):
+        return load_scene(write_scene_variant(tmp_path / f"{effect}.yaml", base_path,
+                                              condition_scene(base_path, effect, value)))
+
+    turbid = variant("turbidity", "7C")
+    assert turbid.water.jerlov == "7C" and base.water.jerlov == "IB"
+    assert turbid == replace(base, water=replace(base.water, jerlov="7C"))
+    snow = variant("marine_snow", 400.0)
+    assert snow.effect_params["marine_snow"]["density_per_m3"] == 400.0
+    assert base.effect_params.get("marine_snow", {}).get("density_per_m3") != 400.0
+    assert replace(snow, effect_params=base.effect_params) == base
+    dark = variant("light", 0.1)
+    assert dark.ambient == pytest.approx(0.035)
+    assert [lt.intensity for lt in dark.lights] == pytest.approx([16.0, 16.0])
+    assert [replace(lt, intensity=b.intensity) for lt, b in zip(dark.lights, base.lights, strict=True)] == list(
+        base.lights)
     with pytest.raises(ConfigError, match="allowed"):
-        condition_scene(text, "fog", 1)
+        condition_scene(base_path, "fog", 1)
+    murky = write_scene_variant(tmp_path / "murky.yaml", base_path, {"water": {"jerlov": "3C"}})
+    with pytest.raises(ConfigError, match="baseline is Jerlov IB"):
+        condition_scene(murky, "turbidity", "7C")
+    with pytest.raises(ValueError, match=".yaml"):
+        write_scene_variant(tmp_path / "x.toml", base_path, {})
 
 
 def test_conditions_have_three_severities_of_three_effects():
