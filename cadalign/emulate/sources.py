@@ -161,12 +161,29 @@ def write_ply(mesh: LayeredMesh, path: Path) -> Path:
     return Path(path)
 
 
+def image_scene_dir(path: Path) -> Path | None:
+    """The BOP scene folder of an image source ``SCENE/rgb/NNNNNN.png``; None for an ``.npz``.
+
+    Raises:
+        InputError: neither an ``.npz`` nor an RGB frame of a BOP scene folder.
+    """
+    path = Path(path)
+    if path.suffix.lower() == ".npz":
+        return None
+    scene_dir = path.parent.parent
+    if path.parent.name != "rgb" or not (scene_dir / "scene_camera.json").is_file():
+        raise InputError(f"{path}: an image source must be an RGB frame of a BOP scene folder "
+                         "(SCENE/rgb/NNNNNN.png with depth/ and scene_camera.json beside it) or an .npz")
+    return scene_dir
+
+
 def read_image_input(path: Path) -> ImageInput:
     """An RGB-D frame from an ``.npz`` or from an RGB image inside a BOP scene folder (``rgb/NNNNNN.png``)."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"image source not found: {path}")
-    if path.suffix.lower() == ".npz":
+    scene_dir = image_scene_dir(path)
+    if scene_dir is None:
         with np.load(path) as z:
             missing = [k for k in ("rgb", "depth_m", "K") if k not in z.files]
             if missing:
@@ -176,10 +193,6 @@ def read_image_input(path: Path) -> ImageInput:
     from cadalign.data.bop import BopScene
     from cadalign.io import read_image
 
-    scene_dir = path.parent.parent
-    if path.parent.name != "rgb" or not (scene_dir / "scene_camera.json").is_file():
-        raise InputError(f"{path}: an image source must be an RGB frame of a BOP scene folder "
-                         "(SCENE/rgb/NNNNNN.png with depth/ and scene_camera.json beside it) or an .npz")
     bop = BopScene(scene_dir)
     im_id = int(path.stem)
     frame = bop.frame(im_id)
