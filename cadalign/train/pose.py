@@ -82,6 +82,13 @@ class PoseTrainConfig:
     :mod:`cadalign.train.pose_crop`."""
     zoom_max: float = bounded(2.0, ge=1)
     """Largest zoom factor of ``zoom_prob``."""
+    rotate_prob: float = bounded(0.0, ge=0, le=1)
+    """Probability that a training frame is rolled: the image the camera would have taken after turning about
+    its optical axis by up to ``rotate_max_deg`` (an exact homography for any K; ``R``, ``t`` turn with it, the
+    depth stays), so thin parts are seen at image orientations the trajectory never gave them; see
+    :mod:`cadalign.train.pose_crop`. Off by default."""
+    rotate_max_deg: float = bounded(30.0, ge=0, le=180)
+    """Largest roll of ``rotate_prob`` (degrees, uniform in ``[-max, max]``)."""
 
     def __post_init__(self) -> None:
         if self.crop_hw is not None and (self.crop_hw[0] > self.model.input_hw[0]
@@ -212,21 +219,24 @@ def make_step_fn(loss: PoseLoss) -> Callable[[nn.Module, dict], tuple[torch.Tens
 
 def make_augment(cfg: AugmentConfig, crop_hw: tuple[int, int] | None = None, crop_object_prob: float = 0.8,
                  zoom_prob: float = 0.0, zoom_max: float = 2.0, input_hw: tuple[int, int] | None = None,
-                 balance_classes: bool = False) -> Callable[[dict, torch.Generator], dict] | None:
-    """The loop's ``augment``: random (zoomed) crops (when ``crop_hw`` or ``zoom_prob``), then colour jitter.
+                 balance_classes: bool = False, rotate_prob: float = 0.0,
+                 rotate_max_deg: float = 30.0) -> Callable[[dict, torch.Generator], dict] | None:
+    """The loop's ``augment``: random (rolled, zoomed) crops (when ``crop_hw``, ``zoom_prob`` or ``rotate_prob``),
+    then colour jitter.
 
-    Zoom without ``crop_hw`` crops to ``input_hw`` (the whole image), which must then be given.
+    Zoom or roll without ``crop_hw`` crops to ``input_hw`` (the whole image), which must then be given.
     """
-    if zoom_prob > 0 and crop_hw is None:
+    if (zoom_prob > 0 or rotate_prob > 0) and crop_hw is None:
         if input_hw is None:
-            raise ValueError("zoom without crop_hw needs input_hw")
+            raise ValueError("zoom or roll without crop_hw needs input_hw")
         crop_hw = input_hw
     if not cfg.enabled and crop_hw is None:
         return None
 
     def augment(batch: dict, g: torch.Generator) -> dict:
         if crop_hw is not None:
-            batch = crop_batch(batch, g, tuple(crop_hw), crop_object_prob, zoom_prob, zoom_max, balance_classes)
+            batch = crop_batch(batch, g, tuple(crop_hw), crop_object_prob, zoom_prob, zoom_max, balance_classes,
+                               rotate_prob, rotate_max_deg)
         return {**batch, "image": colour_jitter(batch["image"], g, cfg)} if cfg.enabled else batch
 
     return augment
@@ -264,7 +274,7 @@ def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = Fa
     torch.manual_seed(cfg.loop.seed)
     model = MaskRCNNPose(cfg.model, classes)
     augment = make_augment(cfg.augment, cfg.crop_hw, cfg.crop_object_prob, cfg.zoom_prob, cfg.zoom_max,
-                           cfg.model.input_hw, cfg.crop_balance_classes)
+                           cfg.model.input_hw, cfg.crop_balance_classes, cfg.rotate_prob, cfg.rotate_max_deg)
     result = train_loop(model, make_step_fn(loss), data, cfg.loop, Path(out_dir), collate_fn=detection_collate,
                         augment=augment, resume=resume, device=device, progress=progress,
                         extra_state=identity)

@@ -18,9 +18,17 @@ window's corner) multiplied by ``zoom`` (pixel-edge convention: pixel ``i`` cove
 trained on far parts also sees them at the size of nearer ones. ``R``, ``t`` stay; masks are resampled
 (bilinear, >= 0.5) and boxes recomputed from them; the ``improved`` head's translation codes follow from the
 zoomed ``K`` (``dz = t_z s / f_x`` is unchanged, the box and ``f_x`` both scale).
+
+A *rolled* frame (``rotate_prob``) is the frame the camera would have taken after turning by ``theta`` about
+its optical axis: the image is warped by the homography ``K Rz(theta) K^-1`` (exact for any ``K``, as a pure
+camera rotation is), masks likewise (bilinear, >= 0.5), boxes recomputed, ``R' = Rz R``, ``t' = Rz t`` (the
+depth ``t_z`` is unchanged) and ``K`` stays. Thin parts then appear at image orientations the trajectory never
+gave them. Pixels from outside the frame are black. The roll is applied to the whole frame, before the crop.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 import torch.nn.functional as F
@@ -122,14 +130,64 @@ def draw_zoom(g: torch.Generator, prob: float, zoom_max: float) -> float:
     return float(zoom_max ** u[1]) if u[0] < prob else 1.0
 
 
+def roll_matrix(theta: float, dtype: torch.dtype = torch.float32, device: torch.device | None = None) -> Tensor:
+    """``Rz(theta)`` (3, 3): the camera-frame rotation about the optical axis (x towards y for ``theta > 0``)."""
+    c, s = math.cos(theta), math.sin(theta)
+    return torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=dtype, device=device)
+
+
+def roll_frame(image: Tensor, target: dict, theta: float) -> tuple[Tensor, dict]:
+    """One image ``(3, H, W)`` and its targets as seen after the camera rolls by ``theta`` (radians).
+
+    Output pixel centre ``p' = (x + .5, y + .5, 1)`` samples the input at ``K Rz^T K^-1 p'``; a camera point ``X``
+    moves to ``Rz X``. Instances whose mask leaves the frame are dropped.
+    """
+    h, w = image.shape[-2:]
+    K = target["K"].to(torch.float64)
+    Rz = roll_matrix(theta, torch.float64, K.device)
+    H_inv = K @ Rz.T @ torch.linalg.inv(K)  # output pixel -> input pixel (homogeneous)
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64, device=K.device) + 0.5,
+                            torch.arange(w, dtype=torch.float64, device=K.device) + 0.5, indexing="ij")
+    q = torch.stack([xs, ys, torch.ones_like(xs)], -1) @ H_inv.T
+    u, v = q[..., 0] / q[..., 2], q[..., 1] / q[..., 2]
+    grid = torch.stack([2 * u / w - 1, 2 * v / h - 1], -1)[None].to(image.dtype)  # align_corners=False
+    warped = F.grid_sample(image[None], grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0]
+    masks = target["masks"]
+    if len(masks):
+        masks = F.grid_sample(masks[:, None].float(), grid.expand(len(masks), -1, -1, -1).float(), mode="bilinear",
+                              padding_mode="zeros", align_corners=False)[:, 0] >= 0.5
+    keep = torch.nonzero(masks.flatten(1).any(1)).squeeze(1)
+    out = {k: target[k][keep] for k in _PER_IMAGE if k not in ("masks", "R", "t")}
+    out["masks"] = masks[keep]
+    out["boxes"] = masks_to_boxes(out["masks"]).to(target["boxes"].dtype)
+    Rz_t = Rz.to(target["R"].dtype)
+    out["R"] = Rz_t @ target["R"][keep]
+    out["t"] = target["t"][keep] @ Rz_t.T
+    out["K"] = target["K"]
+    return warped, out
+
+
+def draw_roll(g: torch.Generator, prob: float, max_deg: float) -> float:
+    """A roll angle (radians): 0 with probability ``1 - prob``, else uniform in ``[-max_deg, max_deg]`` degrees.
+
+    Nothing is drawn when ``prob`` is 0, so recipes without rolls keep their random stream.
+    """
+    if prob <= 0 or max_deg <= 0:
+        return 0.0
+    u = torch.rand(2, generator=g, device=g.device).tolist()
+    return math.radians((2 * u[1] - 1) * max_deg) if u[0] < prob else 0.0
+
+
 def crop_batch(batch: dict, g: torch.Generator, crop_hw: tuple[int, int], object_prob: float = 0.8,
-               zoom_prob: float = 0.0, zoom_max: float = 2.0, balance_classes: bool = False) -> dict:
+               zoom_prob: float = 0.0, zoom_max: float = 2.0, balance_classes: bool = False,
+               rotate_prob: float = 0.0, rotate_max_deg: float = 30.0) -> dict:
     """A :func:`cadalign.data.torch_datasets.detection_collate` batch with each image randomly cropped.
 
     ``image`` (B, 3, H, W) -> (B, 3, ch, cw); the per-image lists follow (see :func:`crop_target`). With
     probability ``zoom_prob`` an image's crop is instead a window ``z`` times smaller (``z`` log-uniform in
     ``[1, zoom_max]``) upsampled to ``crop_hw`` (see :func:`zoom_target`). ``balance_classes``: the instance a
-    crop is placed around is drawn class-balanced (see :func:`crop_origin`).
+    crop is placed around is drawn class-balanced (see :func:`crop_origin`). With probability ``rotate_prob``
+    the frame is first rolled by up to ``rotate_max_deg`` (see :func:`roll_frame`).
 
     Raises:
         ValueError: the crop is larger than the images.
@@ -138,16 +196,20 @@ def crop_batch(batch: dict, g: torch.Generator, crop_hw: tuple[int, int], object
     ch, cw = crop_hw
     if ch > h or cw > w:
         raise ValueError(f"crop {crop_hw} is larger than the training images {(h, w)}; lower crop_hw")
-    if (ch, cw) == (h, w) and zoom_prob <= 0:
+    if (ch, cw) == (h, w) and zoom_prob <= 0 and rotate_prob <= 0:
         return batch
     images, per = [], {k: [] for k in (*_PER_IMAGE, "K")}
     for i in range(batch["image"].shape[0]):
         target = {k: batch[k][i] for k in (*_PER_IMAGE, "K")}
+        frame = batch["image"][i]
+        theta = draw_roll(g, rotate_prob, rotate_max_deg)
+        if theta != 0.0:
+            frame, target = roll_frame(frame, target, theta)
         z = draw_zoom(g, zoom_prob, zoom_max)
         src = (max(int(round(ch / z)), 1), max(int(round(cw / z)), 1))
         y0, x0 = crop_origin((h, w), src, target["boxes"], g, object_prob,
                              target["labels"] if balance_classes else None)
-        image = batch["image"][i, :, y0:y0 + src[0], x0:x0 + src[1]]
+        image = frame[:, y0:y0 + src[0], x0:x0 + src[1]]
         cropped = crop_target(target, y0, x0, src)
         if src != (ch, cw):
             image = F.interpolate(image[None], size=(ch, cw), mode="bilinear", align_corners=False)[0]
