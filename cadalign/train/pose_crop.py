@@ -140,31 +140,61 @@ def roll_frame(image: Tensor, target: dict, theta: float) -> tuple[Tensor, dict]
     """One image ``(3, H, W)`` and its targets as seen after the camera rolls by ``theta`` (radians).
 
     Output pixel centre ``p' = (x + .5, y + .5, 1)`` samples the input at ``K Rz^T K^-1 p'``; a camera point ``X``
-    moves to ``Rz X``. Instances whose mask leaves the frame are dropped.
+    moves to ``Rz X``. ``K``'s last row is ``(0, 0, 1)``, so the map is affine. Disjoint (visible) masks are
+    warped as one label map (nearest), overlapping ones one by one (bilinear, >= 0.5). Instances whose mask
+    leaves the frame are dropped.
     """
     h, w = image.shape[-2:]
     K = target["K"].to(torch.float64)
     Rz = roll_matrix(theta, torch.float64, K.device)
-    H_inv = K @ Rz.T @ torch.linalg.inv(K)  # output pixel -> input pixel (homogeneous)
-    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64, device=K.device) + 0.5,
-                            torch.arange(w, dtype=torch.float64, device=K.device) + 0.5, indexing="ij")
-    q = torch.stack([xs, ys, torch.ones_like(xs)], -1) @ H_inv.T
-    u, v = q[..., 0] / q[..., 2], q[..., 1] / q[..., 2]
-    grid = torch.stack([2 * u / w - 1, 2 * v / h - 1], -1)[None].to(image.dtype)  # align_corners=False
+    A = (K @ Rz.T @ torch.linalg.inv(K))[:2].to(image.dtype)  # output pixel -> input pixel, affine rows
+    xs = torch.arange(w, dtype=image.dtype, device=image.device) + 0.5
+    ys = torch.arange(h, dtype=image.dtype, device=image.device)[:, None] + 0.5
+    u = A[0, 0] * xs + A[0, 1] * ys + A[0, 2]
+    v = A[1, 0] * xs + A[1, 1] * ys + A[1, 2]
+    grid = torch.stack([2 * u / w - 1, 2 * v / h - 1], -1)[None]  # align_corners=False
     warped = F.grid_sample(image[None], grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0]
-    masks = target["masks"]
-    if len(masks):
-        masks = F.grid_sample(masks[:, None].float(), grid.expand(len(masks), -1, -1, -1).float(), mode="bilinear",
-                              padding_mode="zeros", align_corners=False)[:, 0] >= 0.5
-    keep = torch.nonzero(masks.flatten(1).any(1)).squeeze(1)
+    masks, boxes = target["masks"], None
+    g = len(masks)
+    if g:
+        flat = masks.reshape(g, -1).to(grid.dtype)
+        if float(flat.sum(0).max()) <= 1:  # disjoint: one label map (0 = none, i + 1 = instance i)
+            ids = torch.arange(1, g + 1, dtype=grid.dtype, device=masks.device)
+            labels = (ids @ flat).reshape(1, 1, h, w)
+            rolled = F.grid_sample(labels, grid, mode="nearest", padding_mode="zeros",
+                                   align_corners=False).reshape(-1).round().long()
+            masks = (rolled[None] == ids.long()[:, None]).reshape(g, h, w)
+            boxes = _label_boxes(rolled, g, h, w)
+        else:
+            masks = F.grid_sample(masks[:, None].to(grid.dtype), grid.expand(g, -1, -1, -1), mode="bilinear",
+                                  padding_mode="zeros", align_corners=False)[:, 0] >= 0.5
+    if boxes is None:
+        boxes = masks_to_boxes(masks) if g else torch.zeros(0, 4)
+    keep = torch.nonzero(boxes[:, 2] > boxes[:, 0]).squeeze(1)
     out = {k: target[k][keep] for k in _PER_IMAGE if k not in ("masks", "R", "t")}
     out["masks"] = masks[keep]
-    out["boxes"] = masks_to_boxes(out["masks"]).to(target["boxes"].dtype)
+    out["boxes"] = boxes[keep].to(target["boxes"].dtype)
     Rz_t = Rz.to(target["R"].dtype)
     out["R"] = Rz_t @ target["R"][keep]
     out["t"] = target["t"][keep] @ Rz_t.T
     out["K"] = target["K"]
     return warped, out
+
+
+def _label_boxes(labels: Tensor, g: int, h: int, w: int) -> Tensor:
+    """``(g, 4)`` xyxy boxes (exclusive max) of the labels ``1..g`` of a flat ``(h * w,)`` label map, as
+    :func:`masks_to_boxes` gives for the masks ``labels == i + 1``; an absent label gets ``(0, 0, 0, 0)``."""
+    on = torch.nonzero(labels > 0).squeeze(1)
+    lab = labels[on] - 1
+    y, x = on // w, on % w
+    lo = torch.full((2, g), max(h, w), dtype=torch.int64, device=labels.device)
+    hi = torch.full((2, g), -1, dtype=torch.int64, device=labels.device)
+    for row, c in enumerate((x, y)):
+        lo[row].scatter_reduce_(0, lab, c, "amin")
+        hi[row].scatter_reduce_(0, lab, c, "amax")
+    present = hi[0] >= 0
+    boxes = torch.stack([lo[0], lo[1], hi[0] + 1, hi[1] + 1], 1).float()
+    return torch.where(present[:, None], boxes, torch.zeros_like(boxes))
 
 
 def draw_roll(g: torch.Generator, prob: float, max_deg: float) -> float:

@@ -99,3 +99,23 @@ def test_roll_draws_and_config():
     assert from_dict(PoseTrainConfig, {"rotate_prob": 0.5, "rotate_max_deg": 45.0}).rotate_max_deg == 45.0
     with pytest.raises(ConfigError, match="rotate_max_deg"):
         from_dict(PoseTrainConfig, {"rotate_max_deg": 200.0})
+
+
+def test_label_map_and_per_mask_rolls_agree():
+    """Disjoint masks go through one label map (nearest), overlapping ones mask by mask (bilinear): same boxes
+    rule, and on a block the two agree to a pixel."""
+    K = torch.tensor([[50.0, 0, 40], [0, 55, 30], [0, 0, 1]])
+    masks = torch.zeros(3, 60, 80, dtype=torch.bool)
+    masks[0, 10:20, 12:30] = True
+    masks[1, 35:50, 50:60] = True
+    masks[2, 22:26, 5:9] = True
+    t = torch.tensor([[0.1, 0.0, 2.0], [0.2, 0.1, 3.0], [-0.3, 0.0, 2.5]])
+    image = masks.any(0).float()[None].repeat(3, 1, 1)
+    _, disjoint = roll_frame(image, _target(masks, t, K), math.radians(20))
+    assert torch.equal(disjoint["boxes"], masks_to_boxes(disjoint["masks"]))
+    overlapping = masks.clone()
+    overlapping[2, 12:16, 14:18] = True  # now overlaps mask 0
+    _, each = roll_frame(image, _target(overlapping, t, K), math.radians(20))
+    assert torch.equal(each["boxes"], masks_to_boxes(each["masks"]))
+    assert (each["boxes"][:2] - disjoint["boxes"][:2]).abs().max() <= 1.0
+    assert (each["masks"][:2] ^ disjoint["masks"][:2]).sum() < 0.1 * disjoint["masks"][:2].sum()
