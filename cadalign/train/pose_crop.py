@@ -40,7 +40,7 @@ _PER_IMAGE = ("boxes", "labels", "masks", "R", "t", "obj_ids")
 def masks_to_boxes(masks: Tensor) -> Tensor:
     """``(G, 4)`` float xyxy boxes (exclusive max, pixel edges) of ``(G, H, W)`` bool masks; all have pixels."""
     if masks.shape[0] == 0:
-        return torch.zeros(0, 4)
+        return torch.zeros(0, 4, device=masks.device)
     rows, cols = masks.any(2), masks.any(1)
     h, w = masks.shape[-2:]
     ar_h = torch.arange(h, device=masks.device)
@@ -169,7 +169,7 @@ def roll_frame(image: Tensor, target: dict, theta: float) -> tuple[Tensor, dict]
             masks = F.grid_sample(masks[:, None].to(grid.dtype), grid.expand(g, -1, -1, -1), mode="bilinear",
                                   padding_mode="zeros", align_corners=False)[:, 0] >= 0.5
     if boxes is None:
-        boxes = masks_to_boxes(masks) if g else torch.zeros(0, 4)
+        boxes = masks_to_boxes(masks) if g else torch.zeros(0, 4, device=masks.device)
     keep = torch.nonzero(boxes[:, 2] > boxes[:, 0]).squeeze(1)
     out = {k: target[k][keep] for k in _PER_IMAGE if k not in ("masks", "R", "t")}
     out["masks"] = masks[keep]
