@@ -21,7 +21,7 @@ zoomed ``K`` (``dz = t_z s / f_x`` is unchanged, the box and ``f_x`` both scale)
 
 A *rolled* frame (``rotate_prob``) is the frame the camera would have taken after turning by ``theta`` about
 its optical axis: the image is warped by the homography ``K Rz(theta) K^-1`` (exact for any ``K``, as a pure
-camera rotation is), masks likewise (bilinear, >= 0.5), boxes recomputed, ``R' = Rz R``, ``t' = Rz t`` (the
+camera rotation is), masks likewise (see :func:`roll_frame`), boxes recomputed, ``R' = Rz R``, ``t' = Rz t`` (the
 depth ``t_z`` is unchanged) and ``K`` stays. Thin parts then appear at image orientations the trajectory never
 gave them. Pixels from outside the frame are black. The roll is applied to the whole frame, before the crop.
 """
