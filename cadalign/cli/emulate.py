@@ -31,10 +31,11 @@ def _predictors(model_depth: Path | None, model_seg: Path | None, device: str, s
     if model_depth is None and model_seg is None:
         return {}
     from cadalign.data.image_prep import read_prep
-    from cadalign.emulate.sources import image_scene_dir
+    from cadalign.emulate.sources import IMAGE_SUFFIXES, image_scene_dir
     from cadalign.fuse.predictors import depth_predictor, seg_predictor
 
-    scene_dir = image_scene_dir(Path(source))
+    source = Path(source)  # the networks serve image sources only; a scene or mesh source does not use them
+    scene_dir = image_scene_dir(source) if source.suffix.lower() in IMAGE_SUFFIXES else None
     source_prep = read_prep(scene_dir) if scene_dir is not None else None
     seg_fn = seg_predictor(model_seg, None, device, source_prep) if model_seg is not None else None
     depth_fn = None

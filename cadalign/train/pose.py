@@ -240,8 +240,9 @@ def make_augment(cfg: AugmentConfig, crop_hw: tuple[int, int] | None = None, cro
 
     def augment(batch: dict, g: torch.Generator) -> dict:
         if crop_hw is not None:
-            batch = crop_batch(batch, g, tuple(crop_hw), crop_object_prob, zoom_prob, zoom_max, balance_classes,
-                               rotate_prob, rotate_max_deg)
+            batch = crop_batch(batch, g, tuple(crop_hw), object_prob=crop_object_prob, zoom_prob=zoom_prob,
+                               zoom_max=zoom_max, balance_classes=balance_classes, rotate_prob=rotate_prob,
+                               rotate_max_deg=rotate_max_deg)
         return {**batch, "image": colour_jitter(batch["image"], g, cfg)} if cfg.enabled else batch
 
     return augment

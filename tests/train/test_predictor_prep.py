@@ -103,3 +103,13 @@ def test_emulate_prepares_an_image_source_as_the_networks_training_images(runs, 
     np.testing.assert_array_equal(kw["depth_fn"](rgb, cam),
                                   metric_depth(load_dense_model(depth_run, task="depth"), clahe)[0].numpy())
     assert kw["models"] == {"depth": str(depth_run), "seg": str(seg_run)}
+
+
+def test_emulate_networks_given_with_a_scene_source_are_not_an_image_error(runs, tmp_path: Path) -> None:
+    """The networks serve image sources; with a scene or mesh source they are built but not asked where the
+    frame's scene folder is (that rule is for ``SCENE/rgb/NNNNNN.png`` only)."""
+    from cadalign.cli.emulate import _predictors
+
+    seg_run, _ = runs
+    kw = _predictors(None, seg_run, "cpu", tmp_path / "scene.toml")
+    assert kw["seg_fn"] is not None and kw["models"] == {"seg": str(seg_run)}
