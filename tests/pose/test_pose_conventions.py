@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from pose_testutils import tiny_cfg
+from pose_testutils import bop_items, doubled_frame, on_mask_fraction, tiny_cfg, well_visible
 
 from cadalign.cad.symmetry import Symmetry
 from cadalign.data.torch_datasets import DetectionPoseDataset, detection_collate
@@ -24,75 +24,29 @@ from cadalign.geometry.torch_rotations import matrix_to_rotation_6d
 from cadalign.models.maskrcnn import MaskRCNNPose
 from cadalign.models.maskrcnn.detector import PoseRoIs
 from cadalign.models.maskrcnn.pose_head import decode_pose, ego_to_allo, encode_translation
-from cadalign.train.pose import _resize_item, load_object_geometry, locate_dataset, targets_from_batch
+from cadalign.train.pose import load_object_geometry, locate_dataset, targets_from_batch
 from cadalign.train.pose_crop import crop_batch, crop_target, masks_to_boxes
-
-
-def _items(pose_bop: Path) -> list[dict]:
-    ds = locate_dataset(pose_bop)
-    data = DetectionPoseDataset(ds.scene_dir, ds.splits["train"][:3])
-    return [data[i] for i in range(len(data))]
-
-
-def _on_mask_fraction(item: dict, geometry: dict, g: int) -> float:
-    """How well the instance's CAD points projected with its GT pose explain its visible mask, in [0, 1].
-
-    The smaller of: the fraction of projected points (in the image, in front) on the dilated mask, and the
-    fraction of mask pixels inside the projected points' box (a model collapsed to a point covers nothing).
-    """
-    pts = torch.tensor(geometry[int(item["obj_ids"][g])].points_m, dtype=torch.float32)
-    cam = pts @ item["R"][g].T + item["t"][g]
-    uvw = cam @ item["K"].T
-    uv = uvw[:, :2] / uvw[:, 2:]
-    m = item["masks"][g]
-    h, w = m.shape
-    inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h) & (cam[:, 2] > 0)
-    if not bool(inside.any()):
-        return 0.0
-    x = uv[inside, 0].long().clamp(0, w - 1)
-    y = uv[inside, 1].long().clamp(0, h - 1)
-    # dilate the mask by 2 px: projected surface points can fall just outside the rasterised pixels
-    dil = torch.nn.functional.max_pool2d(m[None, None].float(), 5, 1, 2)[0, 0] > 0
-    on_mask = float(dil[y, x].float().mean())
-    u0, v0 = uv[inside].min(0).values - 2
-    u1, v1 = uv[inside].max(0).values + 2
-    ys, xs = torch.nonzero(m, as_tuple=True)
-    covered = float(((xs + 0.5 >= u0) & (xs + 0.5 <= u1) & (ys + 0.5 >= v0) & (ys + 0.5 <= v1)).float().mean())
-    return min(on_mask, covered)
-
-
-def _well_visible(item: dict) -> list[int]:
-    return [g for g in range(len(item["labels"])) if int(item["masks"][g].sum()) >= 30]
 
 
 def test_gt_pose_projects_onto_its_mask_in_metres(pose_bop: Path):
     ds = locate_dataset(pose_bop)
     geometry = load_object_geometry(ds.models_dir, 300)
     checked = 0
-    for item in _items(pose_bop):
-        for g in _well_visible(item):
-            assert _on_mask_fraction(item, geometry, g) > 0.5
+    for item in bop_items(pose_bop):
+        for g in well_visible(item):
+            assert on_mask_fraction(item, geometry, g) > 0.5
             # the inverse pose or millimetres put the model elsewhere
             Rt = item["R"].transpose(-1, -2)
             inv = {**item, "R": Rt, "t": -(Rt @ item["t"][..., None])[..., 0]}
-            assert _on_mask_fraction(inv, geometry, g) < 0.5
+            assert on_mask_fraction(inv, geometry, g) < 0.5
             mm = {**item, "t": item["t"] * 1000}
-            assert _on_mask_fraction(mm, geometry, g) < 0.5
+            assert on_mask_fraction(mm, geometry, g) < 0.5
             checked += 1
     assert checked >= 3
 
 
-def _doubled(pose_bop: Path) -> tuple[dict, dict, dict, tuple[int, int]]:
-    """(object geometry, the frame with the most well-visible instances, that frame resized to twice its size,
-    its original (h, w))."""
-    geometry = load_object_geometry(locate_dataset(pose_bop).models_dir, 300)
-    item = max(_items(pose_bop), key=lambda it: len(_well_visible(it)))
-    h0, w0 = item["image"].shape[-2:]
-    return geometry, item, _resize_item(item, (2 * h0, 2 * w0)), (h0, w0)
-
-
 def test_resize_and_crop_keep_poses_consistent_with_pixels(pose_bop: Path):
-    geometry, item, up, (h0, w0) = _doubled(pose_bop)
+    geometry, item, up, (h0, w0) = doubled_frame(pose_bop)
     assert torch.allclose(up["K"][:2, :3], 2 * item["K"][:2, :3])
     batch = detection_collate([up])
     g = torch.Generator().manual_seed(3)
@@ -100,8 +54,8 @@ def test_resize_and_crop_keep_poses_consistent_with_pixels(pose_bop: Path):
     assert crop["image"].shape[-2:] == (h0, w0)
     for it in (up, targets_from_batch(crop)[0]):
         assert torch.equal(masks_to_boxes(it["masks"]), it["boxes"])
-        for g_ in _well_visible(it):
-            assert _on_mask_fraction(it, geometry, g_) > 0.5
+        for g_ in well_visible(it):
+            assert on_mask_fraction(it, geometry, g_) > 0.5
 
 
 def test_crop_shifts_principal_point_and_drops_empty_instances():
@@ -122,7 +76,7 @@ def test_crop_shifts_principal_point_and_drops_empty_instances():
 def test_gt_poses_survive_encode_decode_and_the_evaluation(pose_bop: Path, param: str):
     """GT -> head targets -> decode_pose -> evaluation error ~0, for every instance of real frames."""
     n = 0
-    for item in _items(pose_bop):
+    for item in bop_items(pose_bop):
         R, t, K, boxes = item["R"].double(), item["t"].double(), item["K"].double(), item["boxes"].double()
         Ks = K.expand(len(R), 3, 3)
         if param == "thesis":

@@ -7,8 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_pose_conventions import _doubled, _on_mask_fraction, _well_visible
-from test_zoom import _target
+from pose_testutils import block_target, doubled_frame, on_mask_fraction, well_visible
 
 from cadalign.config import from_dict
 from cadalign.data.torch_datasets import detection_collate
@@ -26,7 +25,7 @@ def _block_scene(K: torch.Tensor, t: torch.Tensor, h: int = 60, w: int = 80) -> 
     assert (u, v) == pytest.approx((x + 0.5, y + 0.5))
     image = torch.zeros(3, h, w)
     image[:, y - 1:y + 2, x - 1:x + 2] = 1.0
-    return image, _target(image[:1] > 0, t, K)
+    return image, block_target(image[:1] > 0, t, K)
 
 
 @pytest.mark.parametrize("deg", [25.0, -40.0, 90.0])
@@ -65,7 +64,7 @@ def test_roll_by_zero_is_the_identity_and_drops_instances_rolled_out():
 
 
 def test_rolled_crops_keep_masks_boxes_and_poses_consistent(pose_bop: Path):
-    geometry, _, up, (h0, w0) = _doubled(pose_bop)
+    geometry, _, up, (h0, w0) = doubled_frame(pose_bop)
     batch = detection_collate([up])
     checked, worse = 0, 0
     for seed in range(6):
@@ -75,14 +74,14 @@ def test_rolled_crops_keep_masks_boxes_and_poses_consistent(pose_bop: Path):
         assert torch.equal(masks_to_boxes(tgt["masks"]), tgt["boxes"])
         assert torch.allclose(tgt["R"] @ tgt["R"].transpose(1, 2), torch.eye(3).expand(len(tgt["R"]), 3, 3),
                               atol=1e-5)
-        for gi in _well_visible(tgt):
-            assert _on_mask_fraction(tgt, geometry, gi) > 0.5
+        for gi in well_visible(tgt):
+            assert on_mask_fraction(tgt, geometry, gi) > 0.5
             # the pose before the roll misses the rolled mask unless the roll was small
             obj = int(tgt["obj_ids"][gi])
             src = int(torch.nonzero(up["obj_ids"] == obj)[0])
             unrolled = {**tgt, "R": up["R"][src][None].expand_as(tgt["R"]).clone(),
                         "t": up["t"][src][None].expand_as(tgt["t"]).clone()}
-            worse += _on_mask_fraction(unrolled, geometry, gi) < 0.5
+            worse += on_mask_fraction(unrolled, geometry, gi) < 0.5
             checked += 1
     assert checked >= 3 and worse >= 1
 
@@ -111,11 +110,11 @@ def test_label_map_and_per_mask_rolls_agree():
     masks[2, 22:26, 5:9] = True
     t = torch.tensor([[0.1, 0.0, 2.0], [0.2, 0.1, 3.0], [-0.3, 0.0, 2.5]])
     image = masks.any(0).float()[None].repeat(3, 1, 1)
-    _, disjoint = roll_frame(image, _target(masks, t, K), math.radians(20))
+    _, disjoint = roll_frame(image, block_target(masks, t, K), math.radians(20))
     assert torch.equal(disjoint["boxes"], masks_to_boxes(disjoint["masks"]))
     overlapping = masks.clone()
     overlapping[2, 12:16, 14:18] = True  # now overlaps mask 0
-    _, each = roll_frame(image, _target(overlapping, t, K), math.radians(20))
+    _, each = roll_frame(image, block_target(overlapping, t, K), math.radians(20))
     assert torch.equal(each["boxes"], masks_to_boxes(each["masks"]))
     assert (each["boxes"][:2] - disjoint["boxes"][:2]).abs().max() <= 1.0
     assert (each["masks"][:2] ^ disjoint["masks"][:2]).sum() < 0.1 * disjoint["masks"][:2].sum()

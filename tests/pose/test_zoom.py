@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_pose_conventions import _doubled, _on_mask_fraction, _well_visible
+from pose_testutils import block_target, doubled_frame, on_mask_fraction, well_visible
 
 from cadalign.data.torch_datasets import detection_collate
 from cadalign.models.maskrcnn.pose_head import encode_translation
@@ -15,17 +15,11 @@ from cadalign.train.pose import make_augment, targets_from_batch
 from cadalign.train.pose_crop import crop_batch, draw_zoom, masks_to_boxes, zoom_target
 
 
-def _target(masks: torch.Tensor, t: torch.Tensor, K: torch.Tensor) -> dict:
-    n = len(masks)
-    return {"masks": masks, "boxes": masks_to_boxes(masks), "labels": torch.ones(n, dtype=torch.int64),
-            "obj_ids": torch.arange(n), "R": torch.eye(3).repeat(n, 1, 1), "t": t, "K": K}
-
-
 def test_zoom_target_doubles_boxes_and_focal_length():
     masks = torch.zeros(1, 10, 12, dtype=torch.bool)
     masks[0, 2:5, 3:7] = True
     K = torch.tensor([[10.0, 0, 6], [0, 11, 5], [0, 0, 1]])
-    out = zoom_target(_target(masks, torch.tensor([[0.1, 0.2, 3.0]]), K), (20, 24))
+    out = zoom_target(block_target(masks, torch.tensor([[0.1, 0.2, 3.0]]), K), (20, 24))
     assert out["boxes"].tolist() == [[6.0, 4.0, 14.0, 10.0]]
     assert torch.allclose(out["K"], torch.tensor([[20.0, 0, 12], [0, 22, 10], [0, 0, 1]]))
     assert torch.equal(out["t"], torch.tensor([[0.1, 0.2, 3.0]]))
@@ -41,7 +35,7 @@ def test_zoom_moves_projected_points_with_the_image():
     image = torch.zeros(1, 3, h, w)
     image[0, :, 20:23, 38:41] = 1.0
     masks = image[0, :1] > 0
-    batch = detection_collate([{"image": image[0], **_target(masks, t, K)}])
+    batch = detection_collate([{"image": image[0], **block_target(masks, t, K)}])
     checked = 0
     for seed in range(12):
         out = crop_batch(batch, torch.Generator().manual_seed(seed), (24, 32), object_prob=1.0, zoom_prob=1.0,
@@ -60,7 +54,7 @@ def test_zoom_moves_projected_points_with_the_image():
 
 
 def test_zoomed_crops_keep_masks_boxes_and_poses_consistent(pose_bop: Path):
-    geometry, _, up, (h0, w0) = _doubled(pose_bop)
+    geometry, _, up, (h0, w0) = doubled_frame(pose_bop)
     batch = detection_collate([up])
     zooms, checked = set(), 0
     for seed in range(6):
@@ -71,8 +65,8 @@ def test_zoomed_crops_keep_masks_boxes_and_poses_consistent(pose_bop: Path):
         assert torch.equal(masks_to_boxes(tgt["masks"]), tgt["boxes"])
         zooms.add(round(float(tgt["K"][0, 0] / up["K"][0, 0]), 2))
         assert torch.allclose(tgt["K"][0, 0] / up["K"][0, 0], tgt["K"][1, 1] / up["K"][1, 1], rtol=0.05)
-        for gi in _well_visible(tgt):
-            assert _on_mask_fraction(tgt, geometry, gi) > 0.5
+        for gi in well_visible(tgt):
+            assert on_mask_fraction(tgt, geometry, gi) > 0.5
             checked += 1
         # the improved head's depth code (object extent) does not depend on the zoom
         if len(tgt["t"]):
