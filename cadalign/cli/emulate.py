@@ -27,15 +27,25 @@ def _predictors(model_depth: Path | None, model_seg: Path | None, device: str, s
 
     The frame is prepared as each network's training images were (:mod:`cadalign.data.image_prep`: a built
     dataset's frames are already CLAHE-enhanced, a simulator's are raw; an ``.npz`` says nothing and is fed as
-    it is)."""
+    it is).
+
+    Raises:
+        InputError: a network is given with a scene or mesh source (it has exact depth and classes).
+    """
     if model_depth is None and model_seg is None:
         return {}
     from cadalign.data.image_prep import read_prep
     from cadalign.emulate.sources import IMAGE_SUFFIXES, image_scene_dir
+    from cadalign.errors import InputError
     from cadalign.fuse.predictors import depth_predictor, seg_predictor
 
-    source = Path(source)  # the networks serve image sources only; a scene or mesh source does not use them
-    scene_dir = image_scene_dir(source) if source.suffix.lower() in IMAGE_SUFFIXES else None
+    source = Path(source)
+    if source.suffix.lower() not in IMAGE_SUFFIXES:  # a scene or mesh has exact depth and classes
+        given = " and ".join(o for o, m in (("--model-depth", model_depth), ("--model-seg", model_seg)) if m)
+        raise InputError(f"{source}: {given} replace the depth / classes of an image source "
+                         f"({', '.join(IMAGE_SUFFIXES)}); a scene or mesh source has exact ones and would not use "
+                         "the networks. Drop the option, or give an image (SCENE/rgb/NNNNNN.png or an .npz)")
+    scene_dir = image_scene_dir(source)
     source_prep = read_prep(scene_dir) if scene_dir is not None else None
     seg_fn = seg_predictor(model_seg, None, device, source_prep) if model_seg is not None else None
     depth_fn = None

@@ -105,11 +105,15 @@ def test_emulate_prepares_an_image_source_as_the_networks_training_images(runs, 
     assert kw["models"] == {"depth": str(depth_run), "seg": str(seg_run)}
 
 
-def test_emulate_networks_given_with_a_scene_source_are_not_an_image_error(runs, tmp_path: Path) -> None:
-    """The networks serve image sources; with a scene or mesh source they are built but not asked where the
-    frame's scene folder is (that rule is for ``SCENE/rgb/NNNNNN.png`` only)."""
+def test_emulate_networks_given_with_a_scene_or_mesh_source_are_refused(runs, tmp_path: Path) -> None:
+    """The networks serve image sources; a scene or mesh source has exact depth and classes, so a network given
+    with one would be built and never asked: that is an error naming the option, not silence."""
     from cadalign.cli.emulate import _predictors
+    from cadalign.errors import InputError
 
-    seg_run, _ = runs
-    kw = _predictors(None, seg_run, "cpu", tmp_path / "scene.toml")
-    assert kw["seg_fn"] is not None and kw["models"] == {"seg": str(seg_run)}
+    seg_run, depth_run = runs
+    with pytest.raises(InputError, match=r"scene\.toml: --model-seg replace.*Drop the option"):
+        _predictors(None, seg_run, "cpu", tmp_path / "scene.toml")
+    with pytest.raises(InputError, match=r"map\.ply: --model-depth and --model-seg replace"):
+        _predictors(depth_run, seg_run, "cpu", tmp_path / "map.ply")
+    assert _predictors(None, None, "cpu", tmp_path / "scene.toml") == {}
