@@ -94,11 +94,21 @@ class PoseTrainConfig:
     0.814 / 0.391. Off by default."""
     rotate_max_deg: float = bounded(30.0, ge=0, le=180)
     """Largest roll of ``rotate_prob`` (degrees, uniform in ``[-max, max]``)."""
+    paste_prob: float = bounded(0.0, ge=0, le=1)
+    """Probability that a training frame gets instances of the next frame of its batch pasted in where they are
+    (copy-paste; the same camera, so their poses hold exactly; the frame's own instances lose the covered
+    pixels): parts are seen on other backgrounds and rare classes more often; see
+    :func:`cadalign.train.pose_crop.paste_instances`. Needs ``loop.batch_size`` >= 2."""
+    paste_max: int = bounded(3, ge=1)
+    """Instances pasted per pasted frame at most (class-balanced draws from the donor frame)."""
 
     def __post_init__(self) -> None:
         if self.crop_hw is not None and (self.crop_hw[0] > self.model.input_hw[0]
                                          or self.crop_hw[1] > self.model.input_hw[1]):
             raise ValueError(f"crop_hw {tuple(self.crop_hw)} must fit in model.input_hw {tuple(self.model.input_hw)}")
+        if self.paste_prob > 0 and self.loop.batch_size < 2:
+            raise ValueError(f"paste_prob {self.paste_prob} pastes from the next frame of the batch: "
+                             f"set loop.batch_size >= 2 (it is {self.loop.batch_size}) or paste_prob = 0")
 
 
 _FAST_MODEL = MaskRCNNConfig(
@@ -224,16 +234,16 @@ def make_step_fn(loss: PoseLoss) -> Callable[[nn.Module, dict], tuple[torch.Tens
 
 def make_augment(cfg: AugmentConfig, crop_hw: tuple[int, int] | None = None, crop_object_prob: float = 0.8,
                  zoom_prob: float = 0.0, zoom_max: float = 2.0, input_hw: tuple[int, int] | None = None,
-                 balance_classes: bool = False, rotate_prob: float = 0.0,
-                 rotate_max_deg: float = 30.0) -> Callable[[dict, torch.Generator], dict] | None:
-    """The loop's ``augment``: random (rolled, zoomed) crops (when ``crop_hw``, ``zoom_prob`` or ``rotate_prob``),
-    then colour jitter.
+                 balance_classes: bool = False, rotate_prob: float = 0.0, rotate_max_deg: float = 30.0,
+                 paste_prob: float = 0.0, paste_max: int = 3) -> Callable[[dict, torch.Generator], dict] | None:
+    """The loop's ``augment``: random (pasted, rolled, zoomed) crops (when ``crop_hw``, ``zoom_prob``,
+    ``rotate_prob`` or ``paste_prob``), then colour jitter.
 
-    Zoom or roll without ``crop_hw`` crops to ``input_hw`` (the whole image), which must then be given.
+    Zoom, roll or paste without ``crop_hw`` crops to ``input_hw`` (the whole image), which must then be given.
     """
-    if (zoom_prob > 0 or rotate_prob > 0) and crop_hw is None:
+    if (zoom_prob > 0 or rotate_prob > 0 or paste_prob > 0) and crop_hw is None:
         if input_hw is None:
-            raise ValueError("zoom or roll without crop_hw needs input_hw")
+            raise ValueError("zoom, roll or paste without crop_hw needs input_hw")
         crop_hw = input_hw
     if not cfg.enabled and crop_hw is None:
         return None
@@ -242,7 +252,7 @@ def make_augment(cfg: AugmentConfig, crop_hw: tuple[int, int] | None = None, cro
         if crop_hw is not None:
             batch = crop_batch(batch, g, tuple(crop_hw), object_prob=crop_object_prob, zoom_prob=zoom_prob,
                                zoom_max=zoom_max, balance_classes=balance_classes, rotate_prob=rotate_prob,
-                               rotate_max_deg=rotate_max_deg)
+                               rotate_max_deg=rotate_max_deg, paste_prob=paste_prob, paste_max=paste_max)
         return {**batch, "image": colour_jitter(batch["image"], g, cfg)} if cfg.enabled else batch
 
     return augment
@@ -280,7 +290,8 @@ def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = Fa
     torch.manual_seed(cfg.loop.seed)
     model = MaskRCNNPose(cfg.model, classes)
     augment = make_augment(cfg.augment, cfg.crop_hw, cfg.crop_object_prob, cfg.zoom_prob, cfg.zoom_max,
-                           cfg.model.input_hw, cfg.crop_balance_classes, cfg.rotate_prob, cfg.rotate_max_deg)
+                           cfg.model.input_hw, cfg.crop_balance_classes, cfg.rotate_prob, cfg.rotate_max_deg,
+                           cfg.paste_prob, cfg.paste_max)
     result = train_loop(model, make_step_fn(loss), data, cfg.loop, Path(out_dir), collate_fn=detection_collate,
                         augment=augment, resume=resume, device=device, progress=progress,
                         extra_state=identity)

@@ -24,6 +24,10 @@ its optical axis: the image is warped by the homography ``K Rz(theta) K^-1`` (ex
 camera rotation is), masks likewise (see :func:`roll_frame`), boxes recomputed, ``R' = Rz R``, ``t' = Rz t`` (the
 depth ``t_z`` is unchanged) and ``K`` stays. Thin parts then appear at image orientations the trajectory never
 gave them. Pixels from outside the frame are black. The roll is applied to the whole frame, before the crop.
+
+A *pasted* frame (``paste_prob``) first gets some instances of another frame of the batch copied in where they
+were (same camera, so their poses hold exactly): parts are then seen on other backgrounds and rare classes
+appear more often (see :func:`paste_instances`).
 """
 
 from __future__ import annotations
@@ -65,20 +69,26 @@ def crop_origin(hw: tuple[int, int], crop_hw: tuple[int, int], boxes: Tensor, g:
     ch, cw = crop_hw
     u = torch.rand(4, generator=g, device=g.device).tolist()
     if len(boxes) and u[0] < object_prob:
-        pick = min(int(u[1] * len(boxes)), len(boxes) - 1)
-        if labels is not None:
-            classes = torch.unique(labels)  # sorted
-            c = min(int(u[1] * len(classes)), len(classes) - 1)
-            members = torch.nonzero(labels == classes[c]).squeeze(1)
-            frac = u[1] * len(classes) - c  # uniform in [0, 1) given the class
-            pick = int(members[min(int(frac * len(members)), len(members) - 1)])
-        b = boxes[pick]
+        b = boxes[pick_instance(u[1], len(boxes), labels)]
         cx, cy = float(b[0] + b[2]) / 2, float(b[1] + b[3]) / 2
         # the centre lands uniformly inside the crop, then the crop is clamped into the image
         x0, y0 = cx - u[2] * cw, cy - u[3] * ch
     else:
         x0, y0 = u[2] * (w - cw), u[3] * (h - ch)
     return int(round(min(max(y0, 0.0), h - ch))), int(round(min(max(x0, 0.0), w - cw)))
+
+
+def pick_instance(u: float, n: int, labels: Tensor | None = None) -> int:
+    """Instance index for a uniform draw ``u`` in ``[0, 1)``: uniform over the ``n`` instances, or with
+    ``labels`` (n,) class-balanced (a class present uniformly, then one of its instances, from the same ``u``)."""
+    pick = min(int(u * n), n - 1)
+    if labels is not None:
+        classes = torch.unique(labels)  # sorted
+        c = min(int(u * len(classes)), len(classes) - 1)
+        members = torch.nonzero(labels == classes[c]).squeeze(1)
+        frac = u * len(classes) - c  # uniform in [0, 1) given the class
+        pick = int(members[min(int(frac * len(members)), len(members) - 1)])
+    return pick
 
 
 def crop_target(target: dict, y0: int, x0: int, crop_hw: tuple[int, int]) -> dict:
@@ -208,16 +218,77 @@ def draw_roll(g: torch.Generator, prob: float, max_deg: float) -> float:
     return math.radians((2 * u[1] - 1) * max_deg) if u[0] < prob else 0.0
 
 
+def draw_paste(g: torch.Generator, prob: float, max_paste: int, donor: dict, image: Tensor,
+               target: dict) -> list[int]:
+    """Donor instances to paste (indices, in pasting order): none with probability ``1 - prob``, else
+    ``max_paste`` class-balanced draws (see :func:`pick_instance`), repeats removed.
+
+    Nothing is drawn when ``prob`` is 0, so recipes without pasting keep their random stream. Nothing is pasted
+    when the donor's camera (``K``) or image size differs: the pasted pose would not hold.
+    """
+    if prob <= 0 or max_paste <= 0:
+        return []
+    u = torch.rand(1 + max_paste, generator=g, device=g.device).tolist()
+    n = len(donor["labels"])
+    if (u[0] >= prob or n == 0 or donor["masks"].shape[-2:] != image.shape[-2:]
+            or not torch.allclose(donor["K"], target["K"])):
+        return []
+    picks: list[int] = []
+    for v in u[1:]:
+        i = pick_instance(v, n, donor["labels"])
+        if i not in picks:
+            picks.append(i)
+    return picks
+
+
+def paste_instances(image: Tensor, target: dict, donor_image: Tensor, donor: dict, picks: list[int],
+                    min_visible: float = 0.1) -> tuple[Tensor, dict]:
+    """``image`` with the visible pixels of the donor's instances ``picks`` pasted in place, and its targets.
+
+    Both frames are taken by the same camera (same ``K`` and size): a donor instance keeps its pixel position,
+    so its pose ``R``, ``t`` relative to the camera holds exactly in the new frame (simple copy-paste, Ghiasi
+    et al. 2021, without moving or scaling the part). Later picks cover earlier ones. Every instance (the
+    frame's own and the pasted) keeps the pixels nothing was pasted over; one left with fewer than
+    ``min_visible`` of its pixels is dropped (its remnant is then background), as BOP leaves out targets under
+    10 % visible. Boxes are recomputed from the masks.
+    """
+    if not picks:
+        return image, target
+    sel = torch.tensor(picks, dtype=torch.int64, device=donor["masks"].device)
+    pasted = donor["masks"][sel]
+    # pixels covered by a later pick: an earlier pick keeps only what lies outside them
+    later = torch.flip(torch.cumsum(torch.flip(pasted.to(torch.int32), [0]), 0), [0]) - pasted.to(torch.int32)
+    pasted_vis = pasted & (later == 0)
+    cover = pasted.any(0)
+    out_image = torch.where(cover[None], donor_image, image)
+    masks = torch.cat([target["masks"] & ~cover, pasted_vis])
+    before = torch.cat([target["masks"], pasted]).flatten(1).sum(1)
+    after = masks.flatten(1).sum(1)
+    keep = torch.nonzero((after > 0) & (after >= min_visible * before)).squeeze(1)
+    out = {}
+    for k in _PER_IMAGE:
+        if k in ("masks", "boxes"):
+            continue
+        out[k] = torch.cat([target[k], donor[k][sel].to(target[k].dtype)])[keep]
+    out["masks"] = masks[keep]
+    out["boxes"] = masks_to_boxes(out["masks"]).to(target["boxes"].dtype)
+    out["K"] = target["K"]
+    return out_image, out
+
+
 def crop_batch(batch: dict, g: torch.Generator, crop_hw: tuple[int, int], object_prob: float = 0.8,
                zoom_prob: float = 0.0, zoom_max: float = 2.0, balance_classes: bool = False,
-               rotate_prob: float = 0.0, rotate_max_deg: float = 30.0) -> dict:
+               rotate_prob: float = 0.0, rotate_max_deg: float = 30.0, paste_prob: float = 0.0,
+               paste_max: int = 3) -> dict:
     """A :func:`cadalign.data.torch_datasets.detection_collate` batch with each image randomly cropped.
 
     ``image`` (B, 3, H, W) -> (B, 3, ch, cw); the per-image lists follow (see :func:`crop_target`). With
     probability ``zoom_prob`` an image's crop is instead a window ``z`` times smaller (``z`` log-uniform in
     ``[1, zoom_max]``) upsampled to ``crop_hw`` (see :func:`zoom_target`). ``balance_classes``: the instance a
     crop is placed around is drawn class-balanced (see :func:`crop_origin`). With probability ``rotate_prob``
-    the frame is first rolled by up to ``rotate_max_deg`` (see :func:`roll_frame`).
+    the frame is first rolled by up to ``rotate_max_deg`` (see :func:`roll_frame`). Before that, with probability
+    ``paste_prob`` up to ``paste_max`` instances of the next image of the batch (class-balanced) are pasted into
+    it where they are (see :func:`paste_instances`; a batch of one image pastes nothing).
 
     Raises:
         ValueError: the crop is larger than the images.
@@ -226,12 +297,18 @@ def crop_batch(batch: dict, g: torch.Generator, crop_hw: tuple[int, int], object
     ch, cw = crop_hw
     if ch > h or cw > w:
         raise ValueError(f"crop {crop_hw} is larger than the training images {(h, w)}; lower crop_hw")
-    if (ch, cw) == (h, w) and zoom_prob <= 0 and rotate_prob <= 0:
+    if (ch, cw) == (h, w) and zoom_prob <= 0 and rotate_prob <= 0 and paste_prob <= 0:
         return batch
     images, per = [], {k: [] for k in (*_PER_IMAGE, "K")}
-    for i in range(batch["image"].shape[0]):
+    n = batch["image"].shape[0]
+    for i in range(n):
         target = {k: batch[k][i] for k in (*_PER_IMAGE, "K")}
         frame = batch["image"][i]
+        if paste_prob > 0 and n > 1:
+            j = (i + 1) % n
+            donor = {k: batch[k][j] for k in (*_PER_IMAGE, "K")}
+            picks = draw_paste(g, paste_prob, paste_max, donor, frame, target)
+            frame, target = paste_instances(frame, target, batch["image"][j], donor, picks)
         theta = draw_roll(g, rotate_prob, rotate_max_deg)
         if theta != 0.0:
             frame, target = roll_frame(frame, target, theta)
