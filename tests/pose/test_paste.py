@@ -10,8 +10,8 @@ from pose_testutils import block_target, bop_items, on_mask_fraction, well_visib
 
 from cadalign.data.torch_datasets import detection_collate
 from cadalign.train.augment import AugmentConfig
-from cadalign.train.pose import PoseTrainConfig, load_object_geometry, locate_dataset, make_augment, targets_from_batch
 from cadalign.train.loop import LoopConfig
+from cadalign.train.pose import PoseTrainConfig, load_object_geometry, locate_dataset, make_augment, targets_from_batch
 from cadalign.train.pose_crop import crop_batch, draw_paste, masks_to_boxes, paste_instances
 
 K = torch.tensor([[50.0, 0, 40], [0, 50, 30], [0, 0, 1]])
