@@ -102,8 +102,7 @@ class PoseTrainConfig:
     orbit (training/pose_fast_zoom_improved.toml + amp, ``paste_prob = 0.5``, 6600 steps; the 33 held-out frames,
     ``infer --preset accurate`` with true depth): valve / hot stab F1 0.824 / 0.304, against 0.846 / 0.394 and
     0.853 / 0.426 for the same recipe without pasting (seed 0, session 13; seed 1); precision rises, recall
-    falls. A step
-    costs ~14 % more (0.37 against 0.32 CPU-s). Off by default."""
+    falls. A step costs ~14 % more (0.37 against 0.32 CPU-s). Off by default."""
     paste_max: int = bounded(3, ge=1)
     """Instances pasted per pasted frame at most (class-balanced draws from the donor frame)."""
 
