@@ -293,9 +293,10 @@ def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = Fa
     loss = PoseLoss(geometry, cfg.loss)
     torch.manual_seed(cfg.loop.seed)
     model = MaskRCNNPose(cfg.model, classes)
-    augment = make_augment(cfg.augment, cfg.crop_hw, cfg.crop_object_prob, cfg.zoom_prob, cfg.zoom_max,
-                           cfg.model.input_hw, cfg.crop_balance_classes, cfg.rotate_prob, cfg.rotate_max_deg,
-                           cfg.paste_prob, cfg.paste_max)
+    augment = make_augment(cfg.augment, cfg.crop_hw, crop_object_prob=cfg.crop_object_prob, zoom_prob=cfg.zoom_prob,
+                           zoom_max=cfg.zoom_max, input_hw=cfg.model.input_hw,
+                           balance_classes=cfg.crop_balance_classes, rotate_prob=cfg.rotate_prob,
+                           rotate_max_deg=cfg.rotate_max_deg, paste_prob=cfg.paste_prob, paste_max=cfg.paste_max)
     result = train_loop(model, make_step_fn(loss), data, cfg.loop, Path(out_dir), collate_fn=detection_collate,
                         augment=augment, resume=resume, device=device, progress=progress,
                         extra_state=identity)

@@ -256,10 +256,11 @@ def paste_instances(image: Tensor, target: dict, donor_image: Tensor, donor: dic
         return image, target
     sel = torch.tensor(picks, dtype=torch.int64, device=donor["masks"].device)
     pasted = donor["masks"][sel]
-    # pixels covered by a later pick: an earlier pick keeps only what lies outside them
-    later = torch.flip(torch.cumsum(torch.flip(pasted.to(torch.int32), [0]), 0), [0]) - pasted.to(torch.int32)
-    pasted_vis = pasted & (later == 0)
-    cover = pasted.any(0)
+    pasted_vis = pasted.clone()
+    cover = torch.zeros_like(pasted[0])
+    for i in range(len(picks) - 1, -1, -1):  # last pick on top: each keeps what the later ones leave
+        pasted_vis[i] &= ~cover
+        cover |= pasted[i]
     out_image = torch.where(cover[None], donor_image, image)
     masks = torch.cat([target["masks"] & ~cover, pasted_vis])
     before = torch.cat([target["masks"], pasted]).flatten(1).sum(1)
