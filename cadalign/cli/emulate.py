@@ -35,16 +35,12 @@ def _predictors(model_depth: Path | None, model_seg: Path | None, device: str, s
     if model_depth is None and model_seg is None:
         return {}
     from cadalign.data.image_prep import read_prep
-    from cadalign.emulate.sources import IMAGE_SUFFIXES, image_scene_dir
-    from cadalign.errors import InputError
+    from cadalign.emulate.sources import image_scene_dir, require_image_source
     from cadalign.fuse.predictors import depth_predictor, seg_predictor
 
-    source = Path(source)
-    if source.suffix.lower() not in IMAGE_SUFFIXES:  # a scene or mesh has exact depth and classes
-        given = " and ".join(o for o, m in (("--model-depth", model_depth), ("--model-seg", model_seg)) if m)
-        raise InputError(f"{source}: {given} replace the depth / classes of an image source "
-                         f"({', '.join(IMAGE_SUFFIXES)}); a scene or mesh source has exact ones and would not use "
-                         "the networks. Drop the option, or give an image (SCENE/rgb/NNNNNN.png or an .npz)")
+    source = Path(source)  # checked before the networks are built
+    require_image_source(source, " and ".join(o for o, m in (("--model-depth", model_depth),
+                                                             ("--model-seg", model_seg)) if m))
     scene_dir = image_scene_dir(source)
     source_prep = read_prep(scene_dir) if scene_dir is not None else None
     seg_fn = seg_predictor(model_seg, None, device, source_prep) if model_seg is not None else None

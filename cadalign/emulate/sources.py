@@ -229,14 +229,33 @@ def with_predictions(inp: ImageInput, depth_fn: DepthFn | None = None, seg_fn: S
     return dataclasses.replace(inp, depth_m=depth, class_id=cls)
 
 
+def require_image_source(path: Path, given: str) -> None:
+    """Refuse predicted depth / classes (``given`` names them, e.g. ``--model-depth``) for a SOURCE that is not an
+    image: a scene or mesh has exact depth and classes and would never ask the networks.
+
+    Raises:
+        InputError: ``path`` is not an image source (:data:`IMAGE_SUFFIXES`).
+    """
+    if Path(path).suffix.lower() not in IMAGE_SUFFIXES:
+        raise InputError(f"{path}: {given} replace the depth / classes of an image source "
+                         f"({', '.join(IMAGE_SUFFIXES)}); a scene or mesh source has exact ones and would not use "
+                         "the networks. Drop the option, or give an image (SCENE/rgb/NNNNNN.png or an .npz)")
+
+
 def load_source(path: Path, *, image_config: object | None = None, depth_fn: DepthFn | None = None,
                 seg_fn: SegFn | None = None) -> LayeredMesh:
     """The layered mesh of any SOURCE (see the module docstring); world frame when a pose is known.
 
     ``depth_fn`` / ``seg_fn`` replace an image source's depth / classes by predictions (:func:`with_predictions`).
+
+    Raises:
+        InputError: an unsupported SOURCE, or ``depth_fn`` / ``seg_fn`` with a scene or mesh
+        (:func:`require_image_source`).
     """
     path = Path(path)
     suffix = path.suffix.lower()
+    if depth_fn is not None or seg_fn is not None:
+        require_image_source(path, " and ".join(n for n, f in (("depth_fn", depth_fn), ("seg_fn", seg_fn)) if f))
     if suffix in SCENE_SUFFIXES:
         return scene_mesh(path)
     if suffix == ".ply":

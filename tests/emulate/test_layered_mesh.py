@@ -107,6 +107,19 @@ def test_ply_round_trip_keeps_every_layer(tmp_path) -> None:
         ply_mesh(tmp_path / "missing.ply")
 
 
+def test_predictions_for_a_scene_or_mesh_source_are_refused(tmp_path) -> None:
+    """A scene or mesh has exact depth and classes; predictors handed with one would never be called."""
+    from cadalign.emulate.sources import load_source
+
+    mesh = mesh_from_image(_image(np.full((H, W), 2.0)), LayeredMeshConfig())
+    ply = write_ply(mesh, tmp_path / "map.ply")
+    with pytest.raises(InputError, match=r"map\.ply: depth_fn replace.*Drop the option"):
+        load_source(ply, depth_fn=lambda rgb, cam: np.ones(rgb.shape[:2]))
+    with pytest.raises(InputError, match=r"scene\.toml: depth_fn and seg_fn replace"):
+        load_source(tmp_path / "scene.toml", depth_fn=lambda rgb, cam: None, seg_fn=lambda rgb: None)
+    assert len(load_source(ply).faces) == len(mesh.faces)  # without predictors the mesh loads
+
+
 def test_predicted_depth_and_classes_replace_the_ground_truth() -> None:
     from cadalign.emulate.sources import with_predictions
 
