@@ -13,7 +13,7 @@ can be exercised and measured without a trained network. Its results are labelle
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -40,25 +40,104 @@ class Detector(Protocol):
     def detect(self, image: np.ndarray, K: np.ndarray) -> list[Any]: ...
 
 
+@dataclass(frozen=True)
+class TileConfig:
+    """Zoomed windows of each frame (test-time): parts a few pixels across are seen as the network sees nearer ones.
+
+    With ``zoom`` > 1 the network also runs on overlapping windows ``1 / zoom`` of the frame, each upsampled to
+    its input (``K`` moves with the window, so poses stay in the frame's camera); a window's detection that
+    touches an inner window edge is cut and left to the whole-frame pass or a neighbour; the union is
+    non-maximum suppressed per class (:class:`TorchDetector`'s ``nms_iou``). Each window costs a whole detector
+    pass."""
+
+    zoom: float = bounded(1.0, ge=1)
+    """Window size as a fraction ``1 / zoom`` of the frame (1 = off: the whole frame only)."""
+    overlap: float = bounded(0.25, ge=0, lt=1)
+    """Least fraction of a window shared with its neighbour (parts up to ``overlap / zoom`` of the frame are
+    whole in some window)."""
+    border_px: float = bounded(2.0, ge=0)
+    """A window's detection within this many frame pixels of an inner window edge counts as cut."""
+    score_thresh: float = bounded(0.5, ge=0, le=1)
+    """A window's detections scoring below this are dropped (the whole-frame pass keeps the detector's threshold):
+    the windows add recall and, at the same threshold, false positives."""
+
+
+def tile_windows(height: int, width: int, cfg: TileConfig) -> list[tuple[int, int, int, int]]:
+    """``(x0, y0, w, h)`` windows ``1 / zoom`` of the frame, evenly spread and overlapping by at least
+    ``overlap``; empty when ``zoom`` is 1 (or the windows would be under 8 px)."""
+    if cfg.zoom <= 1.0:
+        return []
+    tw, th = int(round(width / cfg.zoom)), int(round(height / cfg.zoom))
+    if tw < 8 or th < 8:
+        return []
+
+    def starts(full: int, size: int) -> list[int]:
+        n = 1 + max(0, int(np.ceil((full - size) / (size * (1.0 - cfg.overlap)) - 1e-9)))
+        return sorted({int(round(v)) for v in np.linspace(0, full - size, n)})
+
+    return [(x0, y0, tw, th) for y0 in starts(height, th) for x0 in starts(width, tw)]
+
+
+def merge_detections(dets: list[Any], iou: float) -> list[Any]:
+    """Per-class greedy NMS over detections (any objects with ``box_xyxy``, ``label``, ``score``), by score."""
+    if len(dets) <= 1:
+        return list(dets)
+    import torch
+
+    from cadalign.models.ops import batched_nms
+
+    boxes = torch.as_tensor(np.stack([np.asarray(d.box_xyxy, np.float64) for d in dets]))
+    keep = batched_nms(boxes, torch.as_tensor([float(d.score) for d in dets], dtype=torch.float64),
+                       torch.as_tensor([int(d.label) for d in dets]), iou)
+    return [dets[int(i)] for i in keep]
+
+
 class TorchDetector:
     """Adapter from a ``MaskRCNNPose`` (tensors in, ``Detection`` out) to the numpy :class:`Detector` protocol.
 
-    ``last_timings`` holds the model's own per-stage seconds when it reports them (``model.last_timings``).
+    ``last_timings`` holds the model's own per-stage seconds when it reports them (``model.last_timings``),
+    summed over the passes of ``tiles`` (:class:`TileConfig`). The detections of all passes are non-maximum
+    suppressed per class at box IoU ``nms_iou`` (:func:`merge_detections`; at the network's own threshold, 0.5
+    unless its config says otherwise, this changes nothing on the whole-frame pass).
     """
 
-    def __init__(self, model: Any, score_thresh: float = 0.5, device: str = "cpu") -> None:
-        self.model, self.score_thresh, self.device = model, score_thresh, device
+    def __init__(self, model: Any, score_thresh: float = 0.5, device: str = "cpu",
+                 tiles: TileConfig | None = None, nms_iou: float = 0.5) -> None:
+        self.model, self.score_thresh, self.device, self.nms_iou = model, score_thresh, device, nms_iou
+        self.tiles = tiles or TileConfig()
         self.last_timings: dict[str, float] = {}
 
-    def detect(self, image: np.ndarray, K: np.ndarray) -> list[Any]:
+    def _pass(self, image: np.ndarray, K: np.ndarray) -> list[Any]:
         import torch
 
         img = torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))).float().div(255.0).to(self.device)
         Kt = torch.as_tensor(np.asarray(K, dtype=np.float32), device=self.device)
         with torch.inference_mode():
             dets = self.model.detect(img, Kt, score_thresh=self.score_thresh)
-        self.last_timings = dict(getattr(self.model, "last_timings", {}) or {})
+        for k, v in (getattr(self.model, "last_timings", {}) or {}).items():
+            self.last_timings[k] = self.last_timings.get(k, 0.0) + v
         return list(dets)
+
+    def detect(self, image: np.ndarray, K: np.ndarray) -> list[Any]:
+        self.last_timings = {}
+        dets = self._pass(image, K)
+        H, W = image.shape[:2]
+        b = self.tiles.border_px
+        for x0, y0, tw, th in tile_windows(H, W, self.tiles):
+            Kw = np.array(K, dtype=np.float64)
+            Kw[0, 2] -= x0
+            Kw[1, 2] -= y0
+            inner = (x0 > 0, y0 > 0, x0 + tw < W, y0 + th < H)  # left, top, right, bottom edges inside the frame
+            for d in self._pass(image[y0:y0 + th, x0:x0 + tw], Kw):
+                bx = np.asarray(d.box_xyxy, np.float64)
+                cut = (inner[0] and bx[0] < b) or (inner[1] and bx[1] < b) or (inner[2] and bx[2] > tw - b) \
+                    or (inner[3] and bx[3] > th - b)
+                if cut or float(d.score) < self.tiles.score_thresh:
+                    continue
+                mask = np.zeros((H, W), dtype=bool)
+                mask[y0:y0 + th, x0:x0 + tw] = d.mask
+                dets.append(replace(d, box_xyxy=bx + [x0, y0, x0, y0], mask=mask))
+        return merge_detections(dets, self.nms_iou)
 
 
 @dataclass(frozen=True)
