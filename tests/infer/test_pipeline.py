@@ -199,3 +199,41 @@ def test_a_detection_on_an_established_track_starts_from_the_track(scene: Path, 
     assert calls == 3 and err > 20.0
     calls, err = run("off")
     assert calls == 6 and err > 20.0
+
+
+def test_identification_by_view_rejects_a_model_with_surface_where_nothing_is_seen(scene: Path,
+                                                                                  tiny_structure) -> None:
+    """A decoy holding the whole valve plus a block beside it fits the valve's masked depth points as well as the
+    valve does (data -> model); rendered, its block covers pixels where the camera sees far behind it."""
+    import trimesh
+
+    models = dict(tiny_structure.models)
+    v = models[2]
+    lo, hi = v.vertices_m.min(0), v.vertices_m.max(0)
+    size = hi - lo
+    block = trimesh.creation.box(extents=size * [1.0, 1.0, 0.6])
+    block.apply_translation((lo + hi) / 2 + [0.0, 0.0, 0.8 * size[2]])
+    both = trimesh.util.concatenate([trimesh.Trimesh(v.vertices_m, v.faces, process=False), block])
+    models[0] = CadModel("valve_with_block", np.asarray(both.vertices), np.asarray(both.faces), class_name="valve")
+    det = OracleDetector(scene, OracleConfig(noise_t_m=0.0, noise_r_deg=0.0))
+    valve = next(d for d in det.for_frame("000002.png").detect(None, None) if d.label == 2)
+    K, depth = det.scene.frame(2).camera.K, det.scene.depth_m(2)
+    T = Rigid3(valve.R_cam_from_obj, valve.t_cam_from_obj_m)
+    cfg = replace(PRESETS["accurate"], identify_score="view")
+    by_view = PosePipeline(det, models, tiny_structure.class_names, cfg)
+    assert sorted(by_view.candidates(2)) == [0, 2]
+    oid, T_v = by_view.identify(valve, T, K, depth)
+    assert oid == 2
+    assert np.linalg.norm(T_v.t - T.t) < 0.05
+    # the data -> model fit alone cannot tell them: the decoy's median point distance is within a few mm, so
+    # a decoy fitting a little better (noise) is taken by depth and still rejected by view
+    from cadalign.infer.refine import icp_points, pick_fit
+
+    Q = icp_points(depth, np.asarray(valve.mask, bool), K, cfg.refine)
+    d = [float(np.median(by_view.geometry(k).tree.query(T.inverse().apply(Q))[0])) for k in (0, 2)]
+    assert abs(d[0] - d[1]) < 0.005
+    scored = [(0.001, 0, T), (0.002, 2, T)]
+    assert scored[pick_fit([0.001, 0.002], [T, T], T, 0.0)][1] == 0
+    assert by_view._pick_model_by_view(scored, T, K, np.asarray(valve.mask, bool), depth) == (2, T)
+    # without depth the silhouettes are compared as before
+    assert by_view.identify(valve, T, K)[0] == 2
