@@ -11,7 +11,14 @@ import pytest
 from cadalign.cad.model import CadModel
 from cadalign.data.bop import BopScene
 from cadalign.data.torch_datasets import load_class_map
-from cadalign.eval.pose_eval import PoseEvalConfig, PosePrediction, evaluate_scene, gt_instances, load_bop_models
+from cadalign.eval.pose_eval import (
+    PoseEvalConfig,
+    PosePrediction,
+    evaluate_scene,
+    gt_instances,
+    load_bop_models,
+    table_markdown,
+)
 from cadalign.eval.pose_metrics import rotation_error_deg
 from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.infer.detect import OracleConfig, OracleDetector, resolve_scene_dir
@@ -108,6 +115,33 @@ def test_exact_poses_score_perfectly_and_a_shift_is_measured(scene: Path) -> Non
     assert rep["per_class"]["valve"]["ar_mssd"] < 1.0
     missed = evaluate_scene(preds[:1], scene, models, cmap.names, cmap.class_of_obj, PoseEvalConfig(), [0, 1])
     assert missed["detection"]["fn"] == len(preds) - 1 and missed["detection"]["precision"] == 1.0
+
+
+def test_the_evaluation_counts_detections_given_the_wrong_model(scene: Path) -> None:
+    """Per class: how many matched detections carry a model id, how many the right one, and their errors."""
+    cmap = load_class_map(scene)
+    models = load_bop_models(scene.parent.parent / "models")
+    preds = []
+    for im_id in (0, 1):
+        for g in gt_instances(BopScene(scene), im_id, cmap.class_of_obj):
+            if cmap.names[g.label] != "valve":
+                continue
+            T = g.T_cam_from_obj
+            wrong = im_id == 1  # frame 1's valves: a wrong model id and a pose 0.2 m off
+            preds.append(PosePrediction(im_id, g.label, 1.0, g.box_xyxy, Rigid3(T.R, T.t + [0.0, 0.0, 0.2 * wrong]),
+                                        999 if wrong else g.obj_id, g.mask))
+    n1 = sum(p.im_id == 1 for p in preds)
+    assert 0 < n1 < len(preds)
+    rep = evaluate_scene(preds, scene, models, cmap.names, cmap.class_of_obj, PoseEvalConfig(), [0, 1])
+    ident = rep["per_class"]["valve"]["model_id"]
+    assert ident["n"] == len(preds) and ident["right"] == len(preds) - n1
+    assert ident["t_err_m_right"]["max"] < 1e-9  # the right ones are exact; the class mean is not
+    assert rep["per_class"]["valve"]["t_err_m"]["mean"] == pytest.approx(0.2 * n1 / len(preds))
+    assert f"| {len(preds) - n1}/{len(preds)} | 0.000 m / 0.00 deg |" in table_markdown(rep)
+    # predictions without a model id (a network alone) are not counted
+    bare = [replace(p, obj_id=None) for p in preds]
+    rep = evaluate_scene(bare, scene, models, cmap.names, cmap.class_of_obj, PoseEvalConfig(), [0, 1])
+    assert rep["per_class"]["valve"]["model_id"]["n"] == 0 and "| - | - |" in table_markdown(rep)
 
 
 def test_preset_none_reports_the_detector_pose_unchanged(scene: Path, tiny_structure) -> None:
