@@ -71,12 +71,15 @@ def _far_from(region: np.ndarray, band_px: float) -> np.ndarray:
 
 def view_disagreement(geom: ModelGeometry, T: Rigid3, K: np.ndarray, mask: np.ndarray,
                       depth_m: np.ndarray | None, tol_m: float, window: tuple[int, int, int, int],
-                      band_px: float = 0.0) -> int:
+                      band_px: float = 0.0, near: tuple[float, float] | None = None) -> int:
     """Pixels of ``window`` = (x0, y0, x1, y1) where the model at ``T`` disagrees with the observation.
 
     With ``depth_m`` (H, W) metres: see-through pixels plus unexplained mask pixels (module docstring), with
     depth tolerance ``tol_m``; without: the silhouette XOR the mask. Disagreement within ``band_px`` of the other
-    side's outline is not counted.
+    side's outline is not counted. A mask pixel is of the object (and unexplained when the model misses it) when
+    its depth is within the model's diameter of the model's origin; ``near`` = (depth, band) m fixes that test
+    instead, for comparing poses far apart in depth (different models of a class, one of them fitted a few metres
+    off would otherwise leave no mask pixel "near" it).
     """
     x0, y0, x1, y1 = window
     if x1 <= x0 or y1 <= y0:
@@ -90,8 +93,8 @@ def view_disagreement(geom: ModelGeometry, T: Rigid3, K: np.ndarray, mask: np.nd
     obs = np.asarray(depth_m, float)[y0:y1, x0:x1]
     valid = np.isfinite(obs) & (obs > 0)
     see_through = hit & valid & (obs > np.where(hit, z_model, 0.0) + tol_m) & off_mask
-    near = np.abs(obs - T.t[2]) < geom.diameter_m
-    unexplained = ~hit & m & valid & near & off_model
+    z_ref, band = (float(T.t[2]), geom.diameter_m) if near is None else near
+    unexplained = ~hit & m & valid & (np.abs(obs - z_ref) < band) & off_model
     return int(np.count_nonzero(see_through) + np.count_nonzero(unexplained))
 
 

@@ -99,6 +99,21 @@ class InferConfig:
     turn) was a coin toss at 10-13 m, and ``pose`` keeps the orientation of its first frames (right for one network,
     flipped for 11 of 28 detections with the other), where ``off`` / ``model`` fuse independent per-frame guesses.
     With ``tie_m`` (the start wins ties) the 6600-step network's ``pose`` run gives 1.12 deg / 0.009 m."""
+    reidentify_growth: float = bounded(0.0, ge=0)
+    """A detection on an established track (``track_init``) takes the track's CAD model, decided once by
+    identification, mostly on the part's first and smallest or least visible views. With this > 0, when a
+    detection's mask has at least this many times the pixels of the largest mask the track's model was
+    identified on, the detection is identified again (from the track's pose): the same model raises the bar, another
+    retires the track and starts a new one with that model. 0: never. Default orbit, 33 held-out frames: one
+    gate valve, identified at 39 % visibility in its first frames as the ball valve, kept that model on all its
+    28-30 later detections, fully visible at 9-12 m, which identification alone gets right. There (``accurate``
+    otherwise, true depth), 0 -> 1.5, fused valve R mean / wrong-model valve detections / fused hot stab t and R
+    mean: ``improved`` 10000 steps 4.82 -> 3.76 deg / 33 -> 11 / 0.264 m, 34.8 deg -> 0.167 m, 31.2 deg; its seed 1
+    1.17 -> 0.92 / 34 -> 11 / 0.102, 28.1 -> 0.034, 11.2; 6600 steps seed 1 6.34 -> 1.30 / 30 -> 6 / 0.211, 44.8 ->
+    0.142, 42.0; with copy-paste 0.62 -> 0.67 / 32 -> 10 / 0.367, 46.2 -> 0.342, 39.2. ``thesis`` 10000 steps
+    36.7 -> 24.5 / 63 -> 40 / 0.173, 68.3 -> 0.166, 57.3; its seed 1 32.1 -> 25.2 / 36 -> 30 / 0.263, 72.9 ->
+    0.289, 103.1. One to three re-identifications changed a model per run; time per frame unchanged. 1.5 in
+    ``accurate``."""
     identify_iters: int = bounded(3, ge=0)
     """ICP iterations per candidate model (and yaw restart) when a detection's class has several models. Three
     leave every big valve type of the default scene 10-18 mm (median point distance) from the ball valve's
@@ -114,15 +129,13 @@ class InferConfig:
     side too, as the half-turn check scores a pose (:func:`cadalign.infer.half_turn.view_disagreement`: pixels seen
     through the model plus mask pixels it leaves unexplained), and the model disagreeing in fewest pixels wins
     (within ``refine.half_turn_min_px`` of it, the best depth fit). The data -> model fit cannot see model surface
-    where nothing was observed: a mask on a hot stab's handle fits both hot stab models of the default scene.
-    Default orbit, 33 held-out frames, ``accurate`` otherwise, true depth; matched valve detections identified
-    as the wrong model / fused valve R mean, ``depth`` -> ``view``, per network (training/pose_fast_zoom_*.toml +
-    amp): improved 10000 steps 33 -> 2 / 4.82 -> 3.83 deg, the same seed 1 34 -> 31 / 1.17 -> 2.42, 6600 steps
-    seed 1 30 -> 6 / 6.34 -> 1.08, with copy-paste 32 -> 2 / 0.62 -> 0.75; thesis 10000 steps 63 -> 29 / 36.7 ->
-    38.4, seed 1 36 -> 113 / 32.1 -> 39.0 (its refined poses are ~35 deg off, and a badly posed right model can
-    disagree with the view more than a wrong one). Hot stabs unchanged within noise (fused R mean over the four
-    improved networks 38.5 -> 37.5 deg; wrong model 49 -> 46 of 150): most of their errors are boxes on the
-    handle alone, wrong for either model. ``view`` in ``accurate``; time per frame unchanged within noise."""
+    where nothing was observed: a decoy holding the whole part plus more fits as well. Default orbit, 33 held-out
+    frames, ``accurate`` otherwise (with ``reidentify_growth``), true depth, four ``improved`` networks
+    (training/pose_fast_zoom_improved.toml + amp: 10000 steps seeds 0 and 1, 6600 steps seed 1, with copy-paste):
+    ``depth`` -> ``view`` took the wrong valve model in 15 instead of 38 of 689 matched detections (fused valve R
+    mean 1.66 -> 1.50 deg), but hot stabs came out worse (fused t 0.171 -> 0.188 m, R 30.9 -> 34.7 deg mean):
+    their masks often cover the handle alone, which the other hot stab model explains as well. ``depth`` in every
+    preset."""
     samples_per_model: int = bounded(3000, ge=100)
     """Surface samples per CAD model for ICP."""
     enhance: Literal["auto", "none", "clahe", "clahe_wb"] = "auto"
@@ -138,7 +151,7 @@ PRESETS: dict[str, InferConfig] = {
     "fast": InferConfig(refine=REFINE_PRESETS["fast"]),
     "balanced": InferConfig(),
     "accurate": InferConfig(refine=REFINE_PRESETS["accurate"], identify_iters=20, nms_iou=0.3,
-                            identify_score="view"),
+                            reidentify_growth=1.5),
 }
 
 
@@ -248,7 +261,9 @@ class PosePipeline:
     def _pick_model_by_view(self, scored: list[tuple[float, int, Rigid3]], T: Rigid3, K: np.ndarray,
                             mask: np.ndarray, depth_m: np.ndarray) -> tuple[int, Rigid3]:
         """``identify_score = "view"``: per model its best depth fit's pose, then the model whose pose disagrees
-        with the view in fewest pixels (ties within ``refine.half_turn_min_px``: the best depth fit)."""
+        with the view in fewest pixels (ties within ``refine.half_turn_min_px``: the best depth fit). A mask pixel
+        counts as the object's within the largest candidate's diameter of the median masked depth, for every
+        model alike."""
         cfg = self.cfg.refine
         per_model: dict[int, tuple[float, Rigid3]] = {}
         for k in dict.fromkeys(x[1] for x in scored):
@@ -257,9 +272,12 @@ class PosePipeline:
             per_model[k] = (mine[i][0], mine[i][2])
         boxes = np.array([view_window(self.geometry(k), [Tk], K, mask) for k, (_, Tk) in per_model.items()])
         win = (int(boxes[:, 0].min()), int(boxes[:, 1].min()), int(boxes[:, 2].max()), int(boxes[:, 3].max()))
+        z = depth_m[mask]
+        z = z[np.isfinite(z) & (z > 0)]
+        near = (float(np.median(z)), max(self.geometry(k).diameter_m for k in per_model)) if len(z) else None
         view = {k: view_disagreement(self.geometry(k), Tk, K, mask, depth_m,
-                                     cfg.half_turn_tol * self.geometry(k).diameter_m, win, cfg.half_turn_band_px)
-                for k, (_, Tk) in per_model.items()}
+                                     cfg.half_turn_tol * self.geometry(k).diameter_m, win, cfg.half_turn_band_px,
+                                     near) for k, (_, Tk) in per_model.items()}
         least = min(view.values())
         best = min((k for k in per_model if view[k] <= least + cfg.half_turn_min_px), key=lambda k: per_model[k][0])
         return best, per_model[best][1]
@@ -279,12 +297,13 @@ class PosePipeline:
         return prev[best][1] if ious[best] >= self.cfg.reuse_box_iou else None
 
     def _track_start(self, det: object, K: np.ndarray, frame: int, T_world_from_cam: Rigid3 | None,
-                     depth_m: np.ndarray | None, taken: set[int]) -> tuple[int, Rigid3] | None:
-        """(model id, start pose) from the established track under a detection (``track_init``), else None.
+                     depth_m: np.ndarray | None, taken: set[int]) -> tuple[int, Rigid3, int, int] | None:
+        """(model id, start pose, track id, the track's ``id_px``) from the established track under a detection
+        (``track_init``), else None.
 
         The track's model centre must project into the detection's box (the nearest to the box centre wins), and
         with depth lie within half the part's diameter of the median depth in the mask; ``taken`` holds the tracks
-        (indices of :meth:`TemporalFuser.tracks_in_view`) earlier detections of this frame took."""
+        (ids) earlier detections of this frame took."""
         if self.cfg.track_init == "off" or getattr(det, "obj_id", None) is not None:
             return None
         z_obs = None
@@ -294,7 +313,7 @@ class PosePipeline:
             z_obs = float(np.median(z)) if len(z) else None
         x0, y0, x1, y1 = np.asarray(det.box_xyxy, float)
         best = None
-        for j, (oid, T) in enumerate(self.fuser.tracks_in_view(int(det.label), frame, T_world_from_cam)):
+        for j, oid, T, id_px in self.fuser.track_views(int(det.label), frame, T_world_from_cam):
             if j in taken or oid not in self.models:
                 continue
             c = T.apply(self.geometry(oid).samples.mean(0)[None])
@@ -307,11 +326,37 @@ class PosePipeline:
                 continue
             dist = float(np.hypot(u - (x0 + x1) / 2, v - (y0 + y1) / 2))
             if best is None or dist < best[0]:
-                best = (dist, j, oid, T)
+                best = (dist, j, oid, T, id_px)
         if best is None:
             return None
         taken.add(best[1])
-        return best[2], best[3]
+        return best[2], best[3], best[1], best[4]
+
+    def _start(self, d: object, T0: Rigid3, K: np.ndarray, frame: int, T_world_from_cam: Rigid3 | None,
+               depth: np.ndarray | None, taken: set[int]) -> tuple[int | None, Rigid3, int]:
+        """(model id, start pose of the refinement, ``id_px``: the mask's pixels when identification chose the
+        model, else 0) of a detection: from its track, the previous frame's box, or identification."""
+        px = int(np.count_nonzero(d.mask)) if getattr(d, "mask", None) is not None else 0
+        start = self._track_start(d, K, frame, T_world_from_cam, depth, taken)
+        if start is None:
+            oid = self._reused_model(d, frame)
+            if oid is not None:
+                return oid, T0, 0
+            oid, T = self.identify(d, T0, K, depth)
+            return oid, T, px if len(self.candidates(int(d.label))) > 1 else 0
+        oid, T_track, track_id, id_px = start
+        T_start = T_track if self.cfg.track_init == "pose" else T0
+        growth = self.cfg.reidentify_growth
+        if growth <= 0 or len(self.candidates(int(d.label))) <= 1 or px < growth * max(id_px, 1):
+            return oid, T_start, 0
+        oid_new, T_new = self.identify(d, T_start, K, depth)
+        if oid_new is None or oid_new == oid:
+            self.fuser.note_identified(track_id, px)
+            return oid, T_start, 0
+        log.info("frame %d: track %d re-identified as model %d (was %d) on a %d px mask", frame, track_id, oid_new,
+                 oid, px)
+        self.fuser.retire(track_id)
+        return oid_new, T_new, px
 
     def process(self, frame: int, name: str, image: np.ndarray, K: np.ndarray, depth_m: np.ndarray | None = None,
                 T_world_from_cam: Rigid3 | None = None) -> tuple[list[PoseRecord], dict[str, float]]:
@@ -336,12 +381,7 @@ class PosePipeline:
             ta = time.perf_counter()
             T0 = Rigid3(np.asarray(d.R_cam_from_obj, float), np.asarray(d.t_cam_from_obj_m, float))
             depth = depth_m if self.cfg.use_depth else None
-            start = self._track_start(d, K, frame, T_world_from_cam, depth, taken)
-            if start is not None:
-                oid, T_start = start[0], (start[1] if self.cfg.track_init == "pose" else T0)
-            else:
-                oid = self._reused_model(d, frame)
-                oid, T_start = (oid, T0) if oid is not None else self.identify(d, T0, K, depth)
+            oid, T_start, id_px = self._start(d, T0, K, frame, T_world_from_cam, depth, taken)
             tb = time.perf_counter()
             times["identify"] += tb - ta
             if oid is None:
@@ -350,17 +390,17 @@ class PosePipeline:
             res = refine(self.geometry(oid), T_start, K, np.asarray(d.mask, bool), self.cfg.refine, depth,
                          self.models[oid].symmetry)
             times["refinement"] += time.perf_counter() - tb
-            kept.append((d, oid, name_c, T0, res))
-        self._prev = (frame, [(int(d.label), np.asarray(d.box_xyxy, float), oid) for d, oid, _, _, _ in kept])
+            kept.append((d, oid, name_c, T0, res, id_px))
+        self._prev = (frame, [(int(d.label), np.asarray(d.box_xyxy, float), oid) for d, oid, *_ in kept])
         ta = time.perf_counter()
         obs = [Observation(int(d.label), res.T_cam_from_obj, oid, self.models[oid].symmetry,
-                           self.models[oid].diameter_m) for d, oid, _, _, res in kept]
+                           self.models[oid].diameter_m, id_px) for d, oid, _, _, res, id_px in kept]
         fused = self.fuser.update(frame, obs, T_world_from_cam)
         times["temporal"] = time.perf_counter() - ta
         records = [PoseRecord(frame, name, oid, f.track_id, int(d.label), name_c, float(d.score),
                               np.asarray(d.box_xyxy, float), f.T_cam_from_obj, T0, res.T_cam_from_obj,
                               dict(res.iterations), np.asarray(d.mask, bool))
-                   for (d, oid, name_c, T0, res), f in zip(kept, fused, strict=True)]
+                   for (d, oid, name_c, T0, res, _), f in zip(kept, fused, strict=True)]
         return records, times
 
 

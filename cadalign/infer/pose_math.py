@@ -33,6 +33,9 @@ class Observation:
     obj_id: int | None = None
     symmetry: Symmetry = field(default_factory=Symmetry.none)
     diameter_m: float = 0.0
+    id_px: int = 0
+    """Mask pixels of the detection when its model was chosen by identification here (0: carried by a track or
+    a box of the previous frame, or given): the evidence its track's model rests on."""
 
 
 

@@ -95,6 +95,7 @@ class _Track:
     obs: list[Rigid3] = field(default_factory=list)
     xi: np.ndarray = field(default_factory=lambda: np.zeros(6))
     missed: int = 0
+    id_px: int = 0  # the largest mask its model was identified on (Observation.id_px)
 
 
 class TemporalFuser:
@@ -154,6 +155,12 @@ class TemporalFuser:
         """(model id, predicted ``T_cam_from_obj`` in this frame) of every track of class ``label`` that has a model
         id and at least ``min_obs`` observations, in the space this frame will be fused in (the given camera pose,
         the predicted ego camera, or the filter's own prediction)."""
+        return [(oid, T) for _, oid, T, _ in self.track_views(label, frame, T_world_from_cam, min_obs)]
+
+    def track_views(self, label: int, frame: int, T_world_from_cam: Rigid3 | None = None, min_obs: int = 3
+                    ) -> list[tuple[int, int, Rigid3, int]]:
+        """As :meth:`tracks_in_view`, with each track's id first and the mask size its model rests on last
+        (``(track_id, obj_id, T_cam_from_obj, id_px)``)."""
         if self.cfg.mode == "none":
             return []
         view = self._predicted_view(frame, T_world_from_cam)
@@ -165,8 +172,17 @@ class TemporalFuser:
             if tr.space != space or tr.label != label or tr.obj_id is None or len(tr.obs) < min_obs:
                 continue
             T = self._predict(tr, frame)
-            out.append((tr.obj_id, T_wc.inverse() @ T if T_wc is not None else T))
+            out.append((tr.track_id, tr.obj_id, T_wc.inverse() @ T if T_wc is not None else T, tr.id_px))
         return out
+
+    def retire(self, track_id: int) -> None:
+        """Stop a track: it takes no more observations and is no longer in view (its model was found wrong)."""
+        self.tracks[track_id].space = "retired"
+
+    def note_identified(self, track_id: int, id_px: int) -> None:
+        """The track's model was confirmed on a mask of ``id_px`` pixels."""
+        tr = self.tracks[track_id]
+        tr.id_px = max(tr.id_px, int(id_px))
 
     def _associate(self, obs: list[Observation], frame: int, T_wc: Rigid3 | None, space: str
                    ) -> list[_Track | None]:
@@ -203,7 +219,7 @@ class TemporalFuser:
             meas = T_wc @ o.T_cam_from_obj if T_wc is not None else o.T_cam_from_obj
             if tr is None:
                 tr = _Track(len(self.tracks), o.label, o.obj_id, frame, canonicalize(meas, o.symmetry, np.eye(3)),
-                            space)
+                            space, id_px=o.id_px)
                 self.tracks.append(tr)
                 tr.obs.append(tr.T)
             elif tr.space != "cam":
@@ -212,6 +228,7 @@ class TemporalFuser:
                 tr.frame = frame
             else:
                 self._filter_update(tr, frame, canonicalize(meas, o.symmetry, self._predict(tr, frame).R), o)
+            tr.id_px = max(tr.id_px, o.id_px)
             T_cam = T_wc.inverse() @ tr.T if tr.space != "cam" and T_wc is not None else tr.T
             out.append(FusedPose(tr.track_id, T_cam, "filter" if tr.space == "cam" else tr.space, len(tr.obs)))
         return out

@@ -271,3 +271,71 @@ def test_identification_by_view_rejects_a_model_with_surface_where_nothing_is_se
     assert by_view._pick_model_by_view(scored, T, K, np.asarray(valve.mask, bool), depth) == (2, T)
     # without depth the silhouettes are compared as before
     assert by_view.identify(valve, T, K)[0] == 2
+
+
+def test_view_identification_counts_the_mask_against_a_model_fitted_far_off(scene: Path, tiny_structure) -> None:
+    """A candidate whose fit slid metres along the ray covers a few pixels and, judged near its own depth, would
+    leave no mask pixel unexplained; judged near the observed depth it explains none of them."""
+    models = dict(tiny_structure.models)
+    models[0] = CadModel("small_valve", models[2].vertices_m * 0.5, models[2].faces, class_name="valve")
+    det = OracleDetector(scene, OracleConfig(noise_t_m=0.0, noise_r_deg=0.0))
+    valve = next(d for d in det.for_frame("000002.png").detect(None, None) if d.label == 2)
+    K, depth = det.scene.frame(2).camera.K, det.scene.depth_m(2)
+    T = Rigid3(valve.R_cam_from_obj, valve.t_cam_from_obj_m)
+    far = Rigid3(T.R, T.t * (1.0 + 3.0 / np.linalg.norm(T.t)))  # 3 m farther along the ray
+    pipe = PosePipeline(det, models, tiny_structure.class_names, replace(PRESETS["accurate"], identify_score="view"))
+    mask = np.asarray(valve.mask, bool)
+    assert pipe._pick_model_by_view([(0.001, 0, far), (0.002, 2, T)], T, K, mask, depth) == (2, T)
+
+
+def test_a_track_is_identified_again_on_a_mask_grown_past_reidentify_growth(scene: Path, tiny_structure,
+                                                                            monkeypatch) -> None:
+    """Frames 0-2 see half the valve (identified as a decoy), frames 3-5 all of it: with reidentify_growth the
+    track's model is checked again on frame 3 and, found wrong, the track retires and the right model goes on."""
+    from cadalign.infer.refine import RefineConfig
+
+    models = dict(tiny_structure.models)
+    models[9] = CadModel("decoy", models[1].vertices_m * 0.3, models[1].faces, class_name="valve")
+    det = OracleDetector(scene, OracleConfig(noise_t_m=0.0, noise_r_deg=0.0))
+    valve = next(d for d in det.for_frame("000002.png").detect(None, None) if d.label == 2)
+    K = det.scene.frame(2).camera.K
+    full = np.asarray(valve.mask, bool)
+    half = full.copy()
+    cols = np.flatnonzero(full.any(0))
+    half[:, cols[len(cols) // 2]:] = False
+    image = np.zeros((120, 160, 3), np.uint8)
+
+    class Fixed:
+        mask = half
+
+        def detect(self, image, K):
+            return [replace(valve, mask=self.mask)]
+
+    def run(growth: float, wrong_always: bool) -> tuple[list[int], list[int], int]:
+        fixed = Fixed()
+        cfg = replace(PRESETS["fast"], refine=RefineConfig(method="none"), reidentify_growth=growth)
+        pipe = PosePipeline(fixed, models, tiny_structure.class_names, cfg)
+        real, calls = pipe.identify, []
+
+        def identify(d, T, K, depth_m=None):
+            calls.append(1)
+            small = np.count_nonzero(d.mask) < 0.8 * np.count_nonzero(full)
+            return (9, T) if small or wrong_always else real(d, T, K, depth_m)
+
+        monkeypatch.setattr(pipe, "identify", identify)
+        oids, tracks = [], []
+        for f in range(6):
+            fixed.mask = half if f < 3 else full
+            records, _ = pipe.process(f, f"{f:06d}.png", image, K, T_world_from_cam=Rigid3.identity())
+            oids += [r.obj_id for r in records]
+            tracks += [r.track_id for r in records]
+        return oids, tracks, len(calls)
+
+    assert np.count_nonzero(full) >= 1.5 * np.count_nonzero(half)
+    oids, tracks, calls = run(1.5, False)
+    assert oids == [9, 9, 9, 2, 2, 2] and len(set(tracks[:3])) == 1 and tracks[3] != tracks[0]
+    assert calls == 2  # frame 0, then the check on frame 3; frames 1-2 reuse the box, 4-5 the new model's box
+    oids, tracks, calls = run(0.0, False)  # off: the first decision stands
+    assert oids == [9] * 6 and len(set(tracks)) == 1 and calls == 1
+    oids, tracks, calls = run(1.5, True)  # the check agrees: same track, and no further check at the same size
+    assert oids == [9] * 6 and len(set(tracks)) == 1 and calls == 2

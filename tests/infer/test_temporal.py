@@ -151,6 +151,22 @@ def test_tracks_in_view_need_an_established_track() -> None:
     assert TemporalFuser(TemporalConfig(mode="none")).tracks_in_view(2, 3) == []
 
 
+def test_a_track_keeps_the_largest_identification_mask_and_a_retired_one_is_gone() -> None:
+    fuser = TemporalFuser(TemporalConfig())
+    T = Rigid3(np.eye(3), np.array([0.0, 0.0, 3.0]))
+    for i, px in enumerate((40, 0, 0)):  # identified on frame 0's 40 px mask; later frames carried the model
+        fuser.update(i, [Observation(2, T, 5, Symmetry.none(), 0.5, px)])
+    (tid, oid, _, id_px), = fuser.track_views(2, 3)
+    assert (tid, oid, id_px) == (0, 5, 40)
+    fuser.note_identified(tid, 90)
+    fuser.note_identified(tid, 60)
+    assert fuser.track_views(2, 3)[0][3] == 90
+    fuser.retire(tid)
+    assert fuser.track_views(2, 3) == [] and fuser.tracks_in_view(2, 3) == []
+    out = fuser.update(3, [Observation(2, T, 7, Symmetry.none(), 0.5, 120)])  # another model at the same place
+    assert out[0].track_id == 1 and out[0].n_obs == 1
+
+
 def _panel(rng: np.random.Generator, n: int = 5) -> list[Rigid3]:
     """``n`` static parts (world-from-obj) spread over a 2 m panel around the origin."""
     return [Rigid3(random_rotation(rng), np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-0.3, 0.3)]))
