@@ -10,7 +10,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cadalign.models.ops import batched_nms, box_iou, decode_boxes, encode_boxes, nms, roi_align
+from cadalign.models.ops import _nms_first_kept, batched_nms, box_iou, decode_boxes, encode_boxes, nms, roi_align
 
 
 def _ref_bilinear(img: np.ndarray, y: float, x: float) -> float:
@@ -146,6 +146,37 @@ def test_nms_matches_brute_force(n, seed, thr, n_cls):
         expect += [int(idx[k]) for k in _ref_nms(boxes[idx], scores[idx], thr)]
     assert sorted(got) == sorted(expect)
     assert [scores[i] for i in got] == sorted((scores[i] for i in got), reverse=True)
+
+
+@settings(max_examples=40, deadline=None)
+@given(n=st.integers(1, 60), seed=st.integers(0, 10_000), thr=st.floats(0.0, 1.0), block=st.integers(1, 9),
+       max_keep=st.integers(1, 70))
+def test_nms_first_kept_blocks_match_brute_force(n, seed, thr, block, max_keep):
+    """With ``max_keep`` NMS visits boxes block by block; any block size gives greedy NMS's first kept boxes."""
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(0, 40, (4, 2))[rng.integers(0, 4, n)] + rng.normal(0, 3, (n, 2))
+    wh = rng.uniform(0.0, 20, (n, 2)) * (rng.random((n, 1)) > 0.1)  # some empty boxes
+    boxes = np.concatenate([centres - wh / 2, centres + wh / 2], 1)
+    scores = rng.choice(np.linspace(0, 1, 5), n)
+    order = np.array(sorted(range(n), key=lambda i: (-scores[i], i)))
+    b = boxes[order]
+    area = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
+    got = order[_nms_first_kept(b, area, thr, max_keep, block=block)].tolist()
+    assert got == _ref_nms(boxes, scores, thr)[:max_keep]
+
+
+def test_nms_max_keep_on_proposal_sized_input():
+    """RPN-sized input (5000 clustered boxes, 500 kept) takes the block path; it equals the full NMS cut."""
+    rng = np.random.default_rng(3)
+    n = 5000
+    centres = rng.uniform(0, 300, (40, 2))[rng.integers(0, 40, n)] + rng.normal(0, 8, (n, 2))
+    wh = rng.uniform(4, 60, (n, 2))
+    boxes = torch.tensor(np.concatenate([centres - wh / 2, centres + wh / 2], 1), dtype=torch.float32)
+    scores = torch.tensor(rng.normal(size=n).round(1), dtype=torch.float32)
+    full = nms(boxes, scores, 0.7, use_accel=False)
+    assert len(full) > 1000
+    for k in (1, 127, 128, 129, 500, len(full), n):
+        assert torch.equal(nms(boxes, scores, 0.7, max_keep=k, use_accel=False), full[:k])
 
 
 def test_nms_hand_case():
