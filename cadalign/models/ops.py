@@ -283,7 +283,9 @@ def roi_align(features: Tensor, rois: Tensor, output_size: int | tuple[int, int]
     out = features.new_zeros(r, features.shape[1], ph, pw)
     if r == 0:
         return out
-    rois = rois.to(features.dtype)
+    # box coordinates stay in float32 or wider: in bf16 (autocast features) a 300 px coordinate is off by up
+    # to 1 px, a third of a small part's box at stride 4; the bilinear weights take the features' dtype
+    rois = rois.to(torch.promote_types(features.dtype, torch.float32))
     offset = 0.5 if aligned else 0.0
     x0 = rois[:, 1] * spatial_scale - offset
     y0 = rois[:, 2] * spatial_scale - offset

@@ -198,3 +198,14 @@ def test_box_coding_round_trip_and_iou():
         torch.testing.assert_close(decode_boxes(encode_boxes(gt, props, w), props, w), gt)
     iou = box_iou(torch.tensor([[0, 0, 2, 2.0]]), torch.tensor([[1, 1, 3, 3.0], [5, 5, 5, 5.0]]))
     torch.testing.assert_close(iou, torch.tensor([[1 / 7, 0.0]]))
+
+
+def test_roi_align_keeps_box_coordinates_precise_for_bf16_features():
+    """bf16 features (autocast) must not round the RoI coordinates: on the ramp f = x - 100 a box from 150.3
+    to 152.3 samples x = 150.8 (value 50.8, 50.75 in bf16); bf16 coordinates (150, 152) would sample 50.5."""
+    ramp = (torch.arange(200, dtype=torch.float32) - 100).expand(1, 1, 4, 200).contiguous()
+    rois = torch.tensor([[0, 150.3, 1.0, 152.3, 3.0]])
+    out = roi_align(ramp.bfloat16(), rois, 1, 1.0, 1, True, use_accel=False)
+    assert out.dtype == torch.bfloat16
+    assert abs(float(out) - 50.8) <= 0.06
+    assert abs(float(roi_align(ramp, rois, 1, 1.0, 1, True, use_accel=False)) - 50.8) < 1e-4
