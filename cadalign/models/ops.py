@@ -80,6 +80,8 @@ def _nms_eager(b: np.ndarray, area: np.ndarray, iou_threshold: float) -> list[in
         if removed[i]:
             continue
         keep.append(i)
+        # _iou_np's formula on one row, written out: through _iou_np's 2-D indexing this loop (every kept box
+        # of a full NMS) took 1.6x as long (5000 boxes, 4167 kept: 212 -> 344 ms)
         r = b[i + 1 :]
         iw = np.clip(np.minimum(b[i, 2], r[:, 2]) - np.maximum(b[i, 0], r[:, 0]), 0, None)
         ih = np.clip(np.minimum(b[i, 3], r[:, 3]) - np.maximum(b[i, 1], r[:, 1]), 0, None)
