@@ -110,6 +110,67 @@ class DetectionCounts:
                 "recall": self.recall, "f1": self.f1}
 
 
+FP_KINDS = ("class", "duplicate", "localization", "both", "background")
+"""Why a prediction is a false positive (TIDE, Bolya et al. 2020), in the order they are tested: it overlaps a
+target of another class by the match IoU (``class``); its own class's target, taken by a better-scoring one
+(``duplicate``); a target of its class by less than the match IoU but at least the background IoU
+(``localization``); another class's target so (``both``); nothing (``background``)."""
+FN_KINDS = ("localization", "class", "missed")
+"""Why a target is missed: a false positive of its class covers it poorly (``localization``), one of another class
+covers it well (``class``), or no prediction does (``missed``)."""
+
+
+@dataclass(frozen=True)
+class FrameErrors:
+    """The error kinds of one frame's unmatched predictions and missed targets (see :func:`detection_errors`)."""
+
+    fp_kind: list[str | None]
+    """Per prediction: its :data:`FP_KINDS` entry, None when matched."""
+    fn_kind: list[str | None]
+    """Per target: its :data:`FN_KINDS` entry, None when matched or not counted."""
+    fixed_by: list[int | None]
+    """Per target: the false positive that would match it were its error fixed (a ``localization`` or ``class``
+    false positive paired one to one, best-scoring first), else None."""
+
+
+def detection_errors(pred_boxes: np.ndarray, pred_labels: np.ndarray, pred_scores: np.ndarray, gt_boxes: np.ndarray,
+                     gt_labels: np.ndarray, gt_counted: np.ndarray, pairs: list[tuple[int, int]],
+                     iou_thresh: float = 0.5, bg_iou: float = 0.1) -> FrameErrors:
+    """Sort one frame's detection errors into TIDE's kinds (:data:`FP_KINDS`, :data:`FN_KINDS`).
+
+    ``pairs`` is :func:`match_detections`' answer for the same boxes; ``gt_counted`` (G,) bool marks the targets
+    whose miss counts (BOP's "don't care" ones are False). A miss is explained by a ``localization`` or
+    ``class`` false positive only when that one can be paired with it one to one (by descending score, the
+    highest IoU first), so that fixing the error would turn exactly that false positive into a true positive.
+    """
+    pl, gl = np.asarray(pred_labels), np.asarray(gt_labels)
+    n, g = len(pl), len(gl)
+    iou = box_iou(pred_boxes, gt_boxes) if n and g else np.zeros((n, g))
+    same = pl[:, None] == gl[None, :] if n and g else np.zeros((n, g), bool)
+    matched_p, matched_g = {i for i, _ in pairs}, {j for _, j in pairs}
+    fp_kind: list[str | None] = [None] * n
+    for i in range(n):
+        if i in matched_p:
+            continue
+        best_same = float(np.max(iou[i], initial=0.0, where=same[i]))
+        best_other = float(np.max(iou[i], initial=0.0, where=~same[i]))
+        fp_kind[i] = ("class" if best_other >= iou_thresh else "duplicate" if best_same >= iou_thresh else
+                      "localization" if best_same >= bg_iou else "both" if best_other >= bg_iou else "background")
+    missing = [j for j in range(g) if j not in matched_g and bool(gt_counted[j])]
+    fixed_by: list[int | None] = [None] * g
+    for kind, rel, lo, hi in (("localization", same, bg_iou, iou_thresh), ("class", ~same, iou_thresh, np.inf)):
+        for i in np.argsort(-np.asarray(pred_scores, dtype=np.float64), kind="stable"):
+            if fp_kind[i] != kind:
+                continue
+            free = [j for j in missing if fixed_by[j] is None and rel[i, j] and lo <= iou[i, j] < hi]
+            if free:
+                fixed_by[max(free, key=lambda j: iou[i, j])] = int(i)
+    fn_kind: list[str | None] = [None] * g
+    for j in missing:
+        fn_kind[j] = "missed" if fixed_by[j] is None else fp_kind[fixed_by[j]]
+    return FrameErrors(fp_kind, fn_kind, fixed_by)
+
+
 def symmetry_transforms(symmetry: Symmetry | None, diameter_m: float | None = None) -> list[np.ndarray]:
     """The (4, 4) symmetry transforms used by MSSD/MSPD/ADD: identity first; continuous ones discretised as BOP.
 

@@ -11,6 +11,7 @@ import pytest
 from cadalign.cad.model import CadModel
 from cadalign.data.bop import BopScene
 from cadalign.data.torch_datasets import load_class_map
+from cadalign.eval import pose_metrics as pm
 from cadalign.eval.pose_eval import (
     PoseEvalConfig,
     PosePrediction,
@@ -115,6 +116,35 @@ def test_exact_poses_score_perfectly_and_a_shift_is_measured(scene: Path) -> Non
     assert rep["per_class"]["valve"]["ar_mssd"] < 1.0
     missed = evaluate_scene(preds[:1], scene, models, cmap.names, cmap.class_of_obj, PoseEvalConfig(), [0, 1])
     assert missed["detection"]["fn"] == len(preds) - 1 and missed["detection"]["precision"] == 1.0
+
+
+def test_the_evaluation_says_which_kind_of_error_costs_what(scene: Path) -> None:
+    """Per class, the false positives and misses by TIDE's kinds, and the F1 were each kind fixed: boxes cut to
+    their left third are localization errors (their fix restores F1 1), an extra box far off is background."""
+    cmap = load_class_map(scene)
+    models = load_bop_models(scene.parent.parent / "models")
+    preds = []
+    for im_id in (0, 1):
+        for g in gt_instances(BopScene(scene), im_id, cmap.class_of_obj):
+            if cmap.names[g.label] != "valve":
+                continue
+            box = g.box_xyxy.copy()
+            if im_id == 1:
+                box[2] = box[0] + (box[2] - box[0]) / 3  # IoU 1/3: a miss and a false positive
+            preds.append(PosePrediction(im_id, g.label, 1.0, box, g.T_cam_from_obj, g.obj_id, g.mask))
+    n1 = sum(p.im_id == 1 for p in preds)
+    far = np.array([-50.0, -50.0, -40.0, -40.0])  # off the image: no target near it
+    preds.append(replace(preds[0], box_xyxy=far, score=0.5))
+    rep = evaluate_scene(preds, scene, models, cmap.names, cmap.class_of_obj, PoseEvalConfig(), [0, 1])
+    v = rep["per_class"]["valve"]
+    assert v["detection"]["fp"] == n1 + 1 and v["detection"]["fn"] == n1
+    e = v["errors"]
+    assert e["fp"] == {"class": 0, "duplicate": 0, "localization": n1, "both": 0, "background": 1}
+    assert e["fn"] == {"localization": n1, "class": 0, "missed": 0}
+    assert e["f1_fixed"]["localization"] == pytest.approx(
+        pm.DetectionCounts(v["detection"]["tp"] + n1, 1, 0).f1)
+    assert e["f1_fixed"]["background"] > v["detection"]["f1"] == e["f1_fixed"]["duplicate"]
+    assert "| valve | " in table_markdown(rep).split("Detection errors")[1]
 
 
 def test_the_evaluation_counts_detections_given_the_wrong_model(scene: Path) -> None:

@@ -52,6 +52,44 @@ def test_matching_is_greedy_by_score_and_class_aware() -> None:
     assert (c.precision, c.recall, c.f1) == pytest.approx((1 / 3, 0.5, 0.4))
 
 
+def test_detection_errors_sort_each_false_positive_and_miss_into_tides_kinds() -> None:
+    gt = np.array([[0, 0, 10, 10],      # 0: class 1, hit by pred 0, pred 1 duplicates it
+                   [20, 0, 30, 10],     # 1: class 1, only a narrow box on it (IoU 0.3): localization
+                   [40, 0, 50, 10],     # 2: class 1, a class-2 box right on it: class error
+                   [60, 0, 70, 10],     # 3: class 2, nothing near: missed
+                   [80, 0, 90, 10]], float)  # 4: class 1, not counted (don't care), a narrow box on it
+    gl = np.array([1, 1, 1, 2, 1])
+    pred = np.array([[0, 0, 10, 10], [0, 0, 10, 9], [20, 0, 23, 10], [40, 0, 50, 10], [100, 50, 110, 60],
+                     [80, 0, 83, 10], [60, 0, 64, 10]], float)
+    pl = np.array([1, 1, 1, 2, 1, 1, 1])  # pred 6: class 1 on the class-2 target at IoU 0.4: both
+    scores = np.array([0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3])
+    counted = np.array([True, True, True, True, False])
+    pairs = pm.match_detections(pred, pl, scores, gt, gl)
+    assert pairs == [(0, 0)]
+    fe = pm.detection_errors(pred, pl, scores, gt, gl, counted, pairs)
+    assert fe.fp_kind == [None, "duplicate", "localization", "class", "background", "localization", "both"]
+    assert fe.fn_kind == [None, "localization", "class", "missed", None]
+    assert fe.fixed_by == [None, 2, 3, None, None]
+
+
+def test_detection_errors_pair_localization_errors_one_to_one() -> None:
+    """Two narrow boxes on one missed target explain one miss; the better-scoring one is paired, and the other
+    is still a localization false positive (fixing it makes a duplicate, which goes)."""
+    gt = np.array([[0, 0, 10, 10], [50, 0, 60, 10]], float)
+    pred = np.array([[0, 0, 4, 10], [6, 0, 10, 10]], float)  # IoU 0.4 each
+    assert pm.match_detections(pred, np.array([1, 1]), np.array([0.2, 0.7]), gt, np.array([1, 1])) == []
+    fe = pm.detection_errors(pred, np.array([1, 1]), np.array([0.2, 0.7]), gt, np.array([1, 1]),
+                             np.array([True, True]), [])
+    assert fe.fp_kind == ["localization", "localization"]
+    assert fe.fixed_by == [1, None] and fe.fn_kind == ["localization", "missed"]
+    empty = pm.detection_errors(np.zeros((0, 4)), np.zeros(0, int), np.zeros(0), gt, np.array([1, 1]),
+                                np.array([True, False]), [])
+    assert empty.fp_kind == [] and empty.fn_kind == ["missed", None]
+    alone = pm.detection_errors(pred, np.array([1, 1]), np.array([0.2, 0.7]), np.zeros((0, 4)), np.zeros(0, int),
+                                np.zeros(0, bool), [])
+    assert alone.fp_kind == ["background", "background"] and alone.fn_kind == []
+
+
 def test_rotation_error_with_and_without_symmetry() -> None:
     assert pm.rotation_error_deg(rz(90), I3) == pytest.approx(90.0)
     cont = Symmetry.continuous([0, 0, 1])
