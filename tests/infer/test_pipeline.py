@@ -118,20 +118,25 @@ def test_exact_poses_score_perfectly_and_a_shift_is_measured(scene: Path) -> Non
     assert missed["detection"]["fn"] == len(preds) - 1 and missed["detection"]["precision"] == 1.0
 
 
+def _valve_targets(scene: Path) -> tuple:
+    """The class map, the evaluation models and the (frame, target) pairs of the valves of frames 0 and 1."""
+    cmap = load_class_map(scene)
+    models = load_bop_models(scene.parent.parent / "models")
+    valves = [(im_id, g) for im_id in (0, 1) for g in gt_instances(BopScene(scene), im_id, cmap.class_of_obj)
+              if cmap.names[g.label] == "valve"]
+    return cmap, models, valves
+
+
 def test_the_evaluation_says_which_kind_of_error_costs_what(scene: Path) -> None:
     """Per class, the false positives and misses by TIDE's kinds, and the F1 were each kind fixed: boxes cut to
     their left third are localization errors (their fix restores F1 1), an extra box far off is background."""
-    cmap = load_class_map(scene)
-    models = load_bop_models(scene.parent.parent / "models")
+    cmap, models, valves = _valve_targets(scene)
     preds = []
-    for im_id in (0, 1):
-        for g in gt_instances(BopScene(scene), im_id, cmap.class_of_obj):
-            if cmap.names[g.label] != "valve":
-                continue
-            box = g.box_xyxy.copy()
-            if im_id == 1:
-                box[2] = box[0] + (box[2] - box[0]) / 3  # IoU 1/3: a miss and a false positive
-            preds.append(PosePrediction(im_id, g.label, 1.0, box, g.T_cam_from_obj, g.obj_id, g.mask))
+    for im_id, g in valves:
+        box = g.box_xyxy.copy()
+        if im_id == 1:
+            box[2] = box[0] + (box[2] - box[0]) / 3  # IoU 1/3: a miss and a false positive
+        preds.append(PosePrediction(im_id, g.label, 1.0, box, g.T_cam_from_obj, g.obj_id, g.mask))
     n1 = sum(p.im_id == 1 for p in preds)
     far = np.array([-50.0, -50.0, -40.0, -40.0])  # off the image: no target near it
     preds.append(replace(preds[0], box_xyxy=far, score=0.5))
@@ -149,17 +154,13 @@ def test_the_evaluation_says_which_kind_of_error_costs_what(scene: Path) -> None
 
 def test_the_evaluation_counts_detections_given_the_wrong_model(scene: Path) -> None:
     """Per class: how many matched detections carry a model id, how many the right one, and their errors."""
-    cmap = load_class_map(scene)
-    models = load_bop_models(scene.parent.parent / "models")
+    cmap, models, valves = _valve_targets(scene)
     preds = []
-    for im_id in (0, 1):
-        for g in gt_instances(BopScene(scene), im_id, cmap.class_of_obj):
-            if cmap.names[g.label] != "valve":
-                continue
-            T = g.T_cam_from_obj
-            wrong = im_id == 1  # frame 1's valves: a wrong model id and a pose 0.2 m off
-            preds.append(PosePrediction(im_id, g.label, 1.0, g.box_xyxy, Rigid3(T.R, T.t + [0.0, 0.0, 0.2 * wrong]),
-                                        999 if wrong else g.obj_id, g.mask))
+    for im_id, g in valves:
+        T = g.T_cam_from_obj
+        wrong = im_id == 1  # frame 1's valves: a wrong model id and a pose 0.2 m off
+        preds.append(PosePrediction(im_id, g.label, 1.0, g.box_xyxy, Rigid3(T.R, T.t + [0.0, 0.0, 0.2 * wrong]),
+                                    999 if wrong else g.obj_id, g.mask))
     n1 = sum(p.im_id == 1 for p in preds)
     assert 0 < n1 < len(preds)
     rep = evaluate_scene(preds, scene, models, cmap.names, cmap.class_of_obj, PoseEvalConfig(), [0, 1])
