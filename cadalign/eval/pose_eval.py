@@ -194,16 +194,17 @@ def evaluate_scene(preds: list[PosePrediction], scene_dir: Path, models: dict[in
         frame = scene.frame(im_id)
         gts = [g for g in gt_instances(scene, im_id, class_of_obj) if g.label in keep]
         ps = by_frame.get(im_id, [])
-        pairs = pm.match_detections(np.array([p.box_xyxy for p in ps]).reshape(-1, 4), np.array([p.label for p in ps]),
-                                    np.array([p.score for p in ps]), np.array([g.box_xyxy for g in gts]).reshape(-1, 4),
-                                    np.array([g.label for g in gts]), cfg.iou_thresh)
+        boxes = (np.array([p.box_xyxy for p in ps]).reshape(-1, 4), np.array([p.label for p in ps]),
+                 np.array([p.score for p in ps]), np.array([g.box_xyxy for g in gts]).reshape(-1, 4),
+                 np.array([g.label for g in gts]))
+        pairs = pm.match_detections(*boxes, cfg.iou_thresh)
         matched_p = {i for i, _ in pairs}
         matched_g = {j: i for i, j in pairs}
         for i, p in enumerate(ps):
             if i not in matched_p:
                 counts[p.label][1] += 1
         cares = [_counted(g, cfg) for g in gts]
-        errors.add(ps, gts, cares, pairs, cfg.iou_thresh)
+        errors.add(ps, gts, pm.detection_errors(*boxes, np.array(cares, bool), pairs, cfg.iou_thresh))
         for j, g in enumerate(gts):
             care = cares[j]
             row = None
@@ -227,33 +228,27 @@ def _counted(g: GtInstance, cfg: PoseEvalConfig) -> bool:
 
 
 class _ErrorTally:
-    """Per class: the kinds of false positives and misses (:func:`~cadalign.eval.pose_metrics.detection_errors`),
-    and what fixing each kind would gain (false positives removed, misses turned into hits)."""
+    """Per class: the kinds of false positives and misses (:func:`~cadalign.eval.pose_metrics.detection_errors`).
+    A miss of kind ``localization`` / ``class`` is one that fixing those false positives turns into a hit."""
 
     def __init__(self, classes: set[int]) -> None:
         self.fp = {c: dict.fromkeys(pm.FP_KINDS, 0) for c in classes}
         self.fn = {c: dict.fromkeys(pm.FN_KINDS, 0) for c in classes}
-        self.gain = {c: dict.fromkeys(pm.FP_KINDS + ("missed",), 0) for c in classes}
 
-    def add(self, ps: list[PosePrediction], gts: list[GtInstance], cares: list[bool], pairs: list[tuple[int, int]],
-            iou_thresh: float) -> None:
-        fe = pm.detection_errors(np.array([p.box_xyxy for p in ps]).reshape(-1, 4), np.array([p.label for p in ps]),
-                                 np.array([p.score for p in ps]), np.array([g.box_xyxy for g in gts]).reshape(-1, 4),
-                                 np.array([g.label for g in gts]), np.array(cares, bool), pairs, iou_thresh)
+    def add(self, ps: list[PosePrediction], gts: list[GtInstance], fe: pm.FrameErrors) -> None:
         for p, kind in zip(ps, fe.fp_kind, strict=True):
             if kind is not None:
                 self.fp[p.label][kind] += 1
-        for g, kind, by in zip(gts, fe.fn_kind, fe.fixed_by, strict=True):
+        for g, kind in zip(gts, fe.fn_kind, strict=True):
             if kind is not None:
                 self.fn[g.label][kind] += 1
-                self.gain[g.label][kind if by is None else fe.fp_kind[by]] += 1
 
     def summary(self, c: int, tp: int, fp: int, fn: int) -> dict:
         """``fp`` / ``fn``: counts per kind; ``f1_fixed``: the class's F1 were every error of a kind fixed (its false
         positives gone, the misses it explains hit; TIDE's "fixed" oracle, with F1 for AP)."""
         fixed = {}
         for kind in pm.FP_KINDS + ("missed",):
-            gone, hit = self.fp[c].get(kind, 0), self.gain[c][kind]
+            gone, hit = self.fp[c].get(kind, 0), self.fn[c].get(kind, 0)
             fixed[kind] = pm.DetectionCounts(tp + hit, fp - gone, fn - hit).f1
         return {"fp": dict(self.fp[c]), "fn": dict(self.fn[c]), "f1_fixed": fixed}
 

@@ -145,8 +145,8 @@ def detection_errors(pred_boxes: np.ndarray, pred_labels: np.ndarray, pred_score
     """
     pl, gl = np.asarray(pred_labels), np.asarray(gt_labels)
     n, g = len(pl), len(gl)
-    iou = box_iou(pred_boxes, gt_boxes) if n and g else np.zeros((n, g))
-    same = pl[:, None] == gl[None, :] if n and g else np.zeros((n, g), bool)
+    iou = box_iou(pred_boxes, gt_boxes)  # (n, g), empty sides included
+    same = pl[:, None] == gl[None, :]
     matched_p, matched_g = {i for i, _ in pairs}, {j for _, j in pairs}
     fp_kind: list[str | None] = [None] * n
     for i in range(n):
