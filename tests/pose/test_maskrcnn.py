@@ -15,15 +15,25 @@ from typer.testing import CliRunner
 from cadalign.cli.main import app
 from cadalign.errors import TrainingError
 from cadalign.models.maskrcnn import Detection, MaskRCNNPose, load_pose_model
-from cadalign.models.maskrcnn.roi_heads import SampledRoIs, mask_targets, paste_masks
+from cadalign.models.maskrcnn.roi_heads import (
+    SampledRoIs,
+    context_windows,
+    jitter_boxes,
+    mask_targets,
+    paste_masks,
+    sample_rois,
+)
+from cadalign.models.ops import box_iou
 
 REPO = Path(__file__).resolve().parents[2]
 
 
-@pytest.mark.parametrize("param", ["improved", "thesis"])
-def test_losses_decrease_on_a_tiny_image(param: str):
+@pytest.mark.parametrize(("param", "context"), [("improved", (1.0, 0.0)), ("thesis", (1.0, 0.0)),
+                                              ("improved", (2.0, 16.0))])
+def test_losses_decrease_on_a_tiny_image(param: str, context: tuple[float, float]):
     torch.manual_seed(0)
-    model = MaskRCNNPose(tiny_cfg(pose=param), ["background", "square", "bar"])
+    cfg = tiny_cfg(pose=param, box_context=context[0], box_context_px=context[1])
+    model = MaskRCNNPose(cfg, ["background", "square", "bar"])
     img, tgt = tiny_scene(0)
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
     totals = []
@@ -39,6 +49,57 @@ def test_losses_decrease_on_a_tiny_image(param: str):
     assert set(losses) == expected
     assert np.isfinite(totals).all()
     assert np.mean(totals[-5:]) < 0.6 * totals[0], totals
+
+
+def test_context_windows_by_hand():
+    rois = torch.tensor([[1.0, 10, 10, 14, 30], [0.0, 0, 0, 100, 60]])
+    win, where = context_windows(rois, 2.0, 16.0)
+    # box 1: 4 x 20 -> 16 (the floor) x 40 about (12, 20); box 2: 100 x 60 -> 200 x 120 about (50, 30)
+    assert torch.allclose(win, torch.tensor([[1.0, 4, 0, 20, 40], [0.0, -50, -30, 150, 90]]))
+    assert torch.allclose(where, torch.log(torch.tensor([[4 / 16, 20 / 40], [0.5, 0.5]])))
+    same, zero = context_windows(rois, 1.0, 0.0)
+    assert torch.equal(same, rois) and torch.equal(zero, torch.zeros(2, 2))
+
+
+@pytest.mark.parametrize("context", [(1.0, 0.0), (3.0, 0.0), (1.0, 24.0)])
+def test_box_head_sees_the_context_window_and_only_then(context: tuple[float, float]):
+    torch.manual_seed(0)
+    model = MaskRCNNPose(tiny_cfg(box_context=context[0], box_context_px=context[1]), ["background", "a"]).eval()
+    assert model.box_head.fc1.in_features == 16 * 49 + (0 if context == (1.0, 0.0) else 2)
+    # pyramid features: a 4 x 4 px RoI about (18, 18) on P2 (stride 4); a feature 8 px beside it, inside a 12 (3x)
+    # or 24 px (floor) window, changes the head's output only when it pools that window (RoIAlign's bilinear
+    # samples of the RoI itself reach x <= 19.9 px, i.e. cells 4 and 5)
+    feats = [torch.zeros(1, 16, 12 >> i, 16 >> i) for i in range(4)]
+    rois = torch.tensor([[0.0, 16, 16, 20, 20]])
+    base = model._box_logits(feats, rois)
+    feats[0][0, :, 4, 6] = 5.0  # the cell centred at x = 26, y = 18 px
+    moved = model._box_logits(feats, rois)
+    changed = not torch.allclose(base[0], moved[0])
+    assert changed == (context != (1.0, 0.0))
+
+
+def test_jittered_gt_copies_spread_as_asked_and_train_as_their_box():
+    torch.manual_seed(0)
+    gt = torch.tensor([[10.0, 10, 14, 22], [40, 0, 80, 20]])
+    j = jitter_boxes(gt, 4000, 0.15)
+    assert j.shape == (8000, 4) and jitter_boxes(gt, 0, 0.15).shape == (0, 4)
+    for k, b in enumerate(gt):  # copies k, k + 2, ...: centre shift / side ~ N(0, 0.15), log size ~ N(0, 0.15)
+        c = j[k::2]
+        side = b[2:] - b[:2]
+        shift = ((c[:, :2] + c[:, 2:]) / 2 - (b[:2] + b[2:]) / 2) / side
+        logsize = torch.log((c[:, 2:] - c[:, :2]) / side)
+        assert shift.mean(0).abs().max() < 0.01 and (shift.std(0) - 0.15).abs().max() < 0.01
+        assert logsize.mean(0).abs().max() < 0.01 and (logsize.std(0) - 0.15).abs().max() < 0.01
+    # a 4 x 12 part with no proposal near it: only its own box is a positive RoI, unless copies join
+    proposals = [torch.tensor([[100.0, 100, 140, 140]])]
+    target = {"boxes": gt[:1], "labels": torch.tensor([2])}
+    plain = sample_rois(proposals, [target], 64, 0.5)
+    moved = sample_rois(proposals, [target], 64, 0.5, jitter=8, jitter_sigma=0.15)
+    assert int((plain.labels > 0).sum()) == 1
+    pos = moved.labels > 0
+    assert 2 <= int(pos.sum()) <= 9 and (moved.labels[pos] == 2).all() and (moved.gt_index[pos] == 0).all()
+    iou = box_iou(gt[:1], moved.boxes)[0]
+    assert (iou[pos] >= 0.5).all() and (iou[~pos] < 0.5).all()
 
 
 def test_eval_outputs_and_detect_interface():

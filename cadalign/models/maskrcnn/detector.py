@@ -29,6 +29,7 @@ from cadalign.models.maskrcnn.roi_heads import (
     MultiScaleRoIAlign,
     SampledRoIs,
     box_losses,
+    context_windows,
     mask_loss,
     paste_masks,
     postprocess,
@@ -81,6 +82,19 @@ class MaskRCNNConfig:
     """RoIs sampled per image for the second-stage losses."""
     roi_pos_fraction: float = bounded(0.25, gt=0, le=1)
     """Largest fraction of positive RoIs in a sample."""
+    roi_jitter: int = bounded(0, ge=0)
+    """Randomly moved copies of each ground-truth box added to the training RoI candidates (0 = only the box
+    itself, as Mask R-CNN): the heads of small parts then train on RoIs as far off as the proposals they score."""
+    roi_jitter_sigma: float = bounded(0.1, ge=0)
+    """Spread of those copies: centre shift and log-size change, as a fraction of the box's side."""
+    box_context: float = bounded(1.0, ge=1)
+    """The box head pools a window this many times each proposal's side (same centre; see ``box_context_px``):
+    a part of a few pixels fills a fraction of one stride-4 feature cell, and the head then also sees what
+    surrounds it. 1 (and ``box_context_px`` 0) = the proposal itself, as Mask R-CNN."""
+    box_context_px: float = bounded(0.0, ge=0)
+    """Smallest side (px at ``input_hw``) of the box head's pooling window. When a window differs from its
+    proposal, the head also gets ``log(proposal side / window side)`` per axis, so it knows where the proposal
+    lies (its deltas stay relative to the proposal)."""
     box_rep: int = bounded(1024, ge=4)
     """Width of the box head's two FC layers."""
     mask_channels: int = bounded(256, ge=4)
@@ -146,7 +160,7 @@ class MaskRCNNPose(nn.Module):
                                       batch_per_image=cfg.rpn_batch_per_image, scales=tuple(cfg.anchor_scales)))
         self.box_pool = MultiScaleRoIAlign(7, cfg.sampling_ratio)
         self.mask_pool = MultiScaleRoIAlign(14, cfg.sampling_ratio)
-        self.box_head = BoxHead(c, 7, cfg.box_rep, n)
+        self.box_head = BoxHead(c, 7, cfg.box_rep, n, 2 if self._context else 0)
         self.mask_head = MaskHead(c, cfg.mask_channels, n)
         self.pose_head = PoseHead(c, 14, cfg.pose_channels, cfg.pose_rep, n, cfg.pose)
         self.register_buffer("mean", torch.tensor(_MEAN).view(1, 3, 1, 1), persistent=False)
@@ -174,8 +188,9 @@ class MaskRCNNPose(nn.Module):
         feats = self._features(images)
         hw = (images.shape[-2], images.shape[-1])
         proposals, losses = self.rpn(feats, hw, [t["boxes"] for t in targets])
-        rois = sample_rois(proposals, targets, self.cfg.roi_batch_per_image, self.cfg.roi_pos_fraction)
-        logits, deltas = self.box_head(self.box_pool(feats[:4], self._rois(rois)))
+        rois = sample_rois(proposals, targets, self.cfg.roi_batch_per_image, self.cfg.roi_pos_fraction,
+                           jitter=self.cfg.roi_jitter, jitter_sigma=self.cfg.roi_jitter_sigma)
+        logits, deltas = self._box_logits(feats, self._rois(rois))
         losses.update(box_losses(logits, deltas, rois, targets))
         pos = rois.positive()
         pooled = self.mask_pool(feats[:4], self._rois(pos))
@@ -185,6 +200,17 @@ class MaskRCNNPose(nn.Module):
             raw = self.pose_head(pooled, pos.boxes, Ks)[torch.arange(len(pos.labels)), pos.labels]
             losses.update(pose_loss(self._pose_rois(raw, pos, targets)))
         return losses
+
+    @property
+    def _context(self) -> bool:
+        return self.cfg.box_context != 1.0 or self.cfg.box_context_px > 0
+
+    def _box_logits(self, feats: list[Tensor], rois: Tensor) -> tuple[Tensor, Tensor]:
+        """Class logits and deltas of ``(R, 5)`` RoI rows (pooled in their context window when configured)."""
+        if not self._context:
+            return self.box_head(self.box_pool(feats[:4], rois))
+        windows, where = context_windows(rois, self.cfg.box_context, self.cfg.box_context_px)
+        return self.box_head(self.box_pool(feats[:4], windows), where)
 
     @staticmethod
     def _rois(rois: SampledRoIs) -> Tensor:
@@ -211,7 +237,7 @@ class MaskRCNNPose(nn.Module):
         feats = self._features(images)
         hw = (images.shape[-2], images.shape[-1])
         proposals, _ = self.rpn(feats, hw)
-        logits, deltas = self.box_head(self.box_pool(feats[:4], rois_with_batch(proposals)))
+        logits, deltas = self._box_logits(feats, rois_with_batch(proposals))
         dets = postprocess(logits, deltas, proposals, hw, score_thresh, self.cfg.box_nms_thresh,
                            self.cfg.detections_per_image)
         boxes = [b for b, _, _ in dets]

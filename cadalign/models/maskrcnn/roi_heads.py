@@ -47,12 +47,30 @@ class MultiScaleRoIAlign(nn.Module):
         return out
 
 
-class BoxHead(nn.Module):
-    """Two FC layers, then class logits ``(R, C)`` and class-specific deltas ``(R, 4C)``."""
+def context_windows(rois: Tensor, scale: float, min_px: float) -> tuple[Tensor, Tensor]:
+    """Pooling windows around ``(R, 5)`` RoI rows: the same centre, each side ``max(scale * side, min_px)``.
 
-    def __init__(self, channels: int, pool: int, rep: int, num_classes: int) -> None:
+    Returns the windows ``(R, 5)`` and ``(R, 2)`` the log ratios ``log(box side / window side)`` (x, y; <= 0
+    when ``scale >= 1``), which tell the head where the box lies in the window it sees. Windows may extend
+    past the image: RoIAlign reads zeros there.
+    """
+    b = rois[:, 1:]
+    c = (b[:, :2] + b[:, 2:]) / 2
+    side = (b[:, 2:] - b[:, :2]).clamp_min(1e-3)
+    win = torch.maximum(side * scale, side.new_tensor(min_px))
+    out = torch.cat([rois[:, :1], c - win / 2, c + win / 2], 1)
+    return out, torch.log(side / win)
+
+
+class BoxHead(nn.Module):
+    """Two FC layers, then class logits ``(R, C)`` and class-specific deltas ``(R, 4C)``.
+
+    With ``extra`` > 0, that many numbers per RoI (e.g. the box's place in a context window, see
+    :func:`context_windows`) join the pooled features at the first layer."""
+
+    def __init__(self, channels: int, pool: int, rep: int, num_classes: int, extra: int = 0) -> None:
         super().__init__()
-        self.fc1 = nn.Linear(channels * pool * pool, rep)
+        self.fc1 = nn.Linear(channels * pool * pool + extra, rep)
         self.fc2 = nn.Linear(rep, rep)
         self.cls = nn.Linear(rep, num_classes)
         self.box = nn.Linear(rep, 4 * num_classes)
@@ -61,8 +79,11 @@ class BoxHead(nn.Module):
         for m in (self.cls, self.box):
             nn.init.zeros_(m.bias)
 
-    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        x = F.relu(self.fc2(F.relu(self.fc1(x.flatten(1)))))
+    def forward(self, x: Tensor, extra: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        x = x.flatten(1)
+        if extra is not None:
+            x = torch.cat([x, extra.to(x.dtype)], 1)
+        x = F.relu(self.fc2(F.relu(self.fc1(x))))
         return self.cls(x), self.box(x)
 
 
@@ -105,13 +126,30 @@ class SampledRoIs:
         return SampledRoIs(self.boxes[keep], self.image[keep], self.labels[keep], self.gt_index[keep])
 
 
+def jitter_boxes(gt: Tensor, copies: int, sigma: float) -> Tensor:
+    """``(copies * G, 4)`` randomly moved copies of ``(G, 4)`` boxes: centre shifts and log-size changes drawn
+    from normal distributions with ``sigma`` times the box's side (resp. ``sigma``); torch's global generator."""
+    if copies == 0 or gt.shape[0] == 0:
+        return gt[:0]
+    g = gt.repeat(copies, 1)
+    side = (g[:, 2:] - g[:, :2]).clamp_min(1e-3)
+    c = (g[:, :2] + g[:, 2:]) / 2 + sigma * side * torch.randn_like(side)
+    half = side * torch.exp(sigma * torch.randn_like(side)) / 2
+    return torch.cat([c - half, c + half], 1)
+
+
 def sample_rois(proposals: list[Tensor], targets: list[dict], batch: int, pos_fraction: float,
-                iou_thresh: float = 0.5) -> SampledRoIs:
-    """Match proposals (plus the ground-truth boxes) to the targets and sample a balanced set."""
+                iou_thresh: float = 0.5, jitter: int = 0, jitter_sigma: float = 0.1) -> SampledRoIs:
+    """Match proposals (plus the ground-truth boxes) to the targets and sample a balanced set.
+
+    With ``jitter`` > 0 that many randomly moved copies of each ground-truth box (:func:`jitter_boxes`) join
+    the candidates: a part of a few pixels otherwise has almost no proposal at IoU >= 0.5 besides its exact box,
+    while at inference the head scores proposals a pixel or two off.
+    """
     boxes, image, labels, gt_index = [], [], [], []
     for i, (props, t) in enumerate(zip(proposals, targets, strict=True)):
         gt = t["boxes"]
-        cand = torch.cat([props, gt])
+        cand = torch.cat([props, gt, jitter_boxes(gt, jitter, jitter_sigma).to(props.dtype)])
         m = match(box_iou(gt, cand), iou_thresh, iou_thresh, allow_low_quality=False)
         pos, neg = sample(m >= 0, m == BELOW, batch, pos_fraction)
         idx = torch.cat([pos, neg])
