@@ -203,7 +203,7 @@ def evaluate_scene(preds: list[PosePrediction], scene_dir: Path, models: dict[in
         for i, p in enumerate(ps):
             if i not in matched_p:
                 counts[p.label][1] += 1
-        cares = [_counted(g, cfg) for g in gts]
+        cares = [counted(g, cfg) for g in gts]
         errors.add(ps, gts, pm.detection_errors(*boxes, np.array(cares, bool), pairs, cfg.iou_thresh))
         for j, g in enumerate(gts):
             care = cares[j]
@@ -221,7 +221,7 @@ def evaluate_scene(preds: list[PosePrediction], scene_dir: Path, models: dict[in
     return summarise(rows, targets, counts, class_names, cfg, errors)
 
 
-def _counted(g: GtInstance, cfg: PoseEvalConfig) -> bool:
+def counted(g: GtInstance, cfg: PoseEvalConfig) -> bool:
     """Whether a target's miss counts (not BOP's "don't care": visible enough, and not below the size cut)."""
     side = min(g.box_xyxy[2] - g.box_xyxy[0], g.box_xyxy[3] - g.box_xyxy[1])
     return g.visib_fract >= cfg.min_visib_fract and side >= cfg.min_box_side_px

@@ -13,16 +13,20 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from cadalign.data.torch_datasets import DetectionPoseDataset
 from cadalign.eval.pose_eval import (
     CroppedMask,
     PoseEvalConfig,
     PosePrediction,
+    counted,
     evaluate_scene,
+    gt_instances,
     load_bop_models,
 )
 from cadalign.models.maskrcnn.detector import MaskRCNNPose
+from cadalign.models.ops import box_iou
 from cadalign.types import Rigid3
 
 
@@ -53,20 +57,75 @@ def summary(report: dict) -> dict:
     return out
 
 
+STAGES = ("anchor", "proposal", "head", "detection")
+"""The detector's stages in :func:`stage_recall`'s order."""
+
+
+def stage_recall(model: MaskRCNNPose, dataset: DetectionPoseDataset, preds: list[PosePrediction],
+                 score_thresh: float = 0.5, cfg: PoseEvalConfig | None = None) -> dict[str, dict[str, float]]:
+    """Where the detector loses each scored class: per class, of the ground-truth instances whose miss counts
+    (``cadalign eval pose``'s rules), the fraction that still has, at box IoU >= ``cfg.iou_thresh``,
+
+    - ``anchor``: an anchor (what the RPN can be trained to fire on: the anchor sizes, scales and ratios);
+    - ``proposal``: an RPN proposal at inference;
+    - ``head``: such a proposal that the box head gives the instance's class with probability >= ``score_thresh``;
+    - ``detection``: a final detection of its class scoring >= ``score_thresh`` (``preds``).
+
+    Each is "some box exists", not a one-to-one match, so ``detection`` bounds the recall from above. A drop
+    from one stage to the next says which part to work on (anchors, the RPN, the box head's classes, or its
+    regression and NMS). ``n`` is the number of instances; classes without any are left out.
+    """
+    cfg = cfg or PoseEvalConfig()
+    names = dataset.classes.names
+    model_col = {n: i for i, n in enumerate(getattr(model, "classes", ()))}
+    scene = dataset.scene
+    found: dict[int, list[list[bool]]] = {}
+    by_frame: dict[int, list[PosePrediction]] = {}
+    for p in preds:
+        by_frame.setdefault(p.im_id, []).append(p)
+    for i in range(len(dataset)):
+        item = dataset[i]
+        im_id = int(item["im_id"])
+        gts = [g for g in gt_instances(scene, im_id, dataset.classes.class_of_obj)
+               if names[g.label] not in cfg.ignore_classes and counted(g, cfg)]
+        if not gts:
+            continue
+        st = model.stage_boxes(item["image"])
+        gt_boxes = torch.tensor(np.array([g.box_xyxy for g in gts]), dtype=torch.float32)
+        near_anchor = (box_iou(gt_boxes, st["anchors"].float().cpu()) >= cfg.iou_thresh).any(1)
+        near_prop = box_iou(gt_boxes, st["proposals"].float().cpu()) >= cfg.iou_thresh
+        probs = st["proposal_probs"].cpu()
+        dets = [p for p in by_frame.get(im_id, []) if p.score >= score_thresh]
+        for j, g in enumerate(gts):
+            col = model_col.get(names[g.label])
+            head = bool(col is not None and (near_prop[j] & (probs[:, col] >= score_thresh)).any())
+            same = [p.box_xyxy for p in dets if p.label == g.label]
+            det = bool(same) and bool((box_iou(gt_boxes[j:j + 1], torch.tensor(np.array(same), dtype=torch.float32))
+                                       >= cfg.iou_thresh).any())
+            found.setdefault(g.label, []).append([bool(near_anchor[j]), bool(near_prop[j].any()), head, det])
+    out = {}
+    for label, rows in sorted(found.items()):
+        frac = np.mean(np.array(rows, float), axis=0)
+        out[names[label]] = {"n": len(rows), **{k: float(v) for k, v in zip(STAGES, frac, strict=True)}}
+    return out
+
+
 def evaluate(model: MaskRCNNPose, scene_dir: Path, ids: list[int], models_dir: Path, score_thresh: float = 0.5,
              cfg: PoseEvalConfig | None = None) -> dict:
     """Score ``model`` on frames ``ids`` of a BOP scene with the rules of ``cadalign eval pose``.
 
     Returns:
         the :func:`evaluate_scene` report without its per-match rows, plus ``summary`` (:func:`summary`),
-        ``frames``, ``ids``, ``seconds_per_frame`` and ``score_thresh``.
+        ``stage_recall`` (:func:`stage_recall`), ``frames``, ``ids``, ``seconds_per_frame`` and ``score_thresh``.
     """
+    cfg = cfg or PoseEvalConfig()
     dataset = DetectionPoseDataset(scene_dir, ids)
     t0 = time.perf_counter()
     preds = predict(model, dataset, score_thresh)
     seconds = (time.perf_counter() - t0) / max(len(ids), 1)
     report = evaluate_scene(preds, scene_dir, load_bop_models(models_dir), dataset.classes.names,
-                            dataset.classes.class_of_obj, cfg or PoseEvalConfig(), list(ids))
+                            dataset.classes.class_of_obj, cfg, list(ids))
     report.pop("matches")
-    return {**report, "summary": summary(report), "frames": len(ids), "ids": list(ids),
+    stages = stage_recall(model, dataset, preds, score_thresh, cfg)
+    return {**report, "summary": summary(report), "stage_recall": stages, "frames": len(ids), "ids": list(ids),
             "seconds_per_frame": seconds, "score_thresh": score_thresh}

@@ -102,6 +102,23 @@ def test_jittered_gt_copies_spread_as_asked_and_train_as_their_box():
     assert (iou[pos] >= 0.5).all() and (iou[~pos] < 0.5).all()
 
 
+def test_stage_boxes_are_the_networks_in_image_pixels():
+    torch.manual_seed(1)
+    model = MaskRCNNPose(tiny_cfg(), ["background", "square", "bar"]).eval()
+    img, _ = tiny_scene(1)
+    st = model.stage_boxes(img)
+    feats = model._features(img[None])
+    proposals, _ = model.rpn(feats, (48, 64))
+    assert torch.equal(st["anchors"], model.rpn.anchors(feats)) and torch.equal(st["proposals"], proposals[0])
+    assert st["proposal_probs"].shape == (len(proposals[0]), 3)
+    assert torch.allclose(st["proposal_probs"].sum(1), torch.ones(len(proposals[0])))
+    # an image twice the network's size: the same network boxes, in that image's pixels
+    big = torch.nn.functional.interpolate(img[None], scale_factor=2, mode="bilinear", align_corners=False)[0]
+    st2 = model.stage_boxes(big)
+    assert torch.equal(st2["anchors"], 2 * st["anchors"])
+    assert not model.training
+
+
 def test_eval_outputs_and_detect_interface():
     torch.manual_seed(1)
     model = MaskRCNNPose(tiny_cfg(), ["background", "square", "bar"]).eval()
@@ -158,6 +175,9 @@ def test_cli_train_pose_end_to_end_resume_and_load(pose_bop: Path, tmp_path: Pat
     assert rows[-1]["step"] == 4 and {"mask", "pose_rot", "pose_trans"} <= set(rows[-1])
     report = json.loads((out / "eval_heldout.json").read_text())
     assert report["frames"] == len(report["ids"]) >= 1 and 0 <= report["summary"]["f1"] <= 1
+    assert report["stage_recall"] and "structure" not in report["stage_recall"]
+    for st in report["stage_recall"].values():
+        assert st["n"] >= 1 and all(0 <= st[k] <= 1 for k in ("anchor", "proposal", "head", "detection"))
     # resume extends the run; the same folder with another parameterisation is refused
     res = _train_tiny(pose_bop, out, ["--resume", "--steps", "6"])
     assert res.exit_code == 0, res.output

@@ -263,6 +263,38 @@ class MaskRCNNPose(nn.Module):
         self.last_timings = {"detector": t1 - t0, "mask": t2 - t1 + time.perf_counter() - t3, "pose": t3 - t2}
         return out
 
+    def _net_input(self, image: Tensor) -> Tensor:
+        """``(1, 3, h, w)`` float32 on the model's device: ``image`` (3, H, W) resized to ``cfg.input_hw``."""
+        x = image.to(self.mean.device, torch.float32)[None]
+        if tuple(image.shape[-2:]) != tuple(self.cfg.input_hw):
+            x = F.interpolate(x, size=tuple(self.cfg.input_hw), mode="bilinear", align_corners=False, antialias=True)
+        return x
+
+    @torch.no_grad()
+    def stage_boxes(self, image: Tensor) -> dict[str, Tensor]:
+        """The first stages' boxes on one image, to tell where a part is lost (see
+        :func:`cadalign.train.pose_eval.stage_recall`).
+
+        Args:
+            image: (3, H, W) float in [0, 1], any size (resized to ``cfg.input_hw`` as :meth:`detect` does).
+
+        Returns:
+            ``anchors`` (A, 4) of every pyramid level, ``proposals`` (P, 4) the RPN keeps at inference and
+            ``proposal_probs`` (P, C) the box head's class probabilities of each, boxes in ``image`` pixels.
+        """
+        was_training = self.training
+        self.eval()
+        x = self._net_input(image)
+        (h0, w0), (h, w) = image.shape[-2:], self.cfg.input_hw
+        feats = self._features(x)
+        proposals, _ = self.rpn(feats, (h, w))
+        logits, _ = self._box_logits(feats, rois_with_batch(proposals))
+        anchors = self.rpn.anchors(feats)
+        self.train(was_training)
+        back = torch.tensor([w0 / w, h0 / h, w0 / w, h0 / h], device=x.device)
+        return {"anchors": anchors * back, "proposals": proposals[0] * back,
+                "proposal_probs": torch.softmax(logits.float(), -1)}
+
     @torch.no_grad()
     def detect(self, image: Tensor, K: Tensor, score_thresh: float = 0.5) -> list[Detection]:
         """Detections with masks and poses on one image.
@@ -283,9 +315,7 @@ class MaskRCNNPose(nn.Module):
         dev = self.mean.device
         h0, w0 = image.shape[-2:]
         h, w = self.cfg.input_hw
-        x = image.to(dev, torch.float32)[None]
-        if (h0, w0) != (h, w):
-            x = F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
+        x = self._net_input(image)
         scale = torch.tensor([w / w0, h / h0, 1.0], dtype=torch.float32, device=dev)
         K_net = scale[:, None] * K.to(dev, torch.float32)
         t0 = time.perf_counter()

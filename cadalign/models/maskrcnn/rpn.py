@@ -90,13 +90,20 @@ class RPN(nn.Module):
             t = F.relu(self.conv(f))
             logits.append(flatten_level(self.cls(t), 1).squeeze(-1))
             deltas.append(flatten_level(self.box(t), 4))
-            sizes = [size * k for k in self.s.scales]
-            anchors.append(grid_anchors(tuple(f.shape[-2:]), stride, sizes, self.s.ratios, f.device))
+            anchors.append(self._level_anchors(f, stride, size))
             counts.append(anchors[-1].shape[0])
         logit, delta, anc = torch.cat(logits, 1), torch.cat(deltas, 1), torch.cat(anchors, 0)
         proposals = self._proposals(logit.detach(), delta.detach(), anc, counts, image_hw)
         losses = {} if gt_boxes is None else self._losses(logit, delta, anc, gt_boxes)
         return proposals, losses
+
+    def _level_anchors(self, f: Tensor, stride: int, size: float) -> Tensor:
+        return grid_anchors(tuple(f.shape[-2:]), stride, [size * k for k in self.s.scales], self.s.ratios, f.device)
+
+    def anchors(self, feats: list[Tensor]) -> Tensor:
+        """``(A, 4)`` the anchors of every level of ``feats``, in the order of the RPN's outputs."""
+        return torch.cat([self._level_anchors(f, stride, size)
+                          for f, stride, size in zip(feats, self.s.strides, self.s.sizes, strict=True)])
 
     def _proposals(self, logit: Tensor, delta: Tensor, anchors: Tensor, counts: list[int],
                    image_hw: tuple[int, int]) -> list[Tensor]:
