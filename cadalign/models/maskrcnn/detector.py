@@ -84,7 +84,10 @@ class MaskRCNNConfig:
     """Largest fraction of positive RoIs in a sample."""
     roi_jitter: int = bounded(0, ge=0)
     """Randomly moved copies of each ground-truth box added to the training RoI candidates (0 = only the box
-    itself, as Mask R-CNN): the heads of small parts then train on RoIs as far off as the proposals they score."""
+    itself, as Mask R-CNN): the heads of small parts then train on RoIs as far off as the proposals they score.
+    Neutral on the default orbit (training/pose_fast_zoom_improved.toml, 4200 steps, ``infer --preset accurate``,
+    33 held-out frames; valve / hot stab F1 of seeds 0 and 1): 4 copies at sigma 0.15 gave 0.866 / 0.378 and
+    0.828 / 0.358 against 0.817 / 0.367 and 0.838 / 0.386 without, at 4-5 % more CPU per step."""
     roi_jitter_sigma: float = bounded(0.1, ge=0)
     """Spread of those copies: centre shift and log-size change, as a fraction of the box's side."""
     box_context: float = bounded(1.0, ge=1)
