@@ -65,6 +65,10 @@ class _BopDataset(Dataset):
     def __len__(self) -> int:
         return len(self.ids)
 
+    def image(self, i: int) -> torch.Tensor:
+        """``(3, H, W)`` float in [0, 1]: item ``i``'s image alone (no targets read)."""
+        return _image(self.scene, self.ids[i])
+
 
 class SegmentationDataset(_BopDataset):
     """``{"image": (3,H,W) float, "label": (H,W) int64 class index, "im_id": int}``."""

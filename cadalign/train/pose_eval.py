@@ -83,26 +83,27 @@ def stage_recall(model: MaskRCNNPose, dataset: DetectionPoseDataset, preds: list
     by_frame: dict[int, list[PosePrediction]] = {}
     for p in preds:
         by_frame.setdefault(p.im_id, []).append(p)
-    for i in range(len(dataset)):
-        item = dataset[i]
-        im_id = int(item["im_id"])
+    for i, im_id in enumerate(dataset.ids):
         gts = [g for g in gt_instances(scene, im_id, dataset.classes.class_of_obj)
                if names[g.label] not in cfg.ignore_classes and counted(g, cfg)]
         if not gts:
             continue
-        st = model.stage_boxes(item["image"])
+        st = model.stage_boxes(dataset.image(i))
         gt_boxes = torch.tensor(np.array([g.box_xyxy for g in gts]), dtype=torch.float32)
+        gt_labels = torch.tensor([g.label for g in gts])
         near_anchor = (box_iou(gt_boxes, st["anchors"].float().cpu()) >= cfg.iou_thresh).any(1)
         near_prop = box_iou(gt_boxes, st["proposals"].float().cpu()) >= cfg.iou_thresh
         probs = st["proposal_probs"].cpu()
         dets = [p for p in by_frame.get(im_id, []) if p.score >= score_thresh]
+        det_boxes = torch.tensor(np.array([p.box_xyxy for p in dets]).reshape(-1, 4), dtype=torch.float32)
+        det_labels = torch.tensor([p.label for p in dets], dtype=torch.int64)
+        near_det = ((box_iou(gt_boxes, det_boxes) >= cfg.iou_thresh)
+                    & (gt_labels[:, None] == det_labels[None, :])).any(1)
         for j, g in enumerate(gts):
             col = model_col.get(names[g.label])
             head = bool(col is not None and (near_prop[j] & (probs[:, col] >= score_thresh)).any())
-            same = [p.box_xyxy for p in dets if p.label == g.label]
-            det = bool(same) and bool((box_iou(gt_boxes[j:j + 1], torch.tensor(np.array(same), dtype=torch.float32))
-                                       >= cfg.iou_thresh).any())
-            found.setdefault(g.label, []).append([bool(near_anchor[j]), bool(near_prop[j].any()), head, det])
+            found.setdefault(g.label, []).append([bool(near_anchor[j]), bool(near_prop[j].any()), head,
+                                                  bool(near_det[j])])
     out = {}
     for label, rows in sorted(found.items()):
         frac = np.mean(np.array(rows, float), axis=0)

@@ -208,6 +208,13 @@ class MaskRCNNPose(nn.Module):
             losses.update(pose_loss(self._pose_rois(raw, pos, targets)))
         return losses
 
+    def _box_stage(self, images: Tensor) -> tuple[list[Tensor], list[Tensor], Tensor, Tensor]:
+        """Inference up to the box head: pyramid features, proposals per image, class logits and deltas."""
+        feats = self._features(images)
+        proposals, _ = self.rpn(feats, (images.shape[-2], images.shape[-1]))
+        logits, deltas = self._box_logits(feats, rois_with_batch(proposals))
+        return feats, proposals, logits, deltas
+
     @property
     def _context(self) -> bool:
         return self.cfg.box_context != 1.0 or self.cfg.box_context_px > 0
@@ -241,10 +248,8 @@ class MaskRCNNPose(nn.Module):
         normalised camera coordinates); None stands for ``fx = W, fy = H`` and the principal point at the image
         centre. Seconds per stage (detector, mask, pose) are left in ``self.last_timings``."""
         t0 = time.perf_counter()
-        feats = self._features(images)
         hw = (images.shape[-2], images.shape[-1])
-        proposals, _ = self.rpn(feats, hw)
-        logits, deltas = self._box_logits(feats, rois_with_batch(proposals))
+        feats, proposals, logits, deltas = self._box_stage(images)
         dets = postprocess(logits, deltas, proposals, hw, score_thresh, self.cfg.box_nms_thresh,
                            self.cfg.detections_per_image)
         boxes = [b for b, _, _ in dets]
@@ -293,9 +298,7 @@ class MaskRCNNPose(nn.Module):
         self.eval()
         x = self._net_input(image)
         (h0, w0), (h, w) = image.shape[-2:], self.cfg.input_hw
-        feats = self._features(x)
-        proposals, _ = self.rpn(feats, (h, w))
-        logits, _ = self._box_logits(feats, rois_with_batch(proposals))
+        feats, proposals, logits, _ = self._box_stage(x)
         anchors = self.rpn.anchors(feats)
         self.train(was_training)
         back = torch.tensor([w0 / w, h0 / h, w0 / w, h0 / h], device=x.device)
