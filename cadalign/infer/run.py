@@ -28,6 +28,7 @@ from cadalign.cad.model import CadModel
 from cadalign.data import image_prep
 from cadalign.errors import InputError
 from cadalign.eval.pose_eval import CroppedMask, PoseEvalConfig
+from cadalign.infer.complete import TrackCompleter
 from cadalign.infer.detect import Detector, frame_ids, models_dir_of
 from cadalign.infer.model_geom import draw_wireframe
 from cadalign.infer.pipeline import InferConfig, PosePipeline, PoseRecord
@@ -173,6 +174,8 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
     frames = iter_frames(source, max_frames=max_frames)
     all_records: list[PoseRecord] = []
     names: list[str] = []
+    shapes: dict[str, tuple[int, int]] = {}
+    keep_masks = gt_scene is not None or cfg.complete.enabled
     times: dict[str, list[float]] = {}
     writer = None
     video_ctx = atomic_path(out_dir / "overlay.mp4") if cfg.overlay else contextlib.nullcontext(None)
@@ -200,18 +203,54 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
                     t["overlay"] = time.perf_counter() - t0
                 for k, v in t.items():
                     times.setdefault(k, []).append(v)
-                # kept for the evaluation: masks only with ground truth, and cropped to their box
-                all_records.extend(replace(r, mask=CroppedMask.of(r.mask) if gt_scene is not None and r.mask is not None
+                # kept for the evaluation and completion: masks only with either, and cropped to their box
+                all_records.extend(replace(r, mask=CroppedMask.of(r.mask) if keep_masks and r.mask is not None
                                            else None) for r in records)
                 names.append(vf.name)
+                shapes[vf.name] = vf.image.shape[:2]
         if writer is not None:
             writer.close()
+        final = all_records
+        if cfg.complete.enabled:
+            t0 = time.perf_counter()
+            final, summary = _complete(cfg, pipeline, all_records, source, calib, depth, prep, max_frames, progress)
+            times["complete"] = [time.perf_counter() - t0]
+            if summary is not None:
+                with open(tmp_poses, "w", encoding="utf-8") as fh:
+                    for r in final:
+                        mask = r.mask.full(shapes[r.frame_name]) if isinstance(r.mask, CroppedMask) else r.mask
+                        fh.write(json.dumps(replace(r, mask=mask).to_json()) + "\n")
     write_json(out_dir / "frames.json", names)
-    write_json(out_dir / "timings.json", _timing_summary(times, len(names), len(all_records), detector_info))
-    log.info("infer: %d frames, %d poses -> %s", len(names), len(all_records), poses_path)
+    write_json(out_dir / "timings.json", _timing_summary(times, len(names), len(final), detector_info))
+    log.info("infer: %d frames, %d poses -> %s", len(names), len(final), poses_path)
     if gt_scene is not None:
-        evaluate_run(all_records, names, gt_scene, out_dir)
+        evaluate_run(all_records, names, gt_scene, out_dir, fused=final)
     return poses_path
+
+
+def _complete(cfg: InferConfig, pipeline: PosePipeline, records: list[PoseRecord], source: Path, calib: Calibration,
+              depth: _DepthSource, prep: dict, max_frames: int | None, progress: Progress | None
+              ) -> tuple[list[PoseRecord], dict | None]:
+    """The completion pass (:mod:`cadalign.infer.complete`) over the frames again: the records it reports and its
+    summary; the records unchanged and None when the video has no camera poses or no depth."""
+    if not calib.T_world_from_cam_of or (depth.scene is None and not depth.predicted):
+        log.warning("infer: track completion needs the frames' camera poses and depth (--depth); %s, so the "
+                    "records stay as detected", "no camera poses" if not calib.T_world_from_cam_of else "no depth")
+        return records, None
+    completer = TrackCompleter(cfg.complete, pipeline.world_tracks(), records, pipeline.geometry)
+    if completer.tracks:
+        frames = iter_frames(source, max_frames=max_frames)
+        for vf in progress(frames, "complete", max_frames) if progress else frames:
+            T_wc = calib.T_world_from_cam_of.get(vf.name)
+            if T_wc is None:
+                continue
+            K = calib.K(vf.name)
+            prepared = image_prep.apply(vf.image, prep) if depth.predicted else vf.image
+            completer.frame(vf.index, vf.name, K, T_wc, depth.get(vf.name, vf.image, prepared, K))
+    final, summary = completer.result()
+    log.info("infer: track completion: %d tracks, %d not trusted, added %s, dropped %d detections of short tracks",
+             summary["tracks"], summary["untrusted"], summary["added"] or "nothing", summary["dropped"])
+    return final, summary
 
 
 def resolve_prep(enhance: str, detector_info: dict) -> dict:
@@ -256,21 +295,29 @@ def _timing_summary(times: dict[str, list[float]], n_frames: int, n_poses: int, 
     summary = {"detector": ms("detector") - head, "pose": head + ms("identify"), "refinement": ms("refinement")}
     if "depth_net" in times:
         summary["depth_net"] = ms("depth_net")
+    # the completion pass runs once after the video: its share per frame
+    complete = float(np.sum(times.get("complete", []))) / n_frames if n_frames else 0.0
+    if "complete" in times:
+        summary["complete"] = 1e3 * complete
+    mean = float(per_frame.mean()) + complete if len(per_frame) else 0.0
     return {"detector": detector_info, "frames": n_frames, "poses": n_poses, "stages": per_stage,
             "stages_ms": summary,
-            "pipeline_ms_per_frame": 1e3 * float(per_frame.mean()) if len(per_frame) else None,
-            "pipeline_fps": float(1.0 / per_frame.mean()) if len(per_frame) and per_frame.mean() > 0 else None,
+            "pipeline_ms_per_frame": 1e3 * mean if len(per_frame) else None,
+            "pipeline_fps": 1.0 / mean if len(per_frame) and mean > 0 else None,
             "note": "stages_ms: detector (network without its pose head), pose (pose head + CAD model "
-                    "identification), refinement (and depth_net, a depth network's prediction); pipeline = "
-                    "depth_net + detector + identify + refinement + temporal, wall clock; pipeline_cpu = process "
-                    "CPU time of the same; overlay apart"}
+                    "identification), refinement (and depth_net, a depth network's prediction; complete, the "
+                    "track completion pass's time over the frames); pipeline = depth_net + detector + identify + "
+                    "refinement + temporal (+ complete), wall clock; pipeline_cpu = process CPU time of the "
+                    "per-frame stages; overlay apart"}
 
 
 def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, out_dir: Path | None,
-                 eval_cfg: PoseEvalConfig | None = None) -> dict:
+                 eval_cfg: PoseEvalConfig | None = None, fused: list[PoseRecord] | None = None) -> dict:
     """Evaluate the detector's, the refined and the fused poses against a BOP scene (eval.json/eval.md).
 
-    ``eval_cfg`` defaults to :class:`~cadalign.eval.pose_eval.PoseEvalConfig` () (BOP's rules)."""
+    ``fused``: the records the fused section scores (after track completion), ``records`` by default; the other
+    sections score ``records`` (the detections). ``eval_cfg`` defaults to
+    :class:`~cadalign.eval.pose_eval.PoseEvalConfig` () (BOP's rules)."""
     from cadalign.data.torch_datasets import load_class_map
     from cadalign.eval.pose_eval import PosePrediction, evaluate_scene, load_bop_models, table_markdown
     from cadalign.eval.pose_symmetry import warn_undeclared
@@ -289,8 +336,9 @@ def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, ou
                          f"{names[:2]}); pass the simulation the video came from")
     reports, md = {}, []
     for which, attr in (("detector", "T_detector"), ("refined", "T_refined"), ("fused", "T_cam_from_obj")):
+        recs = fused if which == "fused" and fused is not None else records
         preds = [PosePrediction(ids[r.frame_name], label_of.get(r.class_name, -1), r.score, r.box_xyxy,
-                                getattr(r, attr), r.obj_id, r.mask) for r in records if r.frame_name in ids]
+                                getattr(r, attr), r.obj_id, r.mask) for r in recs if r.frame_name in ids]
         rep = evaluate_scene(preds, gt_scene, models, cmap.names, cmap.class_of_obj, cfg, im_ids)
         if which != "fused":
             rep.pop("matches")
@@ -323,7 +371,8 @@ def read_poses(path: Path) -> list[PoseRecord]:
                 Rigid3.from_matrix(np.asarray(d.get("T_cam_from_obj_detector", d["T_cam_from_obj"]))),
                 Rigid3.from_matrix(np.asarray(d.get("T_cam_from_obj_refined", d["T_cam_from_obj"]))),
                 dict(d.get("refine_iters") or {}),
-                CroppedMask.of(rle_to_mask(d["mask_rle"])) if d.get("mask_rle") else None))
+                CroppedMask.of(rle_to_mask(d["mask_rle"])) if d.get("mask_rle") else None,
+                str(d.get("source", "detector"))))
         except (KeyError, ValueError, TypeError) as exc:
             raise InputError(f"{path}, line {i + 1}: not a cadalign pose record ({exc})") from exc
     return out

@@ -1,0 +1,250 @@
+"""Track completion (cadalign.infer.complete): visibility from depth, the completion pass, and ``infer`` end to end
+with a detector that misses a part in one frame."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from cadalign.cad.model import CadModel
+from cadalign.eval.pose_eval import CroppedMask
+from cadalign.infer.complete import CompleteConfig, TrackCompleter, WorldTrack, project_visible
+from cadalign.infer.model_geom import ModelGeometry, render_depth
+from cadalign.types import Rigid3
+
+K = np.array([[100.0, 0, 80], [0, 100.0, 60], [0, 0, 1]])
+SHAPE = (120, 160)
+
+
+@pytest.fixture(scope="module")
+def cube() -> ModelGeometry:
+    m = trimesh.creation.box(extents=(0.4, 0.4, 0.4))
+    return ModelGeometry.from_cad(CadModel("cube", np.asarray(m.vertices), np.asarray(m.faces)), 500)
+
+
+def _at(z: float, x: float = 0.0) -> Rigid3:
+    return Rigid3(np.eye(3), np.array([x, 0.0, z]))
+
+
+def _far() -> np.ndarray:
+    return np.full(SHAPE, 50.0)
+
+
+def test_an_unoccluded_part_is_seen_whole(cube: ModelGeometry) -> None:
+    p = project_visible(cube, _at(4.0), K, _far(), CompleteConfig())
+    sil = np.isfinite(render_depth(cube, _at(4.0), K, SHAPE))
+    rows, cols = np.flatnonzero(sil.any(1)), np.flatnonzero(sil.any(0))
+    assert p is not None
+    np.testing.assert_array_equal(p.box_xyxy, [cols[0], rows[0], cols[-1] + 1, rows[-1] + 1])
+    np.testing.assert_array_equal(p.mask.full(SHAPE), sil)
+    assert np.array_equal(p.T_cam_from_obj.matrix(), _at(4.0).matrix())
+
+
+def test_occlusion_hides_and_crops_the_part(cube: ModelGeometry) -> None:
+    cfg = CompleteConfig(min_visible=0.3)
+    wall = np.full(SHAPE, 2.0)  # a wall in front of the whole part
+    assert project_visible(cube, _at(4.0), K, wall, cfg) is None
+    half = _far()
+    half[:, :80] = 2.0  # the left half of the image is behind a nearer surface
+    p = project_visible(cube, _at(4.0), K, half, cfg)
+    assert p is not None and p.box_xyxy[0] == 80
+    full = project_visible(cube, _at(4.0), K, _far(), cfg)
+    assert p.box_xyxy[2] == full.box_xyxy[2]
+    # the part seen through its own surface: observed depth 1 cm short of the model, within the tolerance
+    z = render_depth(cube, _at(4.0), K, SHAPE)
+    surface = np.where(np.isfinite(z), z - 0.01, 50.0)
+    assert project_visible(cube, _at(4.0), K, surface, cfg) is not None
+    assert project_visible(cube, _at(4.0), K, surface, replace(cfg, depth_tol_m=0.0)) is None
+    # a relative tolerance lets a depth 5 % short pass
+    short = np.where(np.isfinite(z), z * 0.95, 50.0)
+    assert project_visible(cube, _at(4.0), K, short, cfg) is None
+    assert project_visible(cube, _at(4.0), K, short, replace(cfg, depth_tol_rel=0.1)) is not None
+    # needing more of the part in sight than half
+    assert project_visible(cube, _at(4.0), K, half, replace(cfg, min_visible=0.9)) is None
+
+
+@pytest.mark.parametrize("bad", [np.nan, 0.0, -1.0, np.inf])
+def test_no_valid_depth_shows_nothing(cube: ModelGeometry, bad: float) -> None:
+    assert project_visible(cube, _at(4.0), K, np.full(SHAPE, bad), CompleteConfig()) is None
+
+
+@pytest.mark.parametrize("T", [_at(-4.0), _at(0.1), _at(4.0, x=20.0)])
+def test_behind_at_or_beside_the_camera_is_not_in_view(cube: ModelGeometry, T: Rigid3) -> None:
+    assert project_visible(cube, T, K, _far(), CompleteConfig()) is None
+
+
+@dataclass(frozen=True)
+class _Rec:
+    frame: int
+    frame_name: str
+    track_id: int
+    label: int
+    score: float
+    box_xyxy: np.ndarray
+    T_cam_from_obj: Rigid3
+    T_detector: Rigid3 = field(default_factory=Rigid3.identity)
+    T_refined: Rigid3 = field(default_factory=Rigid3.identity)
+    class_name: str = "valve"
+    refine_iters: dict = field(default_factory=dict)
+    mask: object = None
+    source: str = "detector"
+
+
+def _cams(n: int) -> list[Rigid3]:
+    """``T_world_from_cam`` of a camera sliding along x (the part, at the world origin, drifts left in the image)."""
+    return [Rigid3(np.eye(3), np.array([0.1 * i, 0.0, -4.0])) for i in range(n)]
+
+
+def _video(cube: ModelGeometry, seen: dict[int, list[int]], shift_px: float = 0.0) -> tuple[list[_Rec], list[Rigid3]]:
+    """Records of tracks (id -> frames detected) of parts at x = 0 (track 0) and x = 1 m (others), boxes exact
+    (plus ``shift_px``)."""
+    cams, recs = _cams(5), []
+    for tid, frames in seen.items():
+        T_wo = _at(0.0, x=0.0 if tid == 0 else 1.0)
+        for f in frames:
+            T = cams[f].inverse() @ T_wo
+            p = project_visible(cube, T, K, _far(), CompleteConfig())
+            recs.append(_Rec(f, f"{f:06d}.png", tid, 2, 0.5 + 0.1 * f, p.box_xyxy + shift_px, T))
+    return recs, cams
+
+
+def _complete(cube, recs, cams, tracks, cfg=None, depth=None):
+    c = TrackCompleter(cfg or CompleteConfig(), tracks, recs, lambda oid: cube)
+    for i, T in enumerate(cams):
+        c.frame(i, f"{i:06d}.png", K, T, _far() if depth is None else depth)
+    return c.result()
+
+
+def test_a_missed_frame_is_completed_with_the_world_pose(cube: ModelGeometry) -> None:
+    recs, cams = _video(cube, {0: [0, 1, 3, 4]})
+    T_wo = _at(0.0)
+    out, summary = _complete(cube, recs, cams, [WorldTrack(0, 2, 7, T_wo)])
+    added = [r for r in out if r.source == "track"]
+    assert len(added) == 1 and added[0].frame == 2 and added[0].frame_name == "000002.png"
+    T = cams[2].inverse() @ T_wo
+    assert np.allclose(added[0].T_cam_from_obj.t, T.t) and np.allclose(added[0].T_cam_from_obj.R, T.R)
+    assert added[0].score == pytest.approx(np.median([0.5, 0.6, 0.8, 0.9]))
+    assert isinstance(added[0].mask, CroppedMask) and added[0].refine_iters == {}
+    assert [r.frame for r in out] == [0, 1, 2, 3, 4]
+    assert summary == {"tracks": 1, "untrusted": 0, "added": {"valve": 1}, "dropped": 0}
+
+
+def test_short_tracks_are_dropped_and_not_completed(cube: ModelGeometry) -> None:
+    recs, cams = _video(cube, {0: [0, 1, 2, 3], 1: [4]})
+    tracks = [WorldTrack(0, 2, 7, _at(0.0)), WorldTrack(1, 2, 7, _at(0.0, x=1.0))]
+    out, summary = _complete(cube, recs, cams, tracks)
+    assert {r.track_id for r in out} == {0} and summary["dropped"] == 1
+    assert [r.frame for r in out if r.source == "track"] == [4]
+    kept, _ = _complete(cube, recs, cams, tracks, CompleteConfig(drop_short=False))
+    assert sum(r.track_id == 1 for r in kept) == 1
+
+
+def test_a_track_its_detections_disagree_with_is_not_completed(cube: ModelGeometry) -> None:
+    recs, cams = _video(cube, {0: [0, 1, 3, 4]}, shift_px=30.0)  # every detection far from the projection
+    out, summary = _complete(cube, recs, cams, [WorldTrack(0, 2, 7, _at(0.0))])
+    assert summary["untrusted"] == 1 and all(r.source == "detector" for r in out)
+    out, _ = _complete(cube, recs, cams, [WorldTrack(0, 2, 7, _at(0.0))], CompleteConfig(consistency_iou=0.0))
+    assert sum(r.source == "track" for r in out) == 1
+
+
+def test_a_part_already_reported_is_not_added_twice(cube: ModelGeometry) -> None:
+    # track 1 holds the same part as track 0 in frame 2 (fragmented tracks): no completion of track 0 there
+    recs, cams = _video(cube, {0: [0, 1, 3, 4]})
+    T2 = cams[2].inverse() @ _at(0.0)
+    box2 = project_visible(cube, T2, K, _far(), CompleteConfig()).box_xyxy
+    recs.append(_Rec(2, "000002.png", 1, 2, 0.9, box2 + 1.0, T2))
+    out, summary = _complete(cube, recs, cams, [WorldTrack(0, 2, 7, _at(0.0))], CompleteConfig(drop_short=False))
+    assert summary["added"] == {} and len(out) == len(recs)
+    # another class there does not count
+    other = [replace(r, label=3) if r.track_id == 1 else r for r in recs]
+    out, _ = _complete(cube, other, cams, [WorldTrack(0, 2, 7, _at(0.0))], CompleteConfig(drop_short=False))
+    assert sum(r.source == "track" for r in out) == 1
+
+
+def test_frames_without_camera_pose_or_depth_get_nothing(cube: ModelGeometry) -> None:
+    recs, cams = _video(cube, {0: [0, 1, 3, 4]})
+    c = TrackCompleter(CompleteConfig(), [WorldTrack(0, 2, 7, _at(0.0))], recs, lambda oid: cube)
+    for i, T in enumerate(cams):
+        c.frame(i, f"{i:06d}.png", K, None if i == 2 else T, _far())
+    assert all(r.source == "detector" for r in c.result()[0])
+    out, _ = _complete(cube, recs, cams, [WorldTrack(0, 2, 7, _at(0.0))], depth=np.full(SHAPE, np.nan))
+    assert all(r.source == "detector" for r in out)  # no depth: not trusted, nothing added
+
+
+class _Misses:
+    """The oracle detector, missing the hot stab in one frame."""
+
+    name = "oracle"
+
+    def __init__(self, scene: Path, frame: str) -> None:
+        from cadalign.infer.detect import OracleConfig, OracleDetector
+
+        self.inner, self.frame, self.current = OracleDetector(scene, OracleConfig()), frame, None
+
+    def for_frame(self, name: str) -> None:
+        self.inner.for_frame(name)
+        self.current = name
+
+    def detect(self, image: np.ndarray, K: np.ndarray) -> list:
+        dets = self.inner.detect(image, K)
+        names = self.inner.classes.names
+        return [d for d in dets if self.current != self.frame or names[int(d.label)] != "hot_stab"]
+
+
+def test_infer_completes_a_missed_part(tiny_sim: Path, tiny_structure, tmp_path: Path) -> None:
+    from cadalign.infer.detect import resolve_scene_dir
+    from cadalign.infer.pipeline import InferConfig
+    from cadalign.infer.run import calibration_from_scene, read_poses, run
+    from cadalign.io import read_json
+
+    scene = resolve_scene_dir(tiny_sim)
+    frames = sorted(p.name for p in (tiny_sim / "frames").iterdir())
+    det = _Misses(scene, frames[2])
+    cfg = replace(InferConfig(), complete=CompleteConfig(enabled=True), overlay=False)
+    out = tmp_path / "out"
+    run(cfg, tiny_sim / "frames", det, tiny_structure.models, det.inner.classes.names, out,
+        calib=calibration_from_scene(scene), detector_info={"kind": "test"}, depth_scene=scene, gt_scene=scene)
+    recs = read_poses(out / "poses.jsonl")
+    added = [r for r in recs if r.source == "track"]
+    assert len(added) == 1 and added[0].frame_name == frames[2] and added[0].class_name == "hot_stab"
+    assert added[0].mask is not None
+    lines = [json.loads(x) for x in (out / "poses.jsonl").read_text().splitlines()]
+    assert [x["source"] for x in lines].count("track") == 1
+    ev = read_json(out / "eval.json")
+    assert ev["detector"]["per_class"]["hot_stab"]["detection"]["fn"] == 1  # the network's miss stays on record
+    assert ev["fused"]["per_class"]["hot_stab"]["detection"]["f1"] == 1.0  # completion fills it
+    assert ev["fused"]["per_class"]["hot_stab"]["t_err_m"]["mean"] < 0.02
+    t = read_json(out / "timings.json")
+    assert t["poses"] == len(recs) and t["stages_ms"]["complete"] > 0
+    per_frame = sum(t["stages"][k]["mean_ms"] for k in ("detector", "identify", "refinement", "temporal"))
+    assert t["pipeline_ms_per_frame"] == pytest.approx(per_frame + t["stages_ms"]["complete"])
+
+
+def test_infer_without_depth_leaves_the_records(tiny_sim: Path, tiny_structure, tmp_path: Path,
+                                                caplog: pytest.LogCaptureFixture) -> None:
+    from cadalign.infer.detect import resolve_scene_dir
+    from cadalign.infer.pipeline import InferConfig
+    from cadalign.infer.run import calibration_from_scene, read_poses, run
+
+    scene = resolve_scene_dir(tiny_sim)
+    frames = sorted(p.name for p in (tiny_sim / "frames").iterdir())
+    det = _Misses(scene, frames[2])
+    cfg = replace(InferConfig(), complete=CompleteConfig(enabled=True), overlay=False)
+    run(cfg, tiny_sim / "frames", det, tiny_structure.models, det.inner.classes.names, tmp_path / "out",
+        calib=calibration_from_scene(scene), detector_info={"kind": "test"})
+    assert all(r.source == "detector" for r in read_poses(tmp_path / "out" / "poses.jsonl"))
+    assert "track completion needs" in caplog.text
+
+
+def test_min_detected_needs_the_part_detected_in_that_share_of_its_views(cube: ModelGeometry) -> None:
+    recs, cams = _video(cube, {0: [0, 1, 3, 4]})  # in sight in 5 frames, detected in 4
+    track = [WorldTrack(0, 2, 7, _at(0.0))]
+    out, _ = _complete(cube, recs, cams, track, CompleteConfig(min_detected=0.8))
+    assert sum(r.source == "track" for r in out) == 1
+    out, summary = _complete(cube, recs, cams, track, CompleteConfig(min_detected=0.81))
+    assert summary["untrusted"] == 1 and all(r.source == "detector" for r in out)
