@@ -3,12 +3,15 @@
 Outputs in ``out_dir``::
 
     poses.jsonl     one JSON object per reported instance and frame (see PoseRecord.to_json); empty when the
-                    video shows no parts
+                    video shows no parts. With track completion (``complete.enabled``) it is written after a
+                    second pass over the frames and holds the completed records (``source``: ``track``) too;
+                    the overlay shows the detections only
     overlay.mp4     the frames with each part's CAD wireframe drawn at its reported pose
     frames.json     the names of the frames processed (readable ones), in order
-    timings.json    seconds per frame per stage (detector / pose / refinement / temporal / overlay), frames/s
+    timings.json    seconds per frame per stage (detector / pose / refinement / temporal / overlay; the completion
+                    pass's share), frames/s
     eval.json, eval.md   with ground truth: detection P/R/F1, Table 4.5, BOP recalls, errors by distance,
-                    for the detector's, the refined and the fused poses
+                    for the detector's, the refined and the fused poses (the fused ones after completion)
     cadalign_stage.json  the resolved config (a different config in the same folder is refused)
 """
 
