@@ -38,7 +38,10 @@ def command(
             console.print(f"[yellow]{frames_json} is missing: every ground-truth frame counts (misses included)[/]")
         out_dir = out or path.parent
         out_dir.mkdir(parents=True, exist_ok=True)
-        reports = evaluate_run(records, names, scene, out_dir, PoseEvalConfig(min_box_side_px=min_box_side_px))
+        # the detector's and refined poses are those of detections; track completion's records count as fused
+        detections = [r for r in records if r.source == "detector"]
+        reports = evaluate_run(detections, names, scene, out_dir, PoseEvalConfig(min_box_side_px=min_box_side_px),
+                               fused=records)
     for which, rep in reports.items():
         o = rep["overall"]
         console.print(f"{which:>9}: F1 {rep['detection']['f1']:.3f}  t_err mean {o['t_err_m']['mean']:.4f} m  "

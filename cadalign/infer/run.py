@@ -4,9 +4,9 @@ Outputs in ``out_dir``::
 
     poses.jsonl     one JSON object per reported instance and frame (see PoseRecord.to_json); empty when the
                     video shows no parts. With track completion (``complete.enabled``) it is written after a
-                    second pass over the frames and holds the completed records (``source``: ``track``) too;
-                    the overlay shows the detections only
-    overlay.mp4     the frames with each part's CAD wireframe drawn at its reported pose
+                    second pass over the frames and holds the completed records (``source``: ``track``) too
+    overlay.mp4     the frames with each part's CAD wireframe drawn at its reported pose (after completion, drawn
+                    again in a last pass)
     frames.json     the names of the frames processed (readable ones), in order
     timings.json    seconds per frame per stage (detector / pose / refinement / temporal / overlay; the completion
                     pass's share), frames/s
@@ -149,7 +149,8 @@ def _draw(image: np.ndarray, records: list[PoseRecord], pipeline: PosePipeline, 
         color = COLORS[r.label % len(COLORS)]
         draw_wireframe(img, pipeline.geometry(r.obj_id), r.T_cam_from_obj, K, color)
         x0, y0 = int(r.box_xyxy[0]), int(r.box_xyxy[1])
-        cv2.putText(img, f"{r.class_name} #{r.track_id} {r.score:.2f}", (x0, max(y0 - 3, 10)),
+        tag = " track" if r.source == "track" else ""
+        cv2.putText(img, f"{r.class_name} #{r.track_id} {r.score:.2f}{tag}", (x0, max(y0 - 3, 10)),
                     cv2.FONT_HERSHEY_SIMPLEX, 0.35, color, 1, cv2.LINE_AA)
     return img
 
@@ -223,12 +224,28 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
                     for r in final:
                         mask = r.mask.full(shapes[r.frame_name]) if isinstance(r.mask, CroppedMask) else r.mask
                         fh.write(json.dumps(replace(r, mask=mask).to_json()) + "\n")
+                if cfg.overlay and writer is not None:
+                    _redraw_overlay(tmp_video, cfg, final, pipeline, source, calib, max_frames)
     write_json(out_dir / "frames.json", names)
     write_json(out_dir / "timings.json", _timing_summary(times, len(names), len(final), detector_info))
     log.info("infer: %d frames, %d poses -> %s", len(names), len(final), poses_path)
     if gt_scene is not None:
         evaluate_run(all_records, names, gt_scene, out_dir, fused=final)
     return poses_path
+
+
+def _redraw_overlay(path: Path, cfg: InferConfig, records: list[PoseRecord], pipeline: PosePipeline, source: Path,
+                    calib: Calibration, max_frames: int | None) -> None:
+    """The overlay video again, from the records after completion (a completed part's label says ``track``)."""
+    by_frame: dict[str, list[PoseRecord]] = {}
+    for r in records:
+        by_frame.setdefault(r.frame_name, []).append(r)
+    writer = _video_writer(path, cfg.overlay_fps)
+    try:
+        for vf in iter_frames(source, max_frames=max_frames):
+            writer.append_data(_draw(vf.image, by_frame.get(vf.name, []), pipeline, calib.K(vf.name)))
+    finally:
+        writer.close()
 
 
 def _complete(cfg: InferConfig, pipeline: PosePipeline, records: list[PoseRecord], source: Path, calib: Calibration,

@@ -7,11 +7,14 @@ import json
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import imageio.v2 as iio
 import numpy as np
 import pytest
 import trimesh
+from typer.testing import CliRunner
 
 from cadalign.cad.model import CadModel
+from cadalign.cli.main import app
 from cadalign.eval.pose_eval import CroppedMask
 from cadalign.infer.complete import CompleteConfig, TrackCompleter, WorldTrack, project_visible
 from cadalign.infer.model_geom import ModelGeometry, render_depth
@@ -200,12 +203,12 @@ def test_infer_completes_a_missed_part(tiny_sim: Path, tiny_structure, tmp_path:
     from cadalign.infer.detect import resolve_scene_dir
     from cadalign.infer.pipeline import InferConfig
     from cadalign.infer.run import calibration_from_scene, read_poses, run
-    from cadalign.io import read_json
+    from cadalign.io import read_image, read_json
 
     scene = resolve_scene_dir(tiny_sim)
     frames = sorted(p.name for p in (tiny_sim / "frames").iterdir())
     det = _Misses(scene, frames[2])
-    cfg = replace(InferConfig(), complete=CompleteConfig(enabled=True), overlay=False)
+    cfg = replace(InferConfig(), complete=CompleteConfig(enabled=True))
     out = tmp_path / "out"
     run(cfg, tiny_sim / "frames", det, tiny_structure.models, det.inner.classes.names, out,
         calib=calibration_from_scene(scene), detector_info={"kind": "test"}, depth_scene=scene, gt_scene=scene)
@@ -223,6 +226,18 @@ def test_infer_completes_a_missed_part(tiny_sim: Path, tiny_structure, tmp_path:
     assert t["poses"] == len(recs) and t["stages_ms"]["complete"] > 0
     per_frame = sum(t["stages"][k]["mean_ms"] for k in ("detector", "identify", "refinement", "temporal"))
     assert t["pipeline_ms_per_frame"] == pytest.approx(per_frame + t["stages_ms"]["complete"])
+    # the overlay is drawn again with the completed part: its wireframe is in the frame the detector missed it in
+    video = iio.mimread(out / "overlay.mp4")
+    raw = read_image(tiny_sim / "frames" / frames[2]).astype(float)
+    x0, y0, x1, y1 = np.round(added[0].box_xyxy).astype(int)
+    assert len(video) == 4
+    assert np.abs(video[2][y0:y1, x0:x1].astype(float) - raw[y0:y1, x0:x1]).mean() > 30  # ~9 undrawn (compression)
+    # eval pose on the folder: the detector's section scores the detections, the fused one the completed records
+    res = CliRunner().invoke(app, ["eval", "pose", str(out), "--gt", str(tiny_sim), "--out", str(tmp_path / "ev")])
+    assert res.exit_code == 0, res.output
+    ev2 = read_json(tmp_path / "ev" / "eval.json")
+    assert ev2["detector"]["per_class"]["hot_stab"]["detection"]["fn"] == 1
+    assert ev2["fused"]["per_class"]["hot_stab"]["detection"]["f1"] == 1.0
 
 
 def test_infer_without_depth_leaves_the_records(tiny_sim: Path, tiny_structure, tmp_path: Path,
