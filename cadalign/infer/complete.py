@@ -13,9 +13,9 @@ plus a tolerance), so parts hidden behind others are not reported. A track is co
 - optionally, it was detected in at least ``min_detected`` of the frames its projection shows in sight.
 
 Completed records carry ``source = "track"``, the track's CAD model, its median detection score and the projected
-pose; a completion overlapping a reported box of its class (``dedup_iou``) is not added (the part is already there,
-often as another track of the same part). With ``drop_short``, detections of tracks shorter than ``min_obs`` are
-dropped from the report.
+pose (with ``smooth``, the track's own detections report that world pose as well); a completion overlapping a
+reported box of its class (``dedup_iou``) is not added (the part is already there, often as another track of the
+same part). With ``drop_short``, detections of tracks shorter than ``min_obs`` are dropped from the report.
 
 Frames without depth (or pixels with no valid depth) show nothing: no completion is made where visibility cannot be
 checked.
@@ -63,6 +63,11 @@ class CompleteConfig:
     lowered hot stab F1 in four (0.627 -> 0.358, 0.712 -> 0.286, 0.663 -> 0.281, 0.405 -> 0.139)."""
     dedup_iou: float = bounded(0.5, gt=0, le=1)
     """A completion whose box overlaps a reported box of its class by at least this is not added."""
+    smooth: bool = True
+    """A completed track's detections report its final world pose too (fused from all its frames, later ones
+    included) instead of the running mean of the frames up to theirs. Default orbit, 33 held-out frames, four
+    ``improved`` networks: fused valve R mean 3.51 -> 3.39, 5.06 -> 4.64, 5.81 -> 5.71, 2.12 -> 0.67 deg; hot stab
+    27.9 -> 27.6, 37.1 -> 27.4, 12.0 -> 11.1, 29.0 -> 28.2 deg; F1 unchanged."""
 
 
 @dataclass(frozen=True)
@@ -144,6 +149,7 @@ class TrackCompleter:
     _by_frame: dict = field(init=False)
     _ious: dict = field(init=False)
     _cands: dict = field(init=False)
+    _cams: dict = field(init=False)
 
     def __post_init__(self) -> None:
         self._n = Counter(r.track_id for r in self.records)
@@ -153,6 +159,7 @@ class TrackCompleter:
         self.tracks = [t for t in self.tracks if self._n[t.track_id] >= self.cfg.min_obs]
         self._ious = defaultdict(list)
         self._cands = defaultdict(list)
+        self._cams = {}
 
     def frame(self, index: int, name: str, K: np.ndarray, T_world_from_cam: Rigid3 | None,
               depth_m: np.ndarray | None) -> None:
@@ -160,6 +167,7 @@ class TrackCompleter:
         if T_world_from_cam is None or depth_m is None:
             return
         T_cam_from_world = T_world_from_cam.inverse()
+        self._cams[name] = T_cam_from_world
         here = self._by_frame.get(name, {})
         for tr in self.tracks:
             proj = project_visible(self.geometry(tr.obj_id), T_cam_from_world @ tr.T_world_from_obj,
@@ -194,6 +202,9 @@ class TrackCompleter:
             if not self.trusted(tr.track_id):
                 untrusted += 1
                 continue
+            if self.cfg.smooth:
+                out = [replace(r, T_cam_from_obj=self._cams[r.frame_name] @ tr.T_world_from_obj)
+                       if r.track_id == tr.track_id and r.frame_name in self._cams else r for r in out]
             ref = template[tr.track_id]
             score = float(np.median([r.score for r in self.records if r.track_id == tr.track_id]))
             for c in self._cands.get(tr.track_id, []):

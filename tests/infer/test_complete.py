@@ -263,3 +263,19 @@ def test_min_detected_needs_the_part_detected_in_that_share_of_its_views(cube: M
     assert sum(r.source == "track" for r in out) == 1
     out, summary = _complete(cube, recs, cams, track, CompleteConfig(min_detected=0.81))
     assert summary["untrusted"] == 1 and all(r.source == "detector" for r in out)
+
+
+def test_smoothing_gives_a_tracks_detections_its_world_pose(cube: ModelGeometry) -> None:
+    recs, cams = _video(cube, {0: [0, 1, 3, 4]})
+    off = Rigid3(recs[0].T_cam_from_obj.R, recs[0].T_cam_from_obj.t + [0.02, 0.0, 0.0])  # a running mean's lag
+    recs[0] = replace(recs[0], T_cam_from_obj=off)
+    track = [WorldTrack(0, 2, 7, _at(0.0))]
+    out, _ = _complete(cube, recs, cams, track)
+    first = next(r for r in out if r.frame == 0)
+    assert np.allclose(first.T_cam_from_obj.t, (cams[0].inverse() @ _at(0.0)).t)
+    out, _ = _complete(cube, recs, cams, track, CompleteConfig(smooth=False))
+    assert np.allclose(next(r for r in out if r.frame == 0).T_cam_from_obj.t, off.t)
+    # an untrusted track keeps its poses
+    far = [replace(r, box_xyxy=r.box_xyxy + 30.0) for r in recs]
+    out, _ = _complete(cube, far, cams, track)
+    assert np.allclose(next(r for r in out if r.frame == 0).T_cam_from_obj.t, off.t)
