@@ -1,10 +1,12 @@
 """Track completion: a second pass over a video that reports each static part wherever its fused pose says it is in
 view, including the frames in which the detector missed it, and drops the detections no track confirms.
 
-A part fused in the world frame (the frames' camera poses known, e.g. from SfM; temporal mode ``world``) has one
-pose for the whole video. Projected into any frame, it gives the part's box, mask and pose there; the frame's depth
-map tells which of its pixels are in sight (a model point is seen where it is no farther than the observed depth
-plus a tolerance), so parts hidden behind others are not reported. A track is completed only when
+A part fused in a world frame has one pose for the whole video: the world of the frames' given camera poses (e.g.
+from SfM; temporal mode ``world``), or that of the camera poses registered on the parts themselves (``ego``; a
+frame that registers no part gets no completion). Projected into any frame, it gives the part's box, mask and pose
+there; the frame's depth map tells which of its pixels are in sight (a model point is seen where it is no farther
+than the observed depth plus a tolerance), so parts hidden behind others are not reported.
+A track is completed only when
 
 - it holds at least ``min_obs`` detections (a part the network saw once or twice may be a false positive), and
 - its world pose, projected into its own frames, agrees with its detections (the median box IoU of its visible
@@ -78,6 +80,8 @@ class WorldTrack:
     label: int
     obj_id: int
     T_world_from_obj: Rigid3
+    world: int = 0
+    """Which world the pose is in (:attr:`cadalign.infer.temporal.TemporalFuser.cameras`)."""
 
 
 @dataclass(frozen=True)
@@ -162,14 +166,16 @@ class TrackCompleter:
         self._cams = {}
 
     def frame(self, index: int, name: str, K: np.ndarray, T_world_from_cam: Rigid3 | None,
-              depth_m: np.ndarray | None) -> None:
-        """Project every eligible track into one frame (nothing without a camera pose or depth)."""
+              depth_m: np.ndarray | None, world: int = 0) -> None:
+        """Project every eligible track of ``world`` into one frame (nothing without a camera pose or depth)."""
         if T_world_from_cam is None or depth_m is None:
             return
         T_cam_from_world = T_world_from_cam.inverse()
         self._cams[name] = T_cam_from_world
         here = self._by_frame.get(name, {})
         for tr in self.tracks:
+            if tr.world != world:
+                continue
             proj = project_visible(self.geometry(tr.obj_id), T_cam_from_world @ tr.T_world_from_obj,
                                    np.asarray(K, float), np.asarray(depth_m, float), self.cfg)
             rec = here.get(tr.track_id)

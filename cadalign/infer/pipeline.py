@@ -52,7 +52,8 @@ class InferConfig:
     complete: CompleteConfig = field(default_factory=CompleteConfig)
     """Track completion after the video (:mod:`cadalign.infer.complete`): each static part fused in the world frame
     is reported wherever its pose puts it in sight, the detector's misses included; detections of short tracks are
-    dropped. Needs the frames' camera poses (temporal mode ``world``) and depth; without them nothing changes.
+    dropped. Needs depth and the frames' camera poses, given (temporal mode ``world``) or registered on the parts
+    (``ego``); without depth nothing changes.
     Default orbit, 33 held-out frames, true camera poses and depth, ``accurate`` otherwise; valve / hot stab F1 of
     the fused poses without -> with, nine ``improved`` networks of sessions 19-21 (training/pose_fast_zoom_*.toml,
     4200-7600 steps): 0.817 -> 0.929 / 0.367 -> 0.627 (the acceptance network, seed 0), 0.838 -> 0.946 / 0.386 ->
@@ -229,9 +230,9 @@ class PosePipeline:
         return self._geoms[obj_id]
 
     def world_tracks(self) -> list[WorldTrack]:
-        """The tracks fused in the world frame (given camera poses) that have a CAD model, for completion."""
-        return [WorldTrack(tr.track_id, tr.label, tr.obj_id, tr.T) for tr in self.fuser.tracks
-                if tr.space == "world" and tr.obj_id is not None]
+        """The tracks fused in a world frame (given or ego camera poses) that have a CAD model, for completion."""
+        return [WorldTrack(tr.track_id, tr.label, tr.obj_id, tr.T, tr.world) for tr in self.fuser.tracks
+                if tr.space in ("world", "ego") and tr.obj_id is not None]
 
     def candidates(self, label: int) -> list[int]:
         name = self.class_names[label] if 0 <= label < len(self.class_names) else ""

@@ -252,21 +252,22 @@ def _complete(cfg: InferConfig, pipeline: PosePipeline, records: list[PoseRecord
               depth: _DepthSource, prep: dict, max_frames: int | None, progress: Progress | None
               ) -> tuple[list[PoseRecord], dict | None]:
     """The completion pass (:mod:`cadalign.infer.complete`) over the frames again: the records it reports and its
-    summary; the records unchanged and None when the video has no camera poses or no depth."""
-    if not calib.T_world_from_cam_of or (depth.scene is None and not depth.predicted):
-        log.warning("infer: track completion needs the frames' camera poses and depth (--depth); %s, so the "
-                    "records stay as detected", "no camera poses" if not calib.T_world_from_cam_of else "no depth")
+    summary; the records unchanged and None without depth."""
+    cameras = pipeline.fuser.cameras  # frame -> (world, T_world_from_cam): given, or registered on the parts
+    if depth.scene is None and not depth.predicted:
+        log.warning("infer: track completion needs depth (--depth) to tell which parts are in sight; the records "
+                    "stay as detected")
         return records, None
     completer = TrackCompleter(cfg.complete, pipeline.world_tracks(), records, pipeline.geometry)
     if completer.tracks:
         frames = iter_frames(source, max_frames=max_frames)
         for vf in progress(frames, "complete", max_frames) if progress else frames:
-            T_wc = calib.T_world_from_cam_of.get(vf.name)
-            if T_wc is None:
+            if vf.index not in cameras:
                 continue
+            world, T_wc = cameras[vf.index]
             K = calib.K(vf.name)
             prepared = image_prep.apply(vf.image, prep) if depth.predicted else vf.image
-            completer.frame(vf.index, vf.name, K, T_wc, depth.get(vf.name, vf.image, prepared, K))
+            completer.frame(vf.index, vf.name, K, T_wc, depth.get(vf.name, vf.image, prepared, K), world)
     final, summary = completer.result()
     log.info("infer: track completion: %d tracks, %d not trusted, added %s, dropped %d detections of short tracks",
              summary["tracks"], summary["untrusted"], summary["added"] or "nothing", summary["dropped"])

@@ -96,6 +96,7 @@ class _Track:
     xi: np.ndarray = field(default_factory=lambda: np.zeros(6))
     missed: int = 0
     id_px: int = 0  # the largest mask its model was identified on (Observation.id_px)
+    world: int = 0  # the world its pose is in: 0 the given camera poses', 1, 2, ... the ego worlds in turn
 
 
 class TemporalFuser:
@@ -106,6 +107,10 @@ class TemporalFuser:
         self.tracks: list[_Track] = []
         self._ego: list[tuple[int, Rigid3]] = []
         """The last two (frame, estimated ``T_world_from_cam``) of mode ``ego``."""
+        self._world = 0
+        self.cameras: dict[int, tuple[int, Rigid3]] = {}
+        """Per frame fused in a world: (world, ``T_world_from_cam``), the given pose (world 0) or the ego estimate
+        (world 1, 2, ...: each start of ``ego`` without tracks begins a new one)."""
 
     def _predict(self, tr: _Track, frame: int) -> Rigid3:
         return tr.T if tr.space != "cam" else apply_twist_camera(tr.xi * (frame - tr.frame), tr.T)
@@ -135,6 +140,7 @@ class TemporalFuser:
         C_pred = predict_camera(self._ego, frame)
         if not tracks:
             C = Rigid3.identity()
+            self._world += 1
         else:
             cands = [[k for k, tr in enumerate(tracks) if _compatible(o, tr)] for o in obs]
             C, _ = register_camera(obs, cands, [tr.T for tr in tracks], [_gate(self.cfg, o) for o in obs],
@@ -146,6 +152,7 @@ class TemporalFuser:
                     for tr in tracks:
                         tr.space = "retired"
                     self._ego, C = [], Rigid3.identity()
+                    self._world += 1
         if C is not None:
             self._ego = [*self._ego, (frame, C)][-2:]
         return C
@@ -214,12 +221,15 @@ class TemporalFuser:
         T_wc = T_world_from_cam if space == "world" else self._register(frame, obs) if space == "ego" else None
         if space == "ego" and T_wc is None:
             space = "cam"
+        world = 0 if space == "world" else self._world
+        if T_wc is not None:
+            self.cameras[frame] = (world, T_wc)
         out = []
         for o, tr in zip(obs, self._associate(obs, frame, T_wc, space), strict=True):
             meas = T_wc @ o.T_cam_from_obj if T_wc is not None else o.T_cam_from_obj
             if tr is None:
                 tr = _Track(len(self.tracks), o.label, o.obj_id, frame, canonicalize(meas, o.symmetry, np.eye(3)),
-                            space, id_px=o.id_px)
+                            space, id_px=o.id_px, world=world)
                 self.tracks.append(tr)
                 tr.obs.append(tr.T)
             elif tr.space != "cam":

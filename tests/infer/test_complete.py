@@ -169,6 +169,19 @@ def test_a_part_already_reported_is_not_added_twice(cube: ModelGeometry) -> None
     assert sum(r.source == "track" for r in out) == 1
 
 
+def test_a_track_projects_only_into_frames_of_its_world(cube: ModelGeometry) -> None:
+    recs, cams = _video(cube, {0: [0, 1, 3, 4]})
+    c = TrackCompleter(CompleteConfig(), [WorldTrack(0, 2, 7, _at(0.0), world=1)], recs, lambda oid: cube)
+    for i, T in enumerate(cams):  # frame 2 registered in another (ego) world than the track's
+        c.frame(i, f"{i:06d}.png", K, T, _far(), world=2 if i == 2 else 1)
+    out, summary = c.result()
+    assert summary["untrusted"] == 0 and all(r.source == "detector" for r in out)
+    c = TrackCompleter(CompleteConfig(), [WorldTrack(0, 2, 7, _at(0.0), world=1)], recs, lambda oid: cube)
+    for i, T in enumerate(cams):
+        c.frame(i, f"{i:06d}.png", K, T, _far(), world=1)
+    assert [r.frame for r in c.result()[0] if r.source == "track"] == [2]
+
+
 def test_frames_without_camera_pose_or_depth_get_nothing(cube: ModelGeometry) -> None:
     recs, cams = _video(cube, {0: [0, 1, 3, 4]})
     c = TrackCompleter(CompleteConfig(), [WorldTrack(0, 2, 7, _at(0.0))], recs, lambda oid: cube)
@@ -238,6 +251,28 @@ def test_infer_completes_a_missed_part(tiny_sim: Path, tiny_structure, tmp_path:
     ev2 = read_json(tmp_path / "ev" / "eval.json")
     assert ev2["detector"]["per_class"]["hot_stab"]["detection"]["fn"] == 1
     assert ev2["fused"]["per_class"]["hot_stab"]["detection"]["f1"] == 1.0
+
+
+def test_infer_completes_without_camera_poses_in_the_ego_world(tiny_sim: Path, tiny_structure, tmp_path: Path) -> None:
+    from cadalign.infer.detect import resolve_scene_dir
+    from cadalign.infer.pipeline import InferConfig
+    from cadalign.infer.run import calibration_from_scene, read_poses, run
+    from cadalign.infer.temporal import TemporalConfig
+    from cadalign.io import read_json
+
+    scene = resolve_scene_dir(tiny_sim)
+    frames = sorted(p.name for p in (tiny_sim / "frames").iterdir())
+    det = _Misses(scene, frames[2])
+    cfg = replace(InferConfig(), complete=CompleteConfig(enabled=True), overlay=False,
+                  temporal=TemporalConfig(mode="ego"))  # the camera poses registered on the parts
+    out = tmp_path / "out"
+    run(cfg, tiny_sim / "frames", det, tiny_structure.models, det.inner.classes.names, out,
+        calib=calibration_from_scene(scene), detector_info={"kind": "test"}, depth_scene=scene, gt_scene=scene)
+    added = [r for r in read_poses(out / "poses.jsonl") if r.source == "track"]
+    assert len(added) == 1 and added[0].frame_name == frames[2] and added[0].class_name == "hot_stab"
+    ev = read_json(out / "eval.json")
+    assert ev["fused"]["per_class"]["hot_stab"]["detection"]["f1"] == 1.0
+    assert ev["fused"]["per_class"]["hot_stab"]["t_err_m"]["mean"] < 0.03
 
 
 def test_infer_without_depth_leaves_the_records(tiny_sim: Path, tiny_structure, tmp_path: Path,

@@ -267,6 +267,20 @@ def test_ego_bridges_a_frame_without_known_parts_then_starts_a_new_world() -> No
         out = fuser.update(i, [Observation(3, other, 11)])
     assert out[0].mode == "ego" and np.allclose(out[0].T_cam_from_obj.matrix(), other.matrix())
     assert {tr.space for tr in fuser.tracks} == {"retired", "ego"}
+    # the camera of every registered frame, in the world it was registered in (for track completion)
+    assert {i: w for i, (w, _) in fuser.cameras.items()} == {0: 1, 1: 1, 2: 1, 3: 1, 4: 1, 8: 2, 9: 2}
+    np.testing.assert_allclose(fuser.cameras[4][1].matrix(), expect.matrix(), atol=1e-6)
+    assert [tr.world for tr in fuser.tracks] == [1, 1, 1, 1, 2]
+
+
+def test_world_mode_keeps_the_given_cameras_in_world_0() -> None:
+    fuser = TemporalFuser(TemporalConfig())
+    P = Rigid3(np.eye(3), np.array([0.2, 0.0, 0.5]))  # a static part, world-from-obj
+    for i in range(3):
+        fuser.update(i, [Observation(1, _far_orbit(i).inverse() @ P, 7)] if i != 1 else [], _far_orbit(i))
+    assert sorted(fuser.cameras) == [0, 1, 2] and all(w == 0 for w, _ in fuser.cameras.values())
+    np.testing.assert_allclose(fuser.cameras[1][1].matrix(), _far_orbit(1).matrix())
+    assert [tr.world for tr in fuser.tracks] == [0]
 
 
 def test_ego_leaves_parts_with_a_continuous_symmetry_alone_to_the_filter() -> None:
