@@ -43,7 +43,8 @@ from cadalign.types import Rigid3
 @dataclass(frozen=True)
 class CompleteConfig:
     enabled: bool = False
-    """Run the completion pass after the video (needs the frames' camera poses and depth; see module doc)."""
+    """Run the completion pass after the video (needs depth and the frames' camera poses, given or registered on
+    the parts; see module doc)."""
     min_obs: int = bounded(3, ge=1)
     """Detections a track needs to be completed into other frames (and, with ``drop_short``, to be reported)."""
     drop_short: bool = True
@@ -196,7 +197,8 @@ class TrackCompleter:
 
     def result(self) -> tuple[list[Any], dict]:
         """The completed records (per-frame records kept and added, by frame) and a summary of the pass."""
-        keep = [r for r in self.records if not self.cfg.drop_short or self._n[r.track_id] >= self.cfg.min_obs]
+        keep = [r for r in self.records  # track id -1: not fused (temporal mode none), nothing to count
+                if not self.cfg.drop_short or r.track_id < 0 or self._n[r.track_id] >= self.cfg.min_obs]
         boxes: dict[tuple[str, int], list[np.ndarray]] = defaultdict(list)
         for r in keep:
             boxes[(r.frame_name, r.label)].append(np.asarray(r.box_xyxy, float))

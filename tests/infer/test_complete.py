@@ -145,6 +145,10 @@ def test_short_tracks_are_dropped_and_not_completed(cube: ModelGeometry) -> None
     assert [r.frame for r in out if r.source == "track"] == [4]
     kept, _ = _complete(cube, recs, cams, tracks, CompleteConfig(drop_short=False))
     assert sum(r.track_id == 1 for r in kept) == 1
+    # records not fused into tracks (temporal mode none: track id -1) are never short
+    unfused = [replace(r, track_id=-1) for r in recs[:2]]
+    out, summary = _complete(cube, unfused, cams, [])
+    assert len(out) == 2 and summary["dropped"] == 0
 
 
 def test_a_track_its_detections_disagree_with_is_not_completed(cube: ModelGeometry) -> None:
