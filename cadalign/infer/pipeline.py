@@ -53,18 +53,16 @@ class InferConfig:
     """Track completion after the video (:mod:`cadalign.infer.complete`): each static part fused in the world frame
     is reported wherever its pose puts it in sight, the detector's misses included; detections of short tracks are
     dropped. Needs depth and the frames' camera poses, given (temporal mode ``world``) or registered on the parts
-    (``ego``); without depth nothing changes.
-    Default orbit, 33 held-out frames, true camera poses and depth, ``accurate`` otherwise; valve / hot stab F1 of
-    the fused poses without -> with, nine ``improved`` networks of sessions 19-21 (training/pose_fast_zoom_*.toml,
-    4200-7600 steps): 0.817 -> 0.929 / 0.367 -> 0.627 (the acceptance network, seed 0), 0.838 -> 0.946 / 0.386 ->
-    0.484 (seed 1), 0.866 -> 0.952 / 0.378 -> 0.520, 0.828 -> 0.837 / 0.358 -> 0.522 (two false valve tracks
-    completed: +38 false positives), 0.841 -> 0.936 / 0.296 -> 0.545, 0.790 -> 0.877 / 0.255 -> 0.712, 0.828 ->
-    0.927 / 0.261 -> 0.663, 0.762 -> 0.837 / 0.239 -> 0.281, 0.812 -> 0.923 / 0.124 -> 0.405; ``thesis`` 0.816 ->
-    0.853 / 0.349 -> 0.382. The misses left are parts never detected three times (the 87 mm panel valves at
-    3-5 px, the UUV hot stab in its receptacle); ~20-30 ms per frame. Without camera poses (temporal mode ``ego``),
-    the acceptance networks seed 0 / 1: 0.817 -> 0.891 / 0.367 -> 0.566 and 0.838 -> 0.889 / 0.386 -> 0.477. With
-    ``smooth`` (session 22, true poses): seed 0 0.929 / 0.627, fused valve t / R mean 0.030 m / 3.39 deg, hot stab
-    0.112 m / 27.6 deg; seed 1 0.946 / 0.484, 0.004 m / 4.67 deg, 0.131 m / 27.4 deg. On in ``accurate``."""
+    (``ego``); without depth nothing changes. Default orbit, 33 held-out frames, true depth, ``accurate`` otherwise;
+    valve / hot stab F1 without -> with completion (true camera poses), nine ``improved`` networks of sessions
+    19-21 (training/pose_fast_zoom_*.toml, 4200-7600 steps): 0.817 -> 0.942 / 0.367 -> 0.695 (the acceptance
+    network, seed 0), 0.838 -> 0.959 / 0.386 -> 0.484 (seed 1), 0.866 -> 0.964 / 0.378 -> 0.525, 0.828 -> 0.844 /
+    0.358 -> 0.507 (two false valve tracks completed into 38 frames), 0.841 -> 0.952 / 0.296 -> 0.514, 0.790
+    -> 0.883 / 0.255 -> 0.756, 0.828 -> 0.942 / 0.261 -> 0.659, 0.762 -> 0.850 / 0.239 -> 0.336, 0.812 -> 0.939 /
+    0.124 -> 0.550; ``thesis`` 0.816 -> 0.825 / 0.349 -> 0.382. The misses left are parts never detected three
+    times (the 87 mm panel valves at 3-5 px, the UUV hot stab in its receptacle); ~20-30 ms per frame. Without
+    camera poses (``ego``, ``min_visible = 0.3``) seed 0 / 1: 0.817 -> 0.891 / 0.367 -> 0.566 and 0.838 -> 0.889 /
+    0.386 -> 0.477. On in ``accurate``."""
     score_thresh: float = bounded(0.5, ge=0, le=1)
     """Detections scoring below this are dropped."""
     nms_iou: float = bounded(0.5, gt=0, le=1)
