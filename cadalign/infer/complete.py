@@ -73,8 +73,8 @@ class CompleteConfig:
     smooth: bool = True
     """A completed track's detections report its final world pose too (fused from all its frames, later ones
     included) instead of the running mean of the frames up to theirs. Default orbit, 33 held-out frames, four
-    ``improved`` networks: fused valve R mean 3.51 -> 3.39, 5.06 -> 4.64, 5.81 -> 5.71, 2.12 -> 0.67 deg; hot stab
-    27.9 -> 27.6, 37.1 -> 27.4, 12.0 -> 11.1, 29.0 -> 28.2 deg; F1 unchanged."""
+    ``improved`` networks (``min_visible = 0.3``): fused valve R mean 3.51 -> 3.39, 5.06 -> 4.64, 5.81 -> 5.71,
+    2.12 -> 0.67 deg; hot stab 27.9 -> 27.6, 37.1 -> 27.4, 12.0 -> 11.1, 29.0 -> 28.2 deg; F1 unchanged."""
 
 
 @dataclass(frozen=True)

@@ -59,10 +59,10 @@ class InferConfig:
     network, seed 0), 0.838 -> 0.959 / 0.386 -> 0.484 (seed 1), 0.866 -> 0.964 / 0.378 -> 0.525, 0.828 -> 0.844 /
     0.358 -> 0.507 (two false valve tracks completed into 38 frames), 0.841 -> 0.952 / 0.296 -> 0.514, 0.790
     -> 0.883 / 0.255 -> 0.756, 0.828 -> 0.942 / 0.261 -> 0.659, 0.762 -> 0.850 / 0.239 -> 0.336, 0.812 -> 0.939 /
-    0.124 -> 0.550; ``thesis`` 0.816 -> 0.825 / 0.349 -> 0.382. The misses left are parts never detected three
-    times (the 87 mm panel valves at 3-5 px, the UUV hot stab in its receptacle); ~20-30 ms per frame. Without
-    camera poses (``ego``, ``min_visible = 0.3``) seed 0 / 1: 0.817 -> 0.891 / 0.367 -> 0.566 and 0.838 -> 0.889 /
-    0.386 -> 0.477. On in ``accurate``."""
+    0.124 -> 0.550; ``thesis`` (seed 0) 0.816 -> 0.867 / 0.349 -> 0.382. The misses left are parts never detected
+    three times (the 87 mm panel valves at 3-5 px, the UUV hot stab in its receptacle); ~20-30 ms per frame. Without
+    camera poses (``ego``) seed 0 / 1: 0.817 -> 0.893 / 0.367 -> 0.575 and 0.838 -> 0.883 / 0.386 -> 0.439
+    (``min_visible = 0.3``: 0.891 / 0.566 and 0.889 / 0.477). On in ``accurate``."""
     score_thresh: float = bounded(0.5, ge=0, le=1)
     """Detections scoring below this are dropped."""
     nms_iou: float = bounded(0.5, gt=0, le=1)
