@@ -318,3 +318,19 @@ def test_smoothing_gives_a_tracks_detections_its_world_pose(cube: ModelGeometry)
     far = [replace(r, box_xyxy=r.box_xyxy + 30.0) for r in recs]
     out, _ = _complete(cube, far, cams, track)
     assert np.allclose(next(r for r in out if r.frame == 0).T_cam_from_obj.t, off.t)
+
+
+def test_accurate_on_a_video_without_parts_gives_empty_poses(tiny_sim: Path, tmp_path: Path) -> None:
+    from cadalign.io import read_json, write_image
+
+    frames = tmp_path / "water"
+    for i in range(3):
+        write_image(frames / f"blank_{i}.png", np.full((120, 160, 3), 30, np.uint8))
+    out = tmp_path / "out"
+    res = CliRunner().invoke(app, ["infer", str(frames), "--oracle-gt", str(tiny_sim), "--cad",
+                                   str(tiny_sim.parent / "tiny.toml"), "--out", str(out), "--preset", "accurate",
+                                   "--depth", str(tiny_sim)])
+    assert res.exit_code == 0, res.output
+    assert (out / "poses.jsonl").read_text() == ""
+    t = read_json(out / "timings.json")
+    assert t["frames"] == 3 and t["poses"] == 0 and "complete" in t["stages_ms"]
