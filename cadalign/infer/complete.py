@@ -203,22 +203,22 @@ class TrackCompleter:
         """The completed records (per-frame records kept and added, by frame) and a summary of the pass."""
         keep = [r for r in self.records  # track id -1: not fused (temporal mode none), nothing to count
                 if not self.cfg.drop_short or r.track_id < 0 or self._n[r.track_id] >= self.cfg.min_obs]
+        trusted = [tr for tr in self.tracks if self.trusted(tr.track_id)]
+        if self.cfg.smooth:
+            world = {tr.track_id: tr.T_world_from_obj for tr in trusted}
+            keep = [replace(r, T_cam_from_obj=self._cams[r.frame_name] @ world[r.track_id])
+                    if r.track_id in world and r.frame_name in self._cams else r for r in keep]
         boxes: dict[tuple[str, int], list[np.ndarray]] = defaultdict(list)
         for r in keep:
             boxes[(r.frame_name, r.label)].append(np.asarray(r.box_xyxy, float))
+        scores: dict[int, list[float]] = defaultdict(list)
+        for r in self.records:
+            scores[r.track_id].append(r.score)
         template = {r.track_id: r for r in self.records}
         added: Counter = Counter()
-        untrusted = 0
         out = list(keep)
-        for tr in sorted(self.tracks, key=lambda t: (-self._n[t.track_id], t.track_id)):
-            if not self.trusted(tr.track_id):
-                untrusted += 1
-                continue
-            if self.cfg.smooth:
-                out = [replace(r, T_cam_from_obj=self._cams[r.frame_name] @ tr.T_world_from_obj)
-                       if r.track_id == tr.track_id and r.frame_name in self._cams else r for r in out]
-            ref = template[tr.track_id]
-            score = float(np.median([r.score for r in self.records if r.track_id == tr.track_id]))
+        for tr in sorted(trusted, key=lambda t: (-self._n[t.track_id], t.track_id)):
+            ref, score = template[tr.track_id], float(np.median(scores[tr.track_id]))
             for c in self._cands.get(tr.track_id, []):
                 have = boxes[(c.name, tr.label)]
                 if have and box_iou(c.proj.box_xyxy[None], np.array(have)).max() >= self.cfg.dedup_iou:
@@ -230,6 +230,6 @@ class TrackCompleter:
                                    source="track"))
                 added[ref.class_name] += 1
         out.sort(key=lambda r: (r.frame, r.source != "detector", -r.score))
-        summary = {"tracks": len(self.tracks), "untrusted": untrusted,
+        summary = {"tracks": len(self.tracks), "untrusted": len(self.tracks) - len(trusted),
                    "added": dict(added), "dropped": len(self.records) - len(keep)}
         return out, summary

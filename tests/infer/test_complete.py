@@ -216,19 +216,27 @@ class _Misses:
         return [d for d in dets if self.current != self.frame or names[int(d.label)] != "hot_stab"]
 
 
-def test_infer_completes_a_missed_part(tiny_sim: Path, tiny_structure, tmp_path: Path) -> None:
+def _infer_missing(tiny_sim: Path, tiny_structure, out: Path, depth: bool = True, **cfg) -> list[str]:
+    """``infer`` on the tiny simulation with completion, the detector missing the hot stab in frame 2; the frames."""
     from cadalign.infer.detect import resolve_scene_dir
     from cadalign.infer.pipeline import InferConfig
-    from cadalign.infer.run import calibration_from_scene, read_poses, run
-    from cadalign.io import read_image, read_json
+    from cadalign.infer.run import calibration_from_scene, run
 
     scene = resolve_scene_dir(tiny_sim)
     frames = sorted(p.name for p in (tiny_sim / "frames").iterdir())
     det = _Misses(scene, frames[2])
-    cfg = replace(InferConfig(), complete=CompleteConfig(enabled=True))
+    run(replace(InferConfig(), complete=CompleteConfig(enabled=True), **cfg), tiny_sim / "frames", det,
+        tiny_structure.models, det.inner.classes.names, out, calib=calibration_from_scene(scene),
+        detector_info={"kind": "test"}, depth_scene=scene if depth else None, gt_scene=scene if depth else None)
+    return frames
+
+
+def test_infer_completes_a_missed_part(tiny_sim: Path, tiny_structure, tmp_path: Path) -> None:
+    from cadalign.infer.run import read_poses
+    from cadalign.io import read_image, read_json
+
     out = tmp_path / "out"
-    run(cfg, tiny_sim / "frames", det, tiny_structure.models, det.inner.classes.names, out,
-        calib=calibration_from_scene(scene), detector_info={"kind": "test"}, depth_scene=scene, gt_scene=scene)
+    frames = _infer_missing(tiny_sim, tiny_structure, out)
     recs = read_poses(out / "poses.jsonl")
     added = [r for r in recs if r.source == "track"]
     assert len(added) == 1 and added[0].frame_name == frames[2] and added[0].class_name == "hot_stab"
@@ -258,20 +266,12 @@ def test_infer_completes_a_missed_part(tiny_sim: Path, tiny_structure, tmp_path:
 
 
 def test_infer_completes_without_camera_poses_in_the_ego_world(tiny_sim: Path, tiny_structure, tmp_path: Path) -> None:
-    from cadalign.infer.detect import resolve_scene_dir
-    from cadalign.infer.pipeline import InferConfig
-    from cadalign.infer.run import calibration_from_scene, read_poses, run
+    from cadalign.infer.run import read_poses
     from cadalign.infer.temporal import TemporalConfig
     from cadalign.io import read_json
 
-    scene = resolve_scene_dir(tiny_sim)
-    frames = sorted(p.name for p in (tiny_sim / "frames").iterdir())
-    det = _Misses(scene, frames[2])
-    cfg = replace(InferConfig(), complete=CompleteConfig(enabled=True), overlay=False,
-                  temporal=TemporalConfig(mode="ego"))  # the camera poses registered on the parts
-    out = tmp_path / "out"
-    run(cfg, tiny_sim / "frames", det, tiny_structure.models, det.inner.classes.names, out,
-        calib=calibration_from_scene(scene), detector_info={"kind": "test"}, depth_scene=scene, gt_scene=scene)
+    out = tmp_path / "out"  # ego: the camera poses registered on the parts
+    frames = _infer_missing(tiny_sim, tiny_structure, out, overlay=False, temporal=TemporalConfig(mode="ego"))
     added = [r for r in read_poses(out / "poses.jsonl") if r.source == "track"]
     assert len(added) == 1 and added[0].frame_name == frames[2] and added[0].class_name == "hot_stab"
     ev = read_json(out / "eval.json")
@@ -281,16 +281,9 @@ def test_infer_completes_without_camera_poses_in_the_ego_world(tiny_sim: Path, t
 
 def test_infer_without_depth_leaves_the_records(tiny_sim: Path, tiny_structure, tmp_path: Path,
                                                 caplog: pytest.LogCaptureFixture) -> None:
-    from cadalign.infer.detect import resolve_scene_dir
-    from cadalign.infer.pipeline import InferConfig
-    from cadalign.infer.run import calibration_from_scene, read_poses, run
+    from cadalign.infer.run import read_poses
 
-    scene = resolve_scene_dir(tiny_sim)
-    frames = sorted(p.name for p in (tiny_sim / "frames").iterdir())
-    det = _Misses(scene, frames[2])
-    cfg = replace(InferConfig(), complete=CompleteConfig(enabled=True), overlay=False)
-    run(cfg, tiny_sim / "frames", det, tiny_structure.models, det.inner.classes.names, tmp_path / "out",
-        calib=calibration_from_scene(scene), detector_info={"kind": "test"})
+    _infer_missing(tiny_sim, tiny_structure, tmp_path / "out", depth=False, overlay=False)
     assert all(r.source == "detector" for r in read_poses(tmp_path / "out" / "poses.jsonl"))
     assert "track completion needs" in caplog.text
 
