@@ -313,6 +313,27 @@ def test_smoothing_gives_a_tracks_detections_its_world_pose(cube: ModelGeometry)
     assert np.allclose(next(r for r in out if r.frame == 0).T_cam_from_obj.t, off.t)
 
 
+def test_reprojection_gives_a_trusted_tracks_detections_its_projected_box_and_mask(cube: ModelGeometry) -> None:
+    recs, cams = _video(cube, {0: [0, 1, 3, 4]})
+    exact = {r.frame: r.box_xyxy.copy() for r in recs}
+    loose = [replace(r, box_xyxy=r.box_xyxy + np.array([-3.0, 0.0, 1.0, 2.0])) for r in recs]  # e.g. a handle's box
+    track = [WorldTrack(0, 2, 7, _at(0.0))]
+    out, summary = _complete(cube, loose, cams, track)
+    own = [r for r in out if r.source == "detector"]
+    assert summary["untrusted"] == 0 and len(own) == 4
+    for r in own:
+        assert np.allclose(r.box_xyxy, exact[r.frame]) and isinstance(r.mask, CroppedMask)
+        x0, y0, x1, y1 = r.box_xyxy.astype(int)
+        assert r.mask.full(SHAPE)[y0:y1, x0:x1].all() and r.mask.full(SHAPE).sum() == (x1 - x0) * (y1 - y0)
+    out, _ = _complete(cube, loose, cams, track, CompleteConfig(reproject=False))
+    assert all(np.allclose(r.box_xyxy, exact[r.frame] + [-3.0, 0.0, 1.0, 2.0]) and r.mask is None
+               for r in out if r.source == "detector")
+    # an untrusted track keeps the network's boxes
+    far = [replace(r, box_xyxy=r.box_xyxy + 30.0) for r in recs]
+    out, _ = _complete(cube, far, cams, track)
+    assert all(np.allclose(r.box_xyxy, exact[r.frame] + 30.0) for r in out)
+
+
 def test_accurate_on_a_video_without_parts_gives_empty_poses(tiny_sim: Path, tmp_path: Path) -> None:
     from cadalign.io import read_json, write_image
 
