@@ -54,8 +54,9 @@ class InferConfig:
     is reported wherever its pose puts it in sight, the detector's misses included; detections of short tracks are
     dropped. Needs depth and the frames' camera poses, given (temporal mode ``world``) or registered on the parts
     (``ego``); without depth nothing changes. Default orbit, 33 held-out frames, true depth, ``accurate`` otherwise;
-    valve / hot stab F1 without -> with completion (true camera poses), nine ``improved`` networks of sessions
-    19-21 (training/pose_fast_zoom_*.toml, 4200-7600 steps): 0.817 -> 0.942 / 0.367 -> 0.695 (the acceptance
+    valve / hot stab F1 without -> with completion (true camera poses; measured before ``complete.reproject``,
+    whose numbers are in its doc), nine ``improved`` networks of sessions 19-21 (training/pose_fast_zoom_*.toml,
+    4200-7600 steps): 0.817 -> 0.942 / 0.367 -> 0.695 (the acceptance
     network, seed 0), 0.838 -> 0.959 / 0.386 -> 0.484 (seed 1), 0.866 -> 0.964 / 0.378 -> 0.525, 0.828 -> 0.844 /
     0.358 -> 0.507 (two false valve tracks completed into 38 frames), 0.841 -> 0.952 / 0.296 -> 0.514, 0.790
     -> 0.883 / 0.255 -> 0.756, 0.828 -> 0.942 / 0.261 -> 0.659, 0.762 -> 0.850 / 0.239 -> 0.336, 0.812 -> 0.939 /
