@@ -17,7 +17,11 @@ def command(
         0.0, "--min-box-side-px", min=0.0,
         help="Ground-truth parts whose visible box's shorter side is below this (px) are don't-care (0 = off)."),
 ) -> None:
-    """Detection P/R/F1, t/R errors (thesis Table 4.5 layout), ADD(-S), BOP MSSD/MSPD recalls, errors by distance."""
+    """Detection P/R/F1, t/R errors (thesis Table 4.5 layout), ADD(-S), BOP MSSD/MSPD recalls, errors by distance.
+
+    The detector and refined sections score the reported detections of ``poses.jsonl``: after track completion
+    those exclude short tracks' detections and, with ``complete.reproject``, carry their track's projected box and
+    mask. ``infer --gt`` scores the network's own boxes there, so its ``eval.json`` may differ in those sections."""
     from cadalign.errors import InputError
     from cadalign.eval.pose_eval import PoseEvalConfig
     from cadalign.infer.detect import frame_ids, resolve_scene_dir
@@ -38,7 +42,7 @@ def command(
             console.print(f"[yellow]{frames_json} is missing: every ground-truth frame counts (misses included)[/]")
         out_dir = out or path.parent
         out_dir.mkdir(parents=True, exist_ok=True)
-        # the detector's and refined poses are those of detections; track completion's records count as fused
+        # the detector's and refined poses are those of the reported detections; completion's records count as fused
         detections = [r for r in records if r.source == "detector"]
         reports = evaluate_run(detections, names, scene, out_dir, PoseEvalConfig(min_box_side_px=min_box_side_px),
                                fused=records)
