@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import typer
@@ -19,9 +20,10 @@ def command(
 ) -> None:
     """Detection P/R/F1, t/R errors (thesis Table 4.5 layout), ADD(-S), BOP MSSD/MSPD recalls, errors by distance.
 
-    The detector and refined sections score the reported detections of ``poses.jsonl``: after track completion
-    those exclude short tracks' detections and, with ``complete.reproject``, carry their track's projected box and
-    mask. ``infer --gt`` scores the network's own boxes there, so its ``eval.json`` may differ in those sections."""
+    The detector and refined sections score the reported detections of ``poses.jsonl`` with the network's boxes
+    (``box_xyxy_detector`` where track completion's ``reproject`` reported another). After completion those exclude
+    short tracks' detections, and their masks are the reported ones, so ``infer --gt``'s ``eval.json`` (all the
+    network's detections) may differ in those sections."""
     from cadalign.errors import InputError
     from cadalign.eval.pose_eval import PoseEvalConfig
     from cadalign.infer.detect import frame_ids, resolve_scene_dir
@@ -43,7 +45,8 @@ def command(
         out_dir = out or path.parent
         out_dir.mkdir(parents=True, exist_ok=True)
         # the detector's and refined poses are those of the reported detections; completion's records count as fused
-        detections = [r for r in records if r.source == "detector"]
+        detections = [r if r.box_detector is None else replace(r, box_xyxy=r.box_detector)
+                      for r in records if r.source == "detector"]
         reports = evaluate_run(detections, names, scene, out_dir, PoseEvalConfig(min_box_side_px=min_box_side_px),
                                fused=records)
     for which, rep in reports.items():

@@ -157,7 +157,7 @@ class TrackCompleter:
 
     ``records``: the video's per-frame records (:class:`~cadalign.infer.pipeline.PoseRecord`, or any frozen
     dataclass with ``frame``, ``frame_name``, ``track_id``, ``label``, ``class_name``, ``score``, ``box_xyxy``,
-    ``T_cam_from_obj``, ``T_detector``, ``T_refined``, ``refine_iters``, ``mask`` and ``source``);
+    ``T_cam_from_obj``, ``T_detector``, ``T_refined``, ``refine_iters``, ``mask``, ``source`` and ``box_detector``);
     ``geometry``: the :class:`ModelGeometry` of a CAD model id.
     """
 
@@ -225,7 +225,8 @@ class TrackCompleter:
                     if r.track_id in world and r.frame_name in self._cams else r for r in keep]
         if self.cfg.reproject:
             ok = {tr.track_id for tr in trusted}
-            keep = [replace(r, box_xyxy=p.box_xyxy, mask=p.mask)
+            keep = [replace(r, box_xyxy=p.box_xyxy, mask=p.mask,
+                            box_detector=r.box_xyxy if r.box_detector is None else r.box_detector)
                     if r.track_id in ok and (p := self._own.get((r.track_id, r.frame_name))) is not None else r
                     for r in keep]
         boxes: dict[tuple[str, int], list[np.ndarray]] = defaultdict(list)

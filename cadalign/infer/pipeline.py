@@ -195,6 +195,9 @@ class PoseRecord:
     source: str = "detector"
     """``detector``: a detection of this frame; ``track``: added by track completion (:mod:`cadalign.infer.complete`),
     the track's world pose projected into a frame where the detector missed the part."""
+    box_detector: np.ndarray | None = None
+    """The network's box where ``box_xyxy`` reports another (track completion's ``reproject``); None: they are the
+    same."""
 
     def to_json(self) -> dict:
         from cadalign.data.coco import mask_to_rle
@@ -209,6 +212,7 @@ class PoseRecord:
             "refine_iters": self.refine_iters,
             "mask_rle": mask_to_rle(self.mask) if isinstance(self.mask, np.ndarray) else None,
             "source": self.source,
+            "box_xyxy_detector": None if self.box_detector is None else [round(float(v), 3) for v in self.box_detector],
         }
 
 

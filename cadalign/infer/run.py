@@ -393,7 +393,8 @@ def read_poses(path: Path) -> list[PoseRecord]:
                 Rigid3.from_matrix(np.asarray(d.get("T_cam_from_obj_refined", d["T_cam_from_obj"]))),
                 dict(d.get("refine_iters") or {}),
                 CroppedMask.of(rle_to_mask(d["mask_rle"])) if d.get("mask_rle") else None,
-                str(d.get("source", "detector"))))
+                str(d.get("source", "detector")),
+                None if d.get("box_xyxy_detector") is None else np.asarray(d["box_xyxy_detector"], float)))
         except (KeyError, ValueError, TypeError) as exc:
             raise InputError(f"{path}, line {i + 1}: not a cadalign pose record ({exc})") from exc
     return out

@@ -96,6 +96,7 @@ class _Rec:
     refine_iters: dict = field(default_factory=dict)
     mask: object = None
     source: str = "detector"
+    box_detector: object = None
 
 
 def _cams(n: int) -> list[Rigid3]:
@@ -263,6 +264,24 @@ def test_infer_completes_a_missed_part(tiny_sim: Path, tiny_structure, tmp_path:
     ev2 = read_json(tmp_path / "ev" / "eval.json")
     assert ev2["detector"]["per_class"]["hot_stab"]["detection"]["fn"] == 1
     assert ev2["fused"]["per_class"]["hot_stab"]["detection"]["f1"] == 1.0
+    # the trusted tracks' detections report their projected boxes and keep the network's: eval pose scores the
+    # network's in its detector section (moved 60 px off here, the reported ones score nothing in the fused one)
+    assert all(x["box_xyxy_detector"] is not None for x in lines if x["source"] == "detector")
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    (moved / "frames.json").write_text((out / "frames.json").read_text())
+    for x in lines:
+        x["box_xyxy"] = [v + 60.0 for v in x["box_xyxy"]]
+        x["mask_rle"] = None
+    (moved / "poses.jsonl").write_text("".join(json.dumps(x) + "\n" for x in lines))
+    assert np.allclose(read_poses(moved / "poses.jsonl")[0].box_detector, lines[0]["box_xyxy_detector"])
+    res = CliRunner().invoke(app, ["eval", "pose", str(moved), "--gt", str(tiny_sim), "--out", str(tmp_path / "ev3")])
+    assert res.exit_code == 0, res.output
+    ev3 = read_json(tmp_path / "ev3" / "eval.json")
+    assert ev3["detector"]["per_class"]["hot_stab"]["detection"]["fn"] == 1
+    assert ev3["detector"]["per_class"]["hot_stab"]["detection"]["tp"] == ev2["detector"]["per_class"]["hot_stab"][
+        "detection"]["tp"] > 0
+    assert ev3["fused"]["per_class"]["hot_stab"]["detection"]["tp"] == 0
 
 
 def test_infer_completes_without_camera_poses_in_the_ego_world(tiny_sim: Path, tiny_structure, tmp_path: Path) -> None:
@@ -323,11 +342,12 @@ def test_reprojection_gives_a_trusted_tracks_detections_its_projected_box_and_ma
     assert summary["untrusted"] == 0 and len(own) == 4
     for r in own:
         assert np.allclose(r.box_xyxy, exact[r.frame]) and isinstance(r.mask, CroppedMask)
+        assert np.allclose(r.box_detector, exact[r.frame] + [-3.0, 0.0, 1.0, 2.0])  # the network's box stays known
         x0, y0, x1, y1 = r.box_xyxy.astype(int)
         assert r.mask.full(SHAPE)[y0:y1, x0:x1].all() and r.mask.full(SHAPE).sum() == (x1 - x0) * (y1 - y0)
     out, _ = _complete(cube, loose, cams, track, CompleteConfig(reproject=False))
     assert all(np.allclose(r.box_xyxy, exact[r.frame] + [-3.0, 0.0, 1.0, 2.0]) and r.mask is None
-               for r in out if r.source == "detector")
+               and r.box_detector is None for r in out if r.source == "detector")
     # an untrusted track keeps the network's boxes
     far = [replace(r, box_xyxy=r.box_xyxy + 30.0) for r in recs]
     out, _ = _complete(cube, far, cams, track)
