@@ -248,7 +248,7 @@ class TrackCompleter:
                 T = c.proj.T_cam_from_obj
                 out.append(replace(ref, frame=c.frame, frame_name=c.name, score=score, box_xyxy=c.proj.box_xyxy,
                                    T_cam_from_obj=T, T_detector=T, T_refined=T, refine_iters={}, mask=c.proj.mask,
-                                   source="track"))
+                                   source="track", box_detector=None))
                 added[ref.class_name] += 1
         out.sort(key=lambda r: (r.frame, r.source != "detector", -r.score))
         summary = {"tracks": len(self.tracks), "untrusted": len(self.tracks) - len(trusted),

@@ -345,6 +345,12 @@ def test_reprojection_gives_a_trusted_tracks_detections_its_projected_box_and_ma
         assert np.allclose(r.box_detector, exact[r.frame] + [-3.0, 0.0, 1.0, 2.0])  # the network's box stays known
         x0, y0, x1, y1 = r.box_xyxy.astype(int)
         assert r.mask.full(SHAPE)[y0:y1, x0:x1].all() and r.mask.full(SHAPE).sum() == (x1 - x0) * (y1 - y0)
+    assert next(r for r in out if r.source == "track").box_detector is None  # frame 2: no network box
+    # completion run again on its own output (records read back from poses.jsonl) keeps the network's boxes
+    again, _ = _complete(cube, own, cams, track)
+    assert all(np.allclose(r.box_detector, exact[r.frame] + [-3.0, 0.0, 1.0, 2.0])
+               for r in again if r.source == "detector")
+    assert [r.box_detector for r in again if r.source == "track"] == [None]
     out, _ = _complete(cube, loose, cams, track, CompleteConfig(reproject=False))
     assert all(np.allclose(r.box_xyxy, exact[r.frame] + [-3.0, 0.0, 1.0, 2.0]) and r.mask is None
                and r.box_detector is None for r in out if r.source == "detector")
