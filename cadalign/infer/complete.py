@@ -75,9 +75,10 @@ class CompleteConfig:
     """A completed track's detections report the visible box and mask of its world pose in their frame (as its
     completions do) instead of the network's: a thin part's box often covers only its handle, or a part and its
     neighbour, while the pose fused over the video puts it whole; box and pose then agree. Default orbit, 33
-    held-out frames, true depth, ``accurate``; valve / hot stab F1 without -> with: the acceptance networks (seed 0,
-    seed 1) 0.942 -> 0.961 / 0.695 -> 0.671 and 0.959 -> 0.957 / 0.484 -> 0.611, fused valve t mean 0.029 -> 0.002 m
-    and 0.004 -> 0.003 m (seed 0's two matches 2.7 m off, a box on a neighbour, are gone). Completion re-run on the
+    held-out frames, true depth, ``accurate``; valve / hot stab F1 without -> with: the acceptance networks (seeds
+    0, 1, 2) 0.942 -> 0.961 / 0.695 -> 0.671, 0.959 -> 0.957 / 0.484 -> 0.611 and 0.944 -> 0.957 / 0.714 -> 0.726;
+    fused valve t mean 0.029 -> 0.002 m with seed 0 (its two matches 2.7 m off, a box on a neighbour, are gone),
+    0.004 -> 0.003 m and 0.004 -> 0.004 m with seeds 1 and 2. Completion re-run on the
     stored detections of nine ``improved`` networks of sessions 19-21: valve up in five, down in two (0.959 ->
     0.950, 0.883 -> 0.860), mean 0.919 -> 0.925; hot stab up in five, down in two (0.695 -> 0.671, 0.550 ->
     0.526), mean 0.558 -> 0.583."""
