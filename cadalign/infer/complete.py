@@ -16,9 +16,9 @@ A track is completed only when
 
 Completed records carry ``source = "track"``, the track's CAD model, its median detection score and the projected
 pose (with ``smooth``, the track's own detections report that world pose as well, and with ``reproject`` the box and
-mask it projects to, so that a record's box and pose agree); a completion overlapping a
-reported box of its class (``dedup_iou``) is not added (the part is already there, often as another track of the
-same part). With ``drop_short``, detections of tracks shorter than ``min_obs`` are dropped from the report.
+mask it projects to, so that a record's box and pose agree); a completion overlapping a reported box of its class
+(``dedup_iou``) is not added (the part is already there, often as another track of the same part). With
+``drop_short``, detections of tracks shorter than ``min_obs`` are dropped from the report.
 
 Frames without depth (or pixels with no valid depth) show nothing: no completion is made where visibility cannot be
 checked.
@@ -78,10 +78,9 @@ class CompleteConfig:
     held-out frames, true depth, ``accurate``; valve / hot stab F1 without -> with: the acceptance networks (seeds
     0, 1, 2) 0.942 -> 0.961 / 0.695 -> 0.671, 0.959 -> 0.957 / 0.484 -> 0.611 and 0.944 -> 0.957 / 0.714 -> 0.726;
     fused valve t mean 0.029 -> 0.002 m with seed 0 (its two matches 2.7 m off, a box on a neighbour, are gone),
-    0.004 -> 0.003 m and 0.004 -> 0.004 m with seeds 1 and 2. Completion re-run on the
-    stored detections of nine ``improved`` networks of sessions 19-21: valve up in five, down in two (0.959 ->
-    0.950, 0.883 -> 0.860), mean 0.919 -> 0.925; hot stab up in five, down in two (0.695 -> 0.671, 0.550 ->
-    0.526), mean 0.558 -> 0.583."""
+    0.004 -> 0.003 m and 0.004 -> 0.004 m with seeds 1 and 2. Completion re-run on the stored detections of nine
+    ``improved`` networks of sessions 19-21: valve up in five, down in two (0.959 -> 0.950, 0.883 -> 0.860), mean
+    0.919 -> 0.925; hot stab up in five, down in two (0.695 -> 0.671, 0.550 -> 0.526), mean 0.558 -> 0.583."""
     smooth: bool = True
     """A completed track's detections report its final world pose too (fused from all its frames, later ones
     included) instead of the running mean of the frames up to theirs. Default orbit, 33 held-out frames, four
@@ -215,21 +214,24 @@ class TrackCompleter:
         n = self._n[track_id]
         return n >= self.cfg.min_detected * (n + len(self._cands.get(track_id, [])))
 
+    def _as_completed(self, r: Any, T_world_from_obj: Rigid3) -> Any:
+        """A trusted track's detection as reported: its world pose (``smooth``), and the box and mask that pose
+        projects to in the frame (``reproject``; the network's box kept as ``box_detector``)."""
+        if self.cfg.smooth and r.frame_name in self._cams:
+            r = replace(r, T_cam_from_obj=self._cams[r.frame_name] @ T_world_from_obj)
+        p = self._own.get((r.track_id, r.frame_name))
+        if p is None:  # only filled with reproject on
+            return r
+        return replace(r, box_xyxy=p.box_xyxy, mask=p.mask,
+                       box_detector=r.box_xyxy if r.box_detector is None else r.box_detector)
+
     def result(self) -> tuple[list[Any], dict]:
         """The completed records (per-frame records kept and added, by frame) and a summary of the pass."""
         keep = [r for r in self.records  # track id -1: not fused (temporal mode none), nothing to count
                 if not self.cfg.drop_short or r.track_id < 0 or self._n[r.track_id] >= self.cfg.min_obs]
         trusted = [tr for tr in self.tracks if self.trusted(tr.track_id)]
-        if self.cfg.smooth:
-            world = {tr.track_id: tr.T_world_from_obj for tr in trusted}
-            keep = [replace(r, T_cam_from_obj=self._cams[r.frame_name] @ world[r.track_id])
-                    if r.track_id in world and r.frame_name in self._cams else r for r in keep]
-        if self.cfg.reproject:
-            ok = {tr.track_id for tr in trusted}
-            keep = [replace(r, box_xyxy=p.box_xyxy, mask=p.mask,
-                            box_detector=r.box_xyxy if r.box_detector is None else r.box_detector)
-                    if r.track_id in ok and (p := self._own.get((r.track_id, r.frame_name))) is not None else r
-                    for r in keep]
+        world = {tr.track_id: tr.T_world_from_obj for tr in trusted}
+        keep = [self._as_completed(r, world[r.track_id]) if r.track_id in world else r for r in keep]
         boxes: dict[tuple[str, int], list[np.ndarray]] = defaultdict(list)
         for r in keep:
             boxes[(r.frame_name, r.label)].append(np.asarray(r.box_xyxy, float))

@@ -56,14 +56,14 @@ class InferConfig:
     (``ego``); without depth nothing changes. Default orbit, 33 held-out frames, true depth, ``accurate`` otherwise;
     valve / hot stab F1 without -> with completion (true camera poses; measured before ``complete.reproject``,
     whose numbers are in its doc), nine ``improved`` networks of sessions 19-21 (training/pose_fast_zoom_*.toml,
-    4200-7600 steps): 0.817 -> 0.942 / 0.367 -> 0.695 (the acceptance
-    network, seed 0), 0.838 -> 0.959 / 0.386 -> 0.484 (seed 1), 0.866 -> 0.964 / 0.378 -> 0.525, 0.828 -> 0.844 /
-    0.358 -> 0.507 (two false valve tracks completed into 38 frames), 0.841 -> 0.952 / 0.296 -> 0.514, 0.790
-    -> 0.883 / 0.255 -> 0.756, 0.828 -> 0.942 / 0.261 -> 0.659, 0.762 -> 0.850 / 0.239 -> 0.336, 0.812 -> 0.939 /
-    0.124 -> 0.550; ``thesis`` (seed 0) 0.816 -> 0.867 / 0.349 -> 0.382. The misses left are parts never detected
-    three times (the 87 mm panel valves at 3-5 px, the UUV hot stab in its receptacle); ~20-30 ms per frame. Without
-    camera poses (``ego``) seed 0 / 1: 0.817 -> 0.893 / 0.367 -> 0.575 and 0.838 -> 0.883 / 0.386 -> 0.439
-    (``min_visible = 0.3``: 0.891 / 0.566 and 0.889 / 0.477). On in ``accurate``."""
+    4200-7600 steps): 0.817 -> 0.942 / 0.367 -> 0.695 (the acceptance network, seed 0), 0.838 -> 0.959 / 0.386 ->
+    0.484 (seed 1), 0.866 -> 0.964 / 0.378 -> 0.525, 0.828 -> 0.844 / 0.358 -> 0.507 (two false valve tracks
+    completed into 38 frames), 0.841 -> 0.952 / 0.296 -> 0.514, 0.790 -> 0.883 / 0.255 -> 0.756, 0.828 -> 0.942 /
+    0.261 -> 0.659, 0.762 -> 0.850 / 0.239 -> 0.336, 0.812 -> 0.939 / 0.124 -> 0.550; ``thesis`` (seed 0) 0.816 ->
+    0.867 / 0.349 -> 0.382. The misses left are parts never detected three times (the 87 mm panel valves at 3-5 px,
+    the UUV hot stab in its receptacle); ~20-30 ms per frame. Without camera poses (``ego``) seed 0 / 1: 0.817 ->
+    0.893 / 0.367 -> 0.575 and 0.838 -> 0.883 / 0.386 -> 0.439 (``min_visible = 0.3``: 0.891 / 0.566 and 0.889 /
+    0.477). On in ``accurate``."""
     score_thresh: float = bounded(0.5, ge=0, le=1)
     """Detections scoring below this are dropped."""
     nms_iou: float = bounded(0.5, gt=0, le=1)
@@ -205,15 +205,19 @@ class PoseRecord:
         return {
             "frame": self.frame, "frame_name": self.frame_name, "obj_id": self.obj_id, "track_id": self.track_id,
             "class": self.class_name, "label": self.label, "score": round(float(self.score), 6),
-            "box_xyxy": [round(float(v), 3) for v in self.box_xyxy],
+            "box_xyxy": _box_json(self.box_xyxy),
             "T_cam_from_obj": self.T_cam_from_obj.matrix().tolist(),
             "T_cam_from_obj_detector": self.T_detector.matrix().tolist(),
             "T_cam_from_obj_refined": self.T_refined.matrix().tolist(),
             "refine_iters": self.refine_iters,
             "mask_rle": mask_to_rle(self.mask) if isinstance(self.mask, np.ndarray) else None,
             "source": self.source,
-            "box_xyxy_detector": None if self.box_detector is None else [round(float(v), 3) for v in self.box_detector],
+            "box_xyxy_detector": None if self.box_detector is None else _box_json(self.box_detector),
         }
+
+
+def _box_json(box: np.ndarray) -> list[float]:
+    return [round(float(v), 3) for v in box]
 
 
 class PosePipeline:
