@@ -5,7 +5,9 @@ A part fused in a world frame has one pose for the whole video: the world of the
 from SfM; temporal mode ``world``), or that of the camera poses registered on the parts themselves (``ego``; a
 frame that registers no part gets no completion). Projected into any frame, it gives the part's box, mask and pose
 there; the frame's depth map tells which of its pixels are in sight (a model point is seen where it is no farther
-than the observed depth plus a tolerance), so parts hidden behind others are not reported.
+than the observed depth plus a tolerance), so parts hidden behind others are not reported. Before this pass, the
+pipeline fits each track's world pose again to the masked depth of all its detections (``refit``,
+:mod:`cadalign.infer.track_fit`) and marks a track that another explains as its duplicate (``duplicate_of``).
 A track is completed only when
 
 - it holds at least ``min_obs`` detections (a part the network saw once or twice may be a false positive), and
@@ -14,11 +16,12 @@ A track is completed only when
   stab's spin or a wrong model) would put boxes where the part is not;
 - optionally, it was detected in at least ``min_detected`` of the frames its projection shows in sight.
 
-Completed records carry ``source = "track"``, the track's CAD model, its median detection score and the projected
-pose (with ``smooth``, the track's own detections report that world pose as well, and with ``reproject`` the box and
-mask it projects to, so that a record's box and pose agree); a completion overlapping a reported box of its class
-(``dedup_iou``) is not added (the part is already there, often as another track of the same part). With
-``drop_short``, detections of tracks shorter than ``min_obs`` are dropped from the report.
+A duplicate of a completed track is dropped with its detections. Completed records carry ``source = "track"``, the
+track's CAD model, its median detection score and the projected pose (with ``smooth``, the track's own detections
+report that world pose as well, and with ``reproject`` the box and mask it projects to, so that a record's box and
+pose agree); a completion overlapping a reported box of its class (``dedup_iou``) is not added (the part is already
+there, often as another track of the same part). With ``drop_short``, detections of tracks shorter than ``min_obs``
+are dropped from the report.
 
 Frames without depth (or pixels with no valid depth) show nothing: no completion is made where visibility cannot be
 checked.
@@ -38,6 +41,7 @@ from cadalign.config import bounded
 from cadalign.eval.pose_eval import CroppedMask
 from cadalign.eval.pose_metrics import box_iou
 from cadalign.infer.model_geom import ModelGeometry, project_points, render_depth
+from cadalign.infer.track_fit import RefitConfig
 from cadalign.types import Rigid3
 
 
@@ -81,6 +85,9 @@ class CompleteConfig:
     0.004 -> 0.003 m and 0.004 -> 0.004 m with seeds 1 and 2. Completion re-run on the stored detections of nine
     ``improved`` networks of sessions 19-21: valve up in five, down in two (0.959 -> 0.950, 0.883 -> 0.860), mean
     0.919 -> 0.925; hot stab up in five, down in two (0.695 -> 0.671, 0.550 -> 0.526), mean 0.558 -> 0.583."""
+    refit: RefitConfig = field(default_factory=RefitConfig)
+    """Before completion, each track's world pose is fitted again to the masked depth of all its detections at once
+    (:mod:`cadalign.infer.track_fit`; tracks of at least ``min_obs`` detections)."""
     smooth: bool = True
     """A completed track's detections report its final world pose too (fused from all its frames, later ones
     included) instead of the running mean of the frames up to theirs. Default orbit, 33 held-out frames, four
@@ -98,6 +105,9 @@ class WorldTrack:
     T_world_from_obj: Rigid3
     world: int = 0
     """Which world the pose is in (:attr:`cadalign.infer.temporal.TemporalFuser.cameras`)."""
+    duplicate_of: int | None = None
+    """The track this one duplicates (the same part: :func:`cadalign.infer.track_fit.duplicates`); when that one is
+    completed, this one's detections are dropped and it is not completed."""
 
 
 @dataclass(frozen=True)
@@ -230,6 +240,10 @@ class TrackCompleter:
         keep = [r for r in self.records  # track id -1: not fused (temporal mode none), nothing to count
                 if not self.cfg.drop_short or r.track_id < 0 or self._n[r.track_id] >= self.cfg.min_obs]
         trusted = [tr for tr in self.tracks if self.trusted(tr.track_id)]
+        keepers = {tr.track_id for tr in trusted}
+        dup = {tr.track_id for tr in self.tracks if tr.duplicate_of in keepers}
+        keep = [r for r in keep if r.track_id not in dup]
+        trusted = [tr for tr in trusted if tr.track_id not in dup]
         world = {tr.track_id: tr.T_world_from_obj for tr in trusted}
         keep = [self._as_completed(r, world[r.track_id]) if r.track_id in world else r for r in keep]
         boxes: dict[tuple[str, int], list[np.ndarray]] = defaultdict(list)
@@ -254,6 +268,7 @@ class TrackCompleter:
                                    source="track", box_detector=None))
                 added[ref.class_name] += 1
         out.sort(key=lambda r: (r.frame, r.source != "detector", -r.score))
-        summary = {"tracks": len(self.tracks), "untrusted": len(self.tracks) - len(trusted),
+        summary = {"tracks": len(self.tracks), "untrusted": len(self.tracks) - len(trusted) - len(dup),
+                   "duplicates": len(dup),
                    "added": dict(added), "dropped": len(self.records) - len(keep)}
         return out, summary

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -38,6 +38,7 @@ from cadalign.infer.refine import (
     refine_silhouette,
 )
 from cadalign.infer.temporal import TemporalConfig, TemporalFuser
+from cadalign.infer.track_fit import FittedTrack, TrackPoints, duplicates, refit_world_pose
 from cadalign.types import Rigid3
 
 log = logging.getLogger(__name__)
@@ -232,6 +233,9 @@ class PosePipeline:
         self.fuser = TemporalFuser(cfg.temporal)
         self._prev: tuple[int, list[tuple[int, np.ndarray, int]]] | None = None
         """(frame, [(label, box_xyxy, obj_id)]) of the last processed frame, for ``reuse_box_iou``."""
+        refit = cfg.complete.refit
+        self.points = TrackPoints(refit) if cfg.complete.enabled and refit.enabled and cfg.use_depth else None
+        """World-frame masked depth points per track, for the refit of its world pose before completion."""
 
     def geometry(self, obj_id: int) -> ModelGeometry:
         if obj_id not in self._geoms:
@@ -240,9 +244,42 @@ class PosePipeline:
         return self._geoms[obj_id]
 
     def world_tracks(self) -> list[WorldTrack]:
-        """The tracks fused in a world frame (given or ego camera poses) that have a CAD model, for completion."""
-        return [WorldTrack(tr.track_id, tr.label, tr.obj_id, tr.T, tr.world) for tr in self.fuser.tracks
-                if tr.space in ("world", "ego") and tr.obj_id is not None]
+        """The tracks fused in a world frame (given or ego camera poses) that have a CAD model, for completion; with
+        ``complete.refit`` the world pose of each track of at least ``complete.min_obs`` detections is fitted
+        again to all its points, and duplicates among them are marked (:mod:`cadalign.infer.track_fit`).
+
+        Retired tracks are among them when refitted (an ego world left behind, or a model re-identified: with the
+        refit, whichever of the old and the new track explains both tracks' points better is kept)."""
+        out, fitted = [], []
+        for tr in self.fuser.tracks:
+            space = tr.retired_from if tr.space == "retired" else tr.space
+            if space in ("world", "ego") and tr.obj_id is not None:
+                f = self._refit(tr.track_id, tr.label, tr.obj_id, tr.world, tr.T)
+                if f is None and tr.space == "retired":
+                    continue
+                fitted += [f] if f is not None else []
+                out.append(WorldTrack(tr.track_id, tr.label, tr.obj_id, tr.T if f is None else f.T_world_from_obj,
+                                      tr.world))
+        dup = duplicates(fitted, self.cfg.complete.refit)
+        for k, j in dup.items():
+            log.info("track %d duplicates track %d (that track's pose explains its points)", k, j)
+        return [replace(w, duplicate_of=dup.get(w.track_id)) for w in out]
+
+    def _refit(self, track_id: int, label: int, obj_id: int, world: int, T: Rigid3) -> FittedTrack | None:
+        """A track's world pose fitted to all its points (``complete.refit``), None when it is not refitted (off,
+        fewer than ``complete.min_obs`` detections with points, or too few points)."""
+        n = self.points.frames(track_id) if self.points is not None else 0
+        if self.points is None or n < self.cfg.complete.min_obs:
+            return None
+        P, C = self.points.of(track_id)
+        geom = self.geometry(obj_id)
+        res = refit_world_pose(geom, T, P, C, self.cfg.complete.refit, self.models[obj_id].symmetry)
+        if res is None:
+            return None
+        log.info("track %d (model %d): refit on %d frames, %d points: fit %.1f mm (fused pose %.1f mm), moved %.3f m",
+                 track_id, obj_id, n, len(P), 1e3 * res.fit_m, 1e3 * res.fused_fit_m,
+                 float(np.linalg.norm(res.T_world_from_obj.t - T.t)))
+        return FittedTrack(track_id, label, world, n, geom, res.T_world_from_obj, P)
 
     def candidates(self, label: int) -> list[int]:
         name = self.class_names[label] if 0 <= label < len(self.class_names) else ""
@@ -429,7 +466,14 @@ class PosePipeline:
         obs = [Observation(int(d.label), res.T_cam_from_obj, oid, self.models[oid].symmetry,
                            self.models[oid].diameter_m, id_px) for d, oid, _, _, res, id_px in kept]
         fused = self.fuser.update(frame, obs, T_world_from_cam)
-        times["temporal"] = time.perf_counter() - ta
+        world, T_wc = self.fuser.cameras.get(frame, (None, None))
+        if self.points is not None and depth_m is not None and T_wc is not None \
+                and (world == 0 or self.cfg.complete.refit.ego):  # world 0: the given camera poses
+            for (d, *_), f in zip(kept, fused, strict=True):
+                if f.track_id >= 0:
+                    self.points.add(f.track_id, icp_points(depth_m, np.asarray(d.mask, bool), K, self.cfg.refine),
+                                    T_wc)
+        times["temporal"] = time.perf_counter() - ta  # with the points kept for the track refit
         records = [PoseRecord(frame, name, oid, f.track_id, int(d.label), name_c, float(d.score),
                               np.asarray(d.box_xyxy, float), f.T_cam_from_obj, T0, res.T_cam_from_obj,
                               dict(res.iterations), np.asarray(d.mask, bool))

@@ -97,6 +97,7 @@ class _Track:
     missed: int = 0
     id_px: int = 0  # the largest mask its model was identified on (Observation.id_px)
     world: int = 0  # the world its pose is in: 0 the given camera poses', 1, 2, ... the ego worlds in turn
+    retired_from: str | None = None  # the space it was in before it was retired
 
 
 class TemporalFuser:
@@ -150,7 +151,7 @@ class TemporalFuser:
                     C = C_pred
                 else:
                     for tr in tracks:
-                        tr.space = "retired"
+                        tr.retired_from, tr.space = tr.space, "retired"
                     self._ego, C = [], Rigid3.identity()
                     self._world += 1
         if C is not None:
@@ -184,7 +185,8 @@ class TemporalFuser:
 
     def retire(self, track_id: int) -> None:
         """Stop a track: it takes no more observations and is no longer in view (its model was found wrong)."""
-        self.tracks[track_id].space = "retired"
+        tr = self.tracks[track_id]
+        tr.retired_from, tr.space = tr.space, "retired"
 
     def note_identified(self, track_id: int, id_px: int) -> None:
         """The track's model was confirmed on a mask of ``id_px`` pixels."""

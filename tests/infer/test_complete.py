@@ -135,7 +135,7 @@ def test_a_missed_frame_is_completed_with_the_world_pose(cube: ModelGeometry) ->
     assert added[0].score == pytest.approx(np.median([0.5, 0.6, 0.8, 0.9]))
     assert isinstance(added[0].mask, CroppedMask) and added[0].refine_iters == {}
     assert [r.frame for r in out] == [0, 1, 2, 3, 4]
-    assert summary == {"tracks": 1, "untrusted": 0, "added": {"valve": 1}, "dropped": 0}
+    assert summary == {"tracks": 1, "untrusted": 0, "duplicates": 0, "added": {"valve": 1}, "dropped": 0}
 
 
 def test_short_tracks_are_dropped_and_not_completed(cube: ModelGeometry) -> None:
@@ -150,6 +150,21 @@ def test_short_tracks_are_dropped_and_not_completed(cube: ModelGeometry) -> None
     unfused = [replace(r, track_id=-1) for r in recs[:2]]
     out, summary = _complete(cube, unfused, cams, [])
     assert len(out) == 2 and summary["dropped"] == 0
+
+
+def test_a_duplicate_of_a_completed_track_is_dropped(cube: ModelGeometry) -> None:
+    # track 1 marked as the same part as track 0 (cadalign.infer.track_fit.duplicates): its detections go, and it
+    # is not completed, as long as track 0 is completed
+    recs, cams = _video(cube, {0: [0, 1, 3, 4], 1: [0, 1, 2]})
+    tracks = [WorldTrack(0, 2, 7, _at(0.0)), WorldTrack(1, 2, 7, _at(0.0, x=1.0), duplicate_of=0)]
+    out, summary = _complete(cube, recs, cams, tracks)
+    assert {r.track_id for r in out} == {0} and summary["duplicates"] == 1 and summary["dropped"] == 3
+    assert summary["untrusted"] == 0 and [r.frame for r in out if r.source == "track"] == [2]
+    # the keeper too short to be completed: the duplicate stays, and is completed itself
+    recs, cams = _video(cube, {0: [0, 1], 1: [0, 1, 2]})
+    out, summary = _complete(cube, recs, cams, tracks)
+    assert {r.track_id for r in out} == {1} and summary["duplicates"] == 0
+    assert [r.frame for r in out if r.source == "track"] == [3, 4]
 
 
 def test_a_track_its_detections_disagree_with_is_not_completed(cube: ModelGeometry) -> None:
