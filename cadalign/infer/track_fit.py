@@ -10,10 +10,15 @@ rotations of the cube, each with a few model points (the centroid and farthest-p
 centroid. All starts run a few ICP iterations on a subsample; the best few and the fused start run to convergence
 on all points. The best fit (mean data -> model distance, each capped at a tenth of the diameter) wins; fits within
 ``tie_rel`` of it are ties, and of those the one that turns least from the fused pose (symmetry-aware) wins.
+
+Two tracks on one part (a detection given another model of the class starts a second track) are found the same way:
+one's refitted pose explains the other's points (:func:`duplicates`).
 """
 
 from __future__ import annotations
 
+import functools
+import itertools
 from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -28,8 +33,6 @@ from cadalign.infer.model_geom import ModelGeometry
 from cadalign.infer.pose_math import canonicalize
 from cadalign.infer.refine_math import huber_weights
 from cadalign.types import Rigid3
-
-_CUBE: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -65,10 +68,11 @@ class RefitConfig:
     dup_tol: float = bounded(0.02, gt=0)
     """A point is explained by a pose when within this fraction of the diameter of the model (the duplicate test)."""
     dup_share: float = bounded(0.8, ge=0, le=1)
-    """A track is a duplicate of another of its class (same part: a second track, often with the wrong model of
-    the class, e.g. the UUV hot stab fitted onto a procedural one's probe) when the other's refitted pose explains at
-    least this share of what its own explains of its points, and the other has more detections; its records are
-    then dropped and it is not completed when the other is (:func:`duplicates`). 0 = off."""
+    """Two refitted tracks of a class are one part (a second track, often with the wrong model of the class, e.g.
+    the UUV hot stab fitted onto a procedural one's probe, or a retired track and its successor) when one's pose
+    explains at least this share of what the other's own pose explains of the other's points; the one explaining
+    more of both tracks' points is kept, and the other's records are dropped when the kept one is completed
+    (:func:`duplicates`). 0 = off."""
     seed: int = 0
     """Seed of the point subsampling."""
 
@@ -228,21 +232,17 @@ def capped_fit(geom: ModelGeometry, T: Rigid3, P: np.ndarray) -> float:
     return float(np.mean(np.minimum(dist, 0.1 * geom.diameter_m)))
 
 
+@functools.cache
 def _cube_rotations() -> np.ndarray:
     """The 24 rotations of the cube (signed permutation matrices of determinant +1)."""
-    global _CUBE
-    if _CUBE is None:
-        import itertools
-
-        out = []
-        for perm in itertools.permutations(range(3)):
-            for signs in itertools.product((1.0, -1.0), repeat=3):
-                M = np.zeros((3, 3))
-                M[range(3), perm] = signs
-                if np.linalg.det(M) > 0:
-                    out.append(M)
-        _CUBE = np.stack(out)
-    return _CUBE
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            M = np.zeros((3, 3))
+            M[range(3), perm] = signs
+            if np.linalg.det(M) > 0:
+                out.append(M)
+    return np.stack(out)
 
 
 def _distinct(Rs: np.ndarray, symmetry: Symmetry | None) -> list[np.ndarray]:
