@@ -51,22 +51,25 @@ class InferConfig:
     temporal: TemporalConfig = field(default_factory=TemporalConfig)
     """Temporal fusion over the video (``temporal.mode = "none"`` keeps per-frame poses)."""
     complete: CompleteConfig = field(default_factory=CompleteConfig)
-    """Track completion after the video (:mod:`cadalign.infer.complete`): each static part fused in the world frame
-    is reported wherever its pose puts it in sight, the detector's misses included; detections of short tracks are
-    dropped. Needs depth and the frames' camera poses, given (temporal mode ``world``) or registered on the parts
-    (``ego``); without depth nothing changes. Default orbit, 33 held-out frames, true depth, ``accurate`` otherwise;
-    valve / hot stab F1 without -> with completion (true camera poses; measured before ``complete.reproject``,
-    whose numbers are in its doc), nine ``improved`` networks of sessions 19-21 (training/pose_fast_zoom_*.toml,
-    4200-7600 steps): 0.817 -> 0.942 / 0.367 -> 0.695 (the acceptance network, seed 0), 0.838 -> 0.959 / 0.386 ->
-    0.484 (seed 1), 0.866 -> 0.964 / 0.378 -> 0.525, 0.828 -> 0.844 / 0.358 -> 0.507 (two false valve tracks
-    completed into 38 frames), 0.841 -> 0.952 / 0.296 -> 0.514, 0.790 -> 0.883 / 0.255 -> 0.756, 0.828 -> 0.942 /
-    0.261 -> 0.659, 0.762 -> 0.850 / 0.239 -> 0.336, 0.812 -> 0.939 / 0.124 -> 0.550; ``thesis`` (seed 0) 0.816 ->
-    0.867 / 0.349 -> 0.382. The misses left are parts never detected three times (the 87 mm panel valves at 3-5 px,
-    the UUV hot stab in its receptacle); ~20-30 ms per frame. Without camera poses (``ego``) seed 0 / 1: 0.817 ->
-    0.893 / 0.367 -> 0.575 and 0.838 -> 0.883 / 0.386 -> 0.439 (``min_visible = 0.3``: 0.891 / 0.566 and 0.889 /
+    """Track completion after the video (:mod:`cadalign.infer.complete`): each static part fused in the world frame is
+    reported wherever its pose puts it in sight, the detector's misses included; detections of short tracks are dropped.
+    Needs depth and the frames' camera poses, given (temporal mode ``world``) or registered on the parts (``ego``);
+    without depth nothing changes. Default orbit, 33 held-out frames, true depth, ``accurate`` otherwise; valve / hot
+    stab F1 without -> with completion (true camera poses; measured before ``complete.reproject`` and
+    ``complete.refit``, whose numbers are in their docs), nine ``improved`` networks of sessions 19-21
+    (training/pose_fast_zoom_*.toml, 4200-7600 steps): 0.817 -> 0.942 / 0.367 -> 0.695 (the acceptance network, seed 0),
+    0.838 -> 0.959 / 0.386 -> 0.484 (seed 1), 0.866 -> 0.964 / 0.378 -> 0.525, 0.828 -> 0.844 / 0.358 -> 0.507 (two
+    false valve tracks completed into 38 frames), 0.841 -> 0.952 / 0.296 -> 0.514, 0.790 -> 0.883 / 0.255 -> 0.756,
+    0.828 -> 0.942 / 0.261 -> 0.659, 0.762 -> 0.850 / 0.239 -> 0.336, 0.812 -> 0.939 / 0.124 -> 0.550; ``thesis`` (seed
+    0) 0.816 -> 0.867 / 0.349 -> 0.382. The misses left are parts never detected three times (the 87 mm panel valves at
+    3-5 px, the UUV hot stab in its receptacle); ~20-30 ms per frame. Without camera poses (``ego``) seed 0 / 1: 0.817
+    -> 0.893 / 0.367 -> 0.575 and 0.838 -> 0.883 / 0.386 -> 0.439 (``min_visible = 0.3``: 0.891 / 0.566 and 0.889 /
     0.477). On in ``accurate``."""
     score_thresh: float = bounded(0.5, ge=0, le=1)
-    """Detections scoring below this are dropped."""
+    """Detections scoring below this are dropped. Default orbit, 33 held-out frames, ``accurate`` (with
+    ``complete.refit``), true depth, 0.5 -> 0.3: seed 0 (4200 steps) valve / hot stab F1 0.970 / 0.813 -> 0.986 /
+    0.947 (the UUV hot stab tracked from four 5 px detections, but fitted 60 deg off: hot stab R mean 0.20 -> 16.9
+    deg); seed 1 0.972 / 0.798 -> 0.971 / 0.798 (valve R mean 0.98 -> 2.19 deg). Not taken."""
     nms_iou: float = bounded(0.5, gt=0, le=1)
     """A trained network's detections (with those of its ``tiles`` windows) are non-maximum suppressed per class:
     of two same-class boxes overlapping by more than this IoU the lower-scoring goes (0.5, the network's own
