@@ -96,7 +96,12 @@ class CompleteConfig:
     0.000 m / 1.74 deg (the UUV hot stab's track, retired by a re-identification on a 14 px mask, refitted and
     completed: 30 of 30); ``thesis`` seed 0 0.871 / 0.382, 0.210 m / 93.9 deg, 0.309 m / 79.7 deg -> 0.950 / 0.805,
     0.153 m / 63.2 deg, 0.006 m / 4.2 deg. The 87 mm panel valve's quarter turn, which no single frame shows, is
-    found (85 -> 0.1-1 deg). ~1 s per track (the completion pass 0.9 -> ~30 s on those 33 frames)."""
+    found (85 -> 0.1-1 deg). Two networks trained within 60 CPU-minutes (3700 steps, seeds 0 and 2): 0.933 / 0.520,
+    0.008 m / 3.91 deg, 0.109 m / 35.4 deg -> 0.917 / 0.825, 0.001 m / 0.14 deg, 0.031 m / 18.3 deg (the UUV hot
+    stab tracked with the procedural hot stab's model: 13 matches at 109 deg, 15 false), and 0.951 / 0.600, 0.004 m /
+    2.12 deg, 0.179 m / 34.5 deg -> 0.951 / 0.578, 0.001 m / 1.87 deg, 0.019 m / 1.22 deg (a hot stab track dropped
+    as a duplicate of a worse one: 9 fewer hot stab matches). ~1 s per track (the completion pass 0.9 -> ~30 s on
+    those 33 frames)."""
     smooth: bool = True
     """A completed track's detections report its final world pose too (fused from all its frames, later ones
     included) instead of the running mean of the frames up to theirs. Default orbit, 33 held-out frames, four
