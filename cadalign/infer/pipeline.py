@@ -260,7 +260,8 @@ class PosePipeline:
                 f = self._refit(tr.track_id, tr.label, tr.obj_id, tr.world, tr.T)
                 if f is None and tr.space == "retired":
                     continue
-                fitted += [f] if f is not None else []
+                if f is not None:
+                    fitted.append(f)
                 out.append(WorldTrack(tr.track_id, tr.label, tr.obj_id, tr.T if f is None else f.T_world_from_obj,
                                       tr.world))
         dup = duplicates(fitted, self.cfg.complete.refit)

@@ -52,12 +52,11 @@ def small_step(step: np.ndarray, cfg: RefineConfig, geom: ModelGeometry) -> bool
 
 
 def clamp_step(step: np.ndarray, diameter_m: float) -> np.ndarray:
-    """Limit one update to 0.2 rad and a quarter diameter (a guard against a near-singular system)."""
-    out = step.copy()
+    """Limit updates ``(..., 6)`` to 0.2 rad and a quarter diameter each (a guard against a near-singular system)."""
+    out = np.array(step, dtype=float)
     for sl, lim in ((slice(0, 3), 0.2), (slice(3, 6), 0.25 * diameter_m)):
-        n = np.linalg.norm(out[sl])
-        if n > lim:
-            out[sl] *= lim / n
+        n = np.linalg.norm(out[..., sl], axis=-1, keepdims=True)
+        out[..., sl] *= np.minimum(1.0, lim / np.maximum(n, 1e-300))
     return out
 
 

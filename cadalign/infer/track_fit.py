@@ -29,9 +29,10 @@ from cadalign.cad.symmetry import Symmetry
 from cadalign.config import bounded
 from cadalign.eval.pose_metrics import rotation_error_deg
 from cadalign.geometry.rotations import axis_angle_to_matrix, orthonormalize
+from cadalign.infer.depth_icp import depth_fit
 from cadalign.infer.model_geom import ModelGeometry
 from cadalign.infer.pose_math import canonicalize
-from cadalign.infer.refine_math import huber_weights
+from cadalign.infer.refine_math import clamp_step, huber_weights
 from cadalign.types import Rigid3
 
 
@@ -156,9 +157,7 @@ def icp_world(geom: ModelGeometry, starts: Sequence[Rigid3], P: np.ndarray, C: n
         enough = ok.sum(1) >= 6
         step = np.zeros((len(idx), 6))
         step[enough] = -np.linalg.solve(H[enough], g[enough][..., None])[..., 0]
-        for sl, lim in ((slice(0, 3), 0.2), (slice(3, 6), 0.25 * d)):  # as clamp_step
-            norm = np.linalg.norm(step[:, sl], axis=1, keepdims=True)
-            step[:, sl] *= np.minimum(1.0, lim / np.maximum(norm, 1e-300))
+        step = clamp_step(step, d)
         R[idx] = axis_angle_to_matrix(step[:, :3]) @ Ra
         t[idx] = ta + step[:, 3:]
         small = (np.linalg.norm(step[:, :3], axis=1) < 1e-5) & (np.linalg.norm(step[:, 3:], axis=1) < 1e-5 * d)
@@ -226,12 +225,6 @@ def _same_part(a: FittedTrack, b: FittedTrack, cfg: RefitConfig) -> bool:
     return False
 
 
-def capped_fit(geom: ModelGeometry, T: Rigid3, P: np.ndarray) -> float:
-    """Mean distance (m) of the points ``P`` to the model surface at ``T``, each capped at 0.1 diameters."""
-    dist = geom.tree.query(T.inverse().apply(P))[0]
-    return float(np.mean(np.minimum(dist, 0.1 * geom.diameter_m)))
-
-
 @functools.cache
 def _cube_rotations() -> np.ndarray:
     """The 24 rotations of the cube (signed permutation matrices of determinant +1)."""
@@ -286,9 +279,9 @@ def refit_world_pose(geom: ModelGeometry, T_fused: Rigid3, P: np.ndarray, C: np.
     starts = [Rigid3(R, centre - R @ a) for R in _distinct(T_fused.R @ _cube_rotations(), symmetry)
               for a in _anchors(geom, cfg.anchors)]
     coarse = icp_world(geom, starts, Ps, Cs, cfg.coarse_iters, cfg.huber_m)
-    order = np.argsort([capped_fit(geom, T, Ps) for T in coarse], kind="stable")
+    order = np.argsort([depth_fit(geom, T, Ps) for T in coarse], kind="stable")
     fine = icp_world(geom, [T_fused, *(coarse[k] for k in order[:cfg.keep])], P, C, cfg.iters, cfg.huber_m)
-    fits = [capped_fit(geom, T, P) for T in fine]
+    fits = [depth_fit(geom, T, P) for T in fine]
     best = min(fits)
     near = [i for i, f in enumerate(fits) if f <= best * (1.0 + cfg.tie_rel)]
     pick_i = min(near, key=lambda i: (rotation_error_deg(fine[i].R, T_fused.R, symmetry), i))

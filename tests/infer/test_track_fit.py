@@ -13,7 +13,7 @@ from cadalign.cad.model import CadModel
 from cadalign.cad.procedural import make_part
 from cadalign.eval.pose_metrics import rotation_error_deg
 from cadalign.geometry.rotations import axis_angle_to_matrix
-from cadalign.infer.depth_icp import masked_depth_points
+from cadalign.infer.depth_icp import depth_fit, masked_depth_points
 from cadalign.infer.model_geom import ModelGeometry, render_depth
 from cadalign.infer.pipeline import PRESETS, PosePipeline
 from cadalign.infer.pose_math import Observation
@@ -21,7 +21,6 @@ from cadalign.infer.track_fit import (
     FittedTrack,
     RefitConfig,
     TrackPoints,
-    capped_fit,
     duplicates,
     icp_world,
     refit_world_pose,
@@ -88,7 +87,7 @@ def test_track_points_keep_a_subset_per_detection_in_the_world_frame(stab: Model
     assert max(seen) > 200 and pts.frames(0) == 3 and len(P) == sum(min(n, 200) for n in seen)
     assert P.shape == C.shape
     # world points on the part's surface at its world pose (within the model samples' spacing), not end for end
-    assert capped_fit(stab, T_WO, P) < 0.01 < capped_fit(stab, _flipped(T_WO, stab), P)
+    assert depth_fit(stab, T_WO, P) < 0.01 < depth_fit(stab, _flipped(T_WO, stab), P)
     assert len(np.unique(C, axis=0)) == 3
     assert pts.frames(7) == 0 and pts.of(7)[0].shape == (0, 3)
 
