@@ -180,8 +180,9 @@ class TrackCompleter:
     """The completion pass: feed every frame to :meth:`frame`, then take :meth:`result`.
 
     ``records``: the video's per-frame records (:class:`~cadalign.infer.pipeline.PoseRecord`, or any frozen
-    dataclass with ``frame``, ``frame_name``, ``track_id``, ``label``, ``class_name``, ``score``, ``box_xyxy``,
-    ``T_cam_from_obj``, ``T_detector``, ``T_refined``, ``refine_iters``, ``mask``, ``source`` and ``box_detector``);
+    dataclass with ``frame``, ``frame_name``, ``track_id``, ``label``, ``class_name``, ``obj_id``, ``score``,
+    ``box_xyxy``, ``T_cam_from_obj``, ``T_detector``, ``T_refined``, ``refine_iters``, ``mask``, ``source`` and
+    ``box_detector``);
     ``geometry``: the :class:`ModelGeometry` of a CAD model id.
     """
 
@@ -238,11 +239,14 @@ class TrackCompleter:
         n = self._n[track_id]
         return n >= self.cfg.min_detected * (n + len(self._cands.get(track_id, [])))
 
-    def _as_completed(self, r: Any, T_world_from_obj: Rigid3) -> Any:
-        """A trusted track's detection as reported: its world pose (``smooth``), and the box and mask that pose
-        projects to in the frame (``reproject``; the network's box kept as ``box_detector``)."""
-        if self.cfg.smooth and r.frame_name in self._cams:
-            r = replace(r, T_cam_from_obj=self._cams[r.frame_name] @ T_world_from_obj)
+    def _as_completed(self, r: Any, tr: WorldTrack) -> Any:
+        """A trusted track's detection as reported: its CAD model (the refit may have chosen another), its world pose
+        (``smooth``, or always when the model changed), and the box and mask that pose projects to in the frame
+        (``reproject``; the network's box kept as ``box_detector``)."""
+        changed = r.obj_id != tr.obj_id
+        r = replace(r, obj_id=tr.obj_id)
+        if (self.cfg.smooth or changed) and r.frame_name in self._cams:
+            r = replace(r, T_cam_from_obj=self._cams[r.frame_name] @ tr.T_world_from_obj)
         p = self._own.get((r.track_id, r.frame_name))
         if p is None:  # only filled with reproject on
             return r
@@ -258,8 +262,8 @@ class TrackCompleter:
         dup = {tr.track_id for tr in self.tracks if tr.duplicate_of in keepers}
         keep = [r for r in keep if r.track_id not in dup]
         trusted = [tr for tr in trusted if tr.track_id not in dup]
-        world = {tr.track_id: tr.T_world_from_obj for tr in trusted}
-        keep = [self._as_completed(r, world[r.track_id]) if r.track_id in world else r for r in keep]
+        by_id = {tr.track_id: tr for tr in trusted}
+        keep = [self._as_completed(r, by_id[r.track_id]) if r.track_id in by_id else r for r in keep]
         boxes: dict[tuple[str, int], list[np.ndarray]] = defaultdict(list)
         for r in keep:
             boxes[(r.frame_name, r.label)].append(np.asarray(r.box_xyxy, float))
@@ -277,7 +281,8 @@ class TrackCompleter:
                     continue
                 have.append(c.proj.box_xyxy)
                 T = c.proj.T_cam_from_obj
-                out.append(replace(ref, frame=c.frame, frame_name=c.name, score=score, box_xyxy=c.proj.box_xyxy,
+                out.append(replace(ref, frame=c.frame, frame_name=c.name, obj_id=tr.obj_id, score=score,
+                                   box_xyxy=c.proj.box_xyxy,
                                    T_cam_from_obj=T, T_detector=T, T_refined=T, refine_iters={}, mask=c.proj.mask,
                                    source="track", box_detector=None))
                 added[ref.class_name] += 1

@@ -81,21 +81,29 @@ def view_disagreement(geom: ModelGeometry, T: Rigid3, K: np.ndarray, mask: np.nd
     instead, for comparing poses far apart in depth (different models of a class, one of them fitted a few metres
     off would otherwise leave no mask pixel "near" it).
     """
+    return sum(view_disagreement_parts(geom, T, K, mask, depth_m, tol_m, window, band_px, near))
+
+
+def view_disagreement_parts(geom: ModelGeometry, T: Rigid3, K: np.ndarray, mask: np.ndarray,
+                            depth_m: np.ndarray | None, tol_m: float, window: tuple[int, int, int, int],
+                            band_px: float = 0.0, near: tuple[float, float] | None = None) -> tuple[int, int]:
+    """:func:`view_disagreement` as (pixels seen through the model, mask pixels it leaves unexplained); without
+    depth (silhouette pixels off the mask, mask pixels off the silhouette)."""
     x0, y0, x1, y1 = window
     if x1 <= x0 or y1 <= y0:
-        return 0
+        return 0, 0
     z_model = render_depth(geom, T, np.asarray(K, float), (y1 - y0, x1 - x0), (x0, y0))
     hit = np.isfinite(z_model)
     m = np.asarray(mask, bool)[y0:y1, x0:x1]
     off_mask, off_model = _far_from(m, band_px), _far_from(hit, band_px)
     if depth_m is None:
-        return int(np.count_nonzero(hit & ~m & off_mask) + np.count_nonzero(m & ~hit & off_model))
+        return int(np.count_nonzero(hit & ~m & off_mask)), int(np.count_nonzero(m & ~hit & off_model))
     obs = np.asarray(depth_m, float)[y0:y1, x0:x1]
     valid = np.isfinite(obs) & (obs > 0)
     see_through = hit & valid & (obs > np.where(hit, z_model, 0.0) + tol_m) & off_mask
     z_ref, band = (float(T.t[2]), geom.diameter_m) if near is None else near
     unexplained = ~hit & m & valid & (np.abs(obs - z_ref) < band) & off_model
-    return int(np.count_nonzero(see_through) + np.count_nonzero(unexplained))
+    return int(np.count_nonzero(see_through)), int(np.count_nonzero(unexplained))
 
 
 def pick_half_turn(geom: ModelGeometry, T: Rigid3, T_turned: Rigid3, K: np.ndarray, mask: np.ndarray,

@@ -38,7 +38,16 @@ from cadalign.infer.refine import (
     refine_silhouette,
 )
 from cadalign.infer.temporal import TemporalConfig, TemporalFuser
-from cadalign.infer.track_fit import FittedTrack, TrackPoints, duplicates, refit_world_pose
+from cadalign.infer.track_fit import (
+    FittedTrack,
+    RefitResult,
+    TrackPoints,
+    TrackView,
+    duplicates,
+    pick_model,
+    refit_world_pose,
+    turn_by_view,
+)
 from cadalign.types import Rigid3
 
 log = logging.getLogger(__name__)
@@ -70,6 +79,9 @@ class InferConfig:
     ``complete.refit``), true depth, 0.5 -> 0.3: seed 0 (4200 steps) valve / hot stab F1 0.970 / 0.813 -> 0.986 /
     0.947 (the UUV hot stab tracked from four 5 px detections, but fitted 60 deg off: hot stab R mean 0.20 -> 16.9
     deg); seed 1 0.972 / 0.798 -> 0.971 / 0.798 (valve R mean 0.98 -> 2.19 deg). Not taken."""
+    class_score_thresh: dict[str, float] = field(default_factory=dict)
+    """Per-class ``score_thresh`` (class name -> threshold) where it differs; the detector runs at the lowest of
+    them all (:attr:`detector_score_thresh`). MEASURED"""
     nms_iou: float = bounded(0.5, gt=0, le=1)
     """A trained network's detections (with those of its ``tiles`` windows) are non-maximum suppressed per class:
     of two same-class boxes overlapping by more than this IoU the lower-scoring goes (0.5, the network's own
@@ -164,6 +176,16 @@ class InferConfig:
     CLAHE-enhanced by SfM, a simulator's are raw), read from the run folder; the others force one (default CLAHE
     settings). Measured on the default scene's 16 held-out frames: valve F1 0.902 on the dataset's images, 0.676
     on the raw frames. The overlay is drawn on the raw frame."""
+
+    def __post_init__(self) -> None:
+        bad = {k: v for k, v in self.class_score_thresh.items() if not 0.0 <= float(v) <= 1.0}
+        if bad:
+            raise ValueError(f"class_score_thresh {bad}: each threshold must lie in [0, 1]")
+
+    @property
+    def detector_score_thresh(self) -> float:
+        """The detector's own threshold: the lowest of ``score_thresh`` and the ``class_score_thresh`` values."""
+        return min([self.score_thresh, *map(float, self.class_score_thresh.values())])
 
 
 PRESETS: dict[str, InferConfig] = {
@@ -262,8 +284,8 @@ class PosePipeline:
                     continue
                 if f is not None:
                     fitted.append(f)
-                out.append(WorldTrack(tr.track_id, tr.label, tr.obj_id, tr.T if f is None else f.T_world_from_obj,
-                                      tr.world))
+                out.append(WorldTrack(tr.track_id, tr.label, tr.obj_id if f is None else f.obj_id,
+                                      tr.T if f is None else f.T_world_from_obj, tr.world))
         dup = duplicates(fitted, self.cfg.complete.refit)
         for k, j in dup.items():
             log.info("track %d duplicates track %d (that track's pose explains its points)", k, j)
@@ -271,19 +293,55 @@ class PosePipeline:
 
     def _refit(self, track_id: int, label: int, obj_id: int, world: int, T: Rigid3) -> FittedTrack | None:
         """A track's world pose fitted to all its points (``complete.refit``), None when it is not refitted (off,
-        fewer than ``complete.min_obs`` detections with points, or too few points)."""
+        fewer than ``complete.min_obs`` detections with points, or too few points). With ``refit.choose_model``
+        every model of its class is fitted and the best kept (:func:`~cadalign.infer.track_fit.pick_model`)."""
         n = self.points.frames(track_id) if self.points is not None else 0
         if self.points is None or n < self.cfg.complete.min_obs:
             return None
         P, C = self.points.of(track_id)
-        geom = self.geometry(obj_id)
-        res = refit_world_pose(geom, T, P, C, self.cfg.complete.refit, self.models[obj_id].symmetry)
-        if res is None:
+        cfg = self.cfg.complete.refit
+        own = refit_world_pose(self.geometry(obj_id), T, P, C, cfg, self.models[obj_id].symmetry)
+        if own is None:  # too few points: the same for every model
             return None
-        log.info("track %d (model %d): refit on %d frames, %d points: fit %.1f mm (fused pose %.1f mm), moved %.3f m",
-                 track_id, obj_id, n, len(P), 1e3 * res.fit_m, 1e3 * res.fused_fit_m,
-                 float(np.linalg.norm(res.T_world_from_obj.t - T.t)))
-        return FittedTrack(track_id, label, world, n, geom, res.T_world_from_obj, P)
+        fits, k = {obj_id: own}, obj_id
+        others = [m for m in self.candidates(label) if m != obj_id] if cfg.choose_model != "off" else []
+        if others:
+            quick = cfg.screening() if cfg.screen else cfg
+            for m in others:
+                r = refit_world_pose(self.geometry(m), T, P, C, quick, self.models[m].symmetry)
+                if r is not None:
+                    fits[m] = r
+            k = self._pick_model(track_id, fits, P, obj_id)
+            if k != obj_id and cfg.screen:  # the winner of the cheap search, fitted in full, against the own fit
+                full = refit_world_pose(self.geometry(k), T, P, C, cfg, self.models[k].symmetry)
+                fits = {obj_id: own, k: full or fits[k]}
+                k = self._pick_model(track_id, fits, P, obj_id)
+        r = fits[k]
+        if cfg.choose_model == "view" and cfg.view_turns_deg:
+            g = self.geometry(k)
+            near = max(self.geometry(m).diameter_m for m in fits)
+            views, Pt, Ct = self.points.views(track_id), P, C
+            if len(P) > cfg.max_points:  # as many points as the refit's final ICP
+                pick = np.random.default_rng(cfg.seed).choice(len(P), cfg.max_points, replace=False)
+                Pt, Ct = P[pick], C[pick]
+            T_turned = turn_by_view(g, r.T_world_from_obj, Pt, views, cfg.view_turns_deg, cfg.tie_rel,
+                                    self.cfg.refine.half_turn_tol * g.diameter_m, self.cfg.refine.half_turn_band_px,
+                                    near, mask_weight=cfg.mask_weight, C=Ct, icp_iters=cfg.turn_icp_iters,
+                                    huber_m=cfg.huber_m, min_gain=cfg.turn_min_px * len(views))
+            r = replace(r, T_world_from_obj=T_turned)
+        log.info("track %d (model %d): refit on %d frames, %d points: fit %.1f mm (fused pose %.1f mm), moved %.3f m%s",
+                 track_id, obj_id, n, len(P), 1e3 * r.fit_m, 1e3 * fits[obj_id].fused_fit_m,
+                 float(np.linalg.norm(r.T_world_from_obj.t - T.t)), "" if k == obj_id else f", now model {k}")
+        return FittedTrack(track_id, label, world, n, self.geometry(k), r.T_world_from_obj, P, k)
+
+    def _pick_model(self, track_id: int, fits: dict[int, RefitResult], P: np.ndarray, own: int) -> int:
+        """:func:`~cadalign.infer.track_fit.pick_model` of a track's fitted models (its views with ``choose_model =
+        "view"``)."""
+        cfg = self.cfg.complete.refit
+        views = self.points.views(track_id) if self.points is not None and cfg.choose_model == "view" else ()
+        return pick_model({m: r.T_world_from_obj for m, r in fits.items()}, {m: self.geometry(m) for m in fits}, P,
+                          own, cfg.model_margin, views, self.cfg.refine.half_turn_tol,
+                          self.cfg.refine.half_turn_band_px, cfg.model_min_px, cfg.mask_weight)
 
     def candidates(self, label: int) -> list[int]:
         name = self.class_names[label] if 0 <= label < len(self.class_names) else ""
@@ -450,7 +508,8 @@ class PosePipeline:
         kept, taken = [], set()
         for d in dets:
             name_c = self.class_names[int(d.label)] if 0 <= int(d.label) < len(self.class_names) else "?"
-            if float(d.score) < self.cfg.score_thresh or name_c in self.ignored:
+            if float(d.score) < self.cfg.class_score_thresh.get(name_c, self.cfg.score_thresh) \
+                    or name_c in self.ignored:
                 continue
             ta = time.perf_counter()
             T0 = Rigid3(np.asarray(d.R_cam_from_obj, float), np.asarray(d.t_cam_from_obj_m, float))
@@ -473,10 +532,13 @@ class PosePipeline:
         world, T_wc = self.fuser.cameras.get(frame, (None, None))
         if self.points is not None and depth_m is not None and T_wc is not None \
                 and (world == 0 or self.cfg.complete.refit.ego):  # world 0: the given camera poses
+            refit = self.cfg.complete.refit
             for (d, *_), f in zip(kept, fused, strict=True):
                 if f.track_id >= 0:
-                    self.points.add(f.track_id, icp_points(depth_m, np.asarray(d.mask, bool), K, self.cfg.refine),
-                                    T_wc)
+                    mask = np.asarray(d.mask, bool)
+                    view = TrackView.crop(K, T_wc, mask, depth_m, refit.view_pad) \
+                        if refit.choose_model == "view" else None
+                    self.points.add(f.track_id, icp_points(depth_m, mask, K, self.cfg.refine), T_wc, view)
         times["temporal"] = time.perf_counter() - ta  # with the points kept for the track refit
         records = [PoseRecord(frame, name, oid, f.track_id, int(d.label), name_c, float(d.score),
                               np.asarray(d.box_xyxy, float), f.T_cam_from_obj, T0, res.T_cam_from_obj,

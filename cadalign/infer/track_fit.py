@@ -7,9 +7,15 @@ the frames' camera poses, fixes all of it. So after the video, a track's world p
 its detections' masked depth points, by point-to-plane ICP in the world frame (a point's facing test uses its own
 camera's centre), from its fused pose and from a grid of starts: the fused rotation turned by each of the 24
 rotations of the cube, each with a few model points (the centroid and farthest-point samples) put on the points'
-centroid. All starts run a few ICP iterations on a subsample; the best few and the fused start run to convergence
-on all points. The best fit (mean data -> model distance, each capped at a tenth of the diameter) wins; fits within
-``tie_rel`` of it are ties, and of those the one that turns least from the fused pose (symmetry-aware) wins.
+median. All starts run a few ICP iterations on a subsample; the fused pose and the best few are then moved along
+the model's principal axes and run again (``hops``: ICP slides along a cylinder into the nearest minimum); the best
+few and the fused start run to convergence on all points. The best fit (mean data -> model distance, each capped at
+a tenth of the diameter) wins; fits within ``tie_rel`` of it are ties, and of those the one that turns least from the
+fused pose (symmetry-aware) wins.
+
+A track's model was chosen on its first, smallest views. With ``choose_model``, every model of its class is fitted the
+same way and the one that agrees best with the track's views is kept (:func:`pick_model`); the chosen fit is then
+turned, where the points cannot tell, to agree better with the views (:func:`turn_by_view`).
 
 Two tracks on one part (a detection given another model of the class starts a second track) are found the same way:
 one's refitted pose explains the other's points (:func:`duplicates`).
@@ -17,11 +23,14 @@ one's refitted pose explains the other's points (:func:`duplicates`).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
+import math
 from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -30,6 +39,7 @@ from cadalign.config import bounded
 from cadalign.eval.pose_metrics import rotation_error_deg
 from cadalign.geometry.rotations import axis_angle_to_matrix, orthonormalize
 from cadalign.infer.depth_icp import depth_fit
+from cadalign.infer.half_turn import view_disagreement_parts
 from cadalign.infer.model_geom import ModelGeometry
 from cadalign.infer.pose_math import canonicalize
 from cadalign.infer.refine_math import clamp_step, huber_weights
@@ -54,6 +64,12 @@ class RefitConfig:
     """Final ICP iterations."""
     anchors: int = bounded(12, ge=1)
     """Model points put on the points' centroid per start rotation (its centroid, then farthest-point samples)."""
+    hops: tuple[float, ...] = (0.1, 0.2)
+    """Translation hops: the fused pose and the best ``keep`` coarse fits are moved along each principal axis of the
+    model by these fractions of its diameter, both ways, and fitted again (coarse, 6 more starts per fit and
+    fraction); the best ``keep`` of them join the final ICP too. On a cylinder ICP slides into the nearest minimum:
+    a procedural hot stab's track fused 0.10 m / 6 deg off, with a third of its points on its receptacle, fitted
+    0.13 m / 91 deg off without hops and 0.011 m / 0.3 deg with. Empty: off."""
     tie_rel: float = bounded(0.02, ge=0)
     """Fits within this fraction of the best are ties (the one nearest the fused pose wins)."""
     huber_m: float = bounded(0.005, gt=0)
@@ -74,8 +90,54 @@ class RefitConfig:
     explains at least this share of what the other's own pose explains of the other's points; the one explaining
     more of both tracks' points is kept, and the other's records are dropped when the kept one is completed
     (:func:`duplicates`). 0 = off."""
+    choose_model: Literal["off", "depth", "view"] = "view"
+    """Refit every CAD model of the track's class, not only the track's own, and keep the one that fits best
+    (:func:`pick_model`): a track's model is chosen on its first, smallest views. ``depth``: the mean distance of
+    the points to the model (capped alike for all). ``view``: the pixels where the model, in each of the track's
+    detections' views, disagrees with them (seen through, or mask left unexplained; :func:`view_score`). The
+    points alone cannot see model surface where nothing was observed: the UUV hot stab's points with some of its
+    receptacle's fit the procedural hot stab's longer model better than its own (18.5 against 21.7 mm). ``off``:
+    the track's model only."""
+    model_margin: float = bounded(0.1, ge=0)
+    """Another model replaces the track's own only when its score is better by more than this fraction."""
+    mask_weight: float = bounded(0.25, ge=0)
+    """Weight, in :func:`view_score`, of a mask pixel the model leaves unexplained against a pixel seen through the
+    model. Masks of parts a few pixels across spill over their outline: with weight 1 the 87 mm valve's track
+    (seed 2, 4200 steps; 9 views, 15-33 px masks) was given the 145 mm valve's model (unexplained: 28 px for its own
+    model, 0 for the other; seen through: 0 and 1). What tells the UUV hot stab's own model from the procedural one
+    is seen-through pixels (127 for the procedural model, 33 for its own; unexplained 4 and 7)."""
+    model_min_px: float = bounded(2.0, ge=0)
+    """... and (``choose_model = "view"``) by more than this many pixels per view: the 87 mm valve's 14-20 px masks
+    disagree with its own model in 3 pixels and with the 145 mm valve's in none."""
+    screen: bool = True
+    """With ``choose_model``, the other models of the class are first fitted by a cheaper search (at most 6 anchors,
+    150 coarse points, 10 coarse iterations, 2 kept: :meth:`screening`); a model that wins on that fit is fitted
+    again by the full search before it replaces the track's own. Off: every model gets the full search (the
+    default scene's valve class has 7 models)."""
+    view_turns_deg: tuple[float, ...] = (16.0, 8.0, 4.0)
+    """With ``choose_model = "view"``, the chosen fit is then turned about the model's axes (through its centroid)
+    by these steps, coarse to fine, each turn followed by ``turn_icp_iters`` ICP iterations, while a turn lowers
+    :func:`view_score` and keeps the points' fit within ``tie_rel`` (:func:`turn_by_view`): a turn the points cannot
+    see (the roll of a thin part seen from 7 m) is decided by the views. Empty: off."""
+    turn_icp_iters: int = bounded(0, ge=0)
+    """ICP iterations after each turn of ``view_turns_deg``, so that the part's position follows the turn. The UUV
+    hot stab's track (seed 0, 3700 steps), fitted 9.3 deg / 8 mm off by an earlier version of the search: turned to
+    9.3 deg with 0 iterations (no turn lowered the score), 0.5 deg with 10. Fitted by this search 16.3 deg / 2 mm
+    off: 0.5 deg with 0, 1.0 deg with 10; with ``class_score_thresh`` hot_stab 0.3 (8 views) 21.4 deg: 5.5 deg with
+    0, 18.1 deg with 10. 0: the turn only."""
+    turn_min_px: float = bounded(0.5, ge=0)
+    """The turns of ``view_turns_deg`` are kept only when they lower :func:`view_score` by more than this many
+    pixels per view in all: the UUV hot stab's 7 views fell 11.75 -> 5.75 (16.3 -> 1.0 deg off); the 87 mm valve's 9
+    views (15-33 px masks; seed 2, 4200 steps) 7.0 -> 5.75, turning it 0.6 -> 5.9 deg off."""
+    view_pad: float = bounded(1.0, ge=0)
+    """A detection's view (``choose_model = "view"``) is its mask's box grown by this times its longer side."""
     seed: int = 0
     """Seed of the point subsampling."""
+
+    def screening(self) -> RefitConfig:
+        """The cheaper search of ``screen``."""
+        return dataclasses.replace(self, anchors=min(self.anchors, 6), coarse_points=min(self.coarse_points, 150),
+                                   coarse_iters=min(self.coarse_iters, 10), keep=min(self.keep, 2))
 
 
 @dataclass(frozen=True)
@@ -88,24 +150,63 @@ class RefitResult:
     starts: int
 
 
+@dataclass(frozen=True)
+class TrackView:
+    """One detection's view, cropped around its mask: what :func:`view_score` compares a model's pose with."""
+
+    K: np.ndarray
+    """(3, 3) intrinsics of the crop."""
+    T_cam_from_world: Rigid3
+    mask: np.ndarray
+    """(h, w) bool, the detection's mask in the crop."""
+    depth_m: np.ndarray
+    """(h, w) observed depth in the crop, metres (not finite or <= 0: none)."""
+
+    @staticmethod
+    def crop(K: np.ndarray, T_world_from_cam: Rigid3, mask: np.ndarray, depth_m: np.ndarray,
+             pad: float) -> TrackView | None:
+        """The view of a detection's ``mask`` (H, W) in a frame of depth ``depth_m`` (H, W): its box grown by
+        ``pad`` times its longer side (+ 8 px) on each side, clipped to the frame; None for an empty mask."""
+        rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+        if not len(rows):
+            return None
+        g = int(np.ceil(pad * max(rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1))) + 8
+        H, W = mask.shape
+        y0, y1 = max(int(rows[0]) - g, 0), min(int(rows[-1]) + 1 + g, H)
+        x0, x1 = max(int(cols[0]) - g, 0), min(int(cols[-1]) + 1 + g, W)
+        Kc = np.array(K, float)
+        Kc[0, 2] -= x0
+        Kc[1, 2] -= y0
+        return TrackView(Kc, T_world_from_cam.inverse(), mask[y0:y1, x0:x1].copy(),
+                         np.asarray(depth_m, np.float32)[y0:y1, x0:x1].copy())
+
+
 @dataclass
 class TrackPoints:
-    """Masked depth points per track, in the world frame, with the centre of the camera that saw each."""
+    """Masked depth points per track, in the world frame, with the centre of the camera that saw each (and, with
+    ``choose_model``, each detection's cropped view)."""
 
     cfg: RefitConfig
     _points: dict = field(default_factory=lambda: defaultdict(list))
+    _views: dict = field(default_factory=lambda: defaultdict(list))
     _rng: np.random.Generator = field(init=False)
 
     def __post_init__(self) -> None:
         self._rng = np.random.default_rng(self.cfg.seed)
 
-    def add(self, track_id: int, Q_cam: np.ndarray, T_world_from_cam: Rigid3) -> None:
-        """Keep up to ``points_per_frame`` of one detection's camera-frame points ``Q_cam`` (N, 3)."""
+    def add(self, track_id: int, Q_cam: np.ndarray, T_world_from_cam: Rigid3, view: TrackView | None = None) -> None:
+        """Keep up to ``points_per_frame`` of one detection's camera-frame points ``Q_cam`` (N, 3), and its view."""
         Q = np.asarray(Q_cam, float).reshape(-1, 3)
         if len(Q) > self.cfg.points_per_frame:
             Q = Q[np.sort(self._rng.choice(len(Q), self.cfg.points_per_frame, replace=False))]
         if len(Q):
             self._points[track_id].append((T_world_from_cam.apply(Q), T_world_from_cam.t))
+        if view is not None:
+            self._views[track_id].append(view)
+
+    def views(self, track_id: int) -> list[TrackView]:
+        """The kept views of a track's detections."""
+        return list(self._views.get(track_id, []))
 
     def frames(self, track_id: int) -> int:
         """Detections of a track that gave points."""
@@ -172,6 +273,84 @@ def explained(geom: ModelGeometry, T: Rigid3, P: np.ndarray, tol_m: float) -> fl
     return float(np.mean(geom.tree.query(T.inverse().apply(P), distance_upper_bound=tol_m)[0] <= tol_m))
 
 
+def view_score(geom: ModelGeometry, T_world_from_obj: Rigid3, views: Sequence[TrackView], tol_m: float,
+               band_px: float, near_m: float, mask_weight: float = 1.0) -> float:
+    """Pixels, summed over ``views``, where the model at ``T_world_from_obj`` disagrees with the view
+    (:func:`cadalign.infer.half_turn.view_disagreement`): seen through (depth tolerance ``tol_m``), plus
+    ``mask_weight`` times the mask pixels it leaves unexplained that lie within ``near_m`` of the mask's median
+    depth; ``band_px`` along outlines not counted."""
+    total = 0.0
+    for v in views:
+        z = v.depth_m[v.mask]
+        z = z[np.isfinite(z) & (z > 0)]
+        near = (float(np.median(z)), near_m) if len(z) else None
+        h, w = v.mask.shape
+        seen, unexplained = view_disagreement_parts(geom, v.T_cam_from_world @ T_world_from_obj, v.K, v.mask,
+                                                    v.depth_m, tol_m, (0, 0, w, h), band_px, near)
+        total += seen + mask_weight * unexplained
+    return total
+
+
+def turn_by_view(geom: ModelGeometry, T: Rigid3, P: np.ndarray, views: Sequence[TrackView], steps_deg: Sequence[float],
+                 tie_rel: float, tol_m: float, band_px: float, near_m: float, max_moves: int = 8,
+                 mask_weight: float = 1.0, C: np.ndarray | None = None, icp_iters: int = 0,
+                 huber_m: float = 0.005, min_gain: float = 0.0) -> Rigid3:
+    """``T`` turned about the model's axes through its centroid, by each of ``steps_deg`` in turn, while a turn lowers
+    :func:`view_score` over ``views`` and keeps :func:`~cadalign.infer.depth_icp.depth_fit` of the points ``P``
+    (N, 3) within ``tie_rel`` of ``T``'s (at most ``max_moves`` turns per step). With ``icp_iters`` and the points'
+    camera centres ``C``, each turned pose is first fitted again to the points by that many ICP iterations (its
+    position follows the turn). ``T`` itself unless the score falls by more than ``min_gain`` in all."""
+    if not views or not len(P):
+        return T
+    c = geom.samples.mean(0)
+    fit_max = depth_fit(geom, T, P) * (1.0 + tie_rel)
+    best, best_v = T, view_score(geom, T, views, tol_m, band_px, near_m, mask_weight)
+    start_v = best_v
+    for step in steps_deg:
+        for _ in range(max_moves):
+            centre = best.apply(c[None])[0]
+            turned = []
+            for axis, sign in itertools.product(np.eye(3), (1.0, -1.0)):
+                R = best.R @ axis_angle_to_matrix(sign * math.radians(step) * axis)
+                turned.append(Rigid3(R, centre - R @ c))
+            if icp_iters and C is not None:
+                turned = icp_world(geom, turned, P, C, icp_iters, huber_m)
+            cands = [(view_score(geom, T2, views, tol_m, band_px, near_m, mask_weight), i, T2)
+                     for i, T2 in enumerate(turned) if depth_fit(geom, T2, P) <= fit_max]
+            if not cands or min(cands, key=lambda x: (x[0], x[1]))[0] >= best_v:
+                break
+            best_v, _, best = min(cands, key=lambda x: (x[0], x[1]))
+    return best if start_v - best_v > min_gain else T
+
+
+def pick_model(fits: dict[int, Rigid3], geoms: dict[int, ModelGeometry], P: np.ndarray, own: int, margin: float,
+               views: Sequence[TrackView] = (), tol_rel: float = 0.1, band_px: float = 0.0,
+               min_px: float = 0.0, mask_weight: float = 1.0) -> int:
+    """The CAD model whose fitted pose (``fits``: model id -> world pose) agrees best with the track.
+
+    Without ``views``: the smallest :func:`cadalign.infer.depth_icp.depth_fit` of the points ``P`` (N, 3), capped
+    at a tenth of the smallest candidate's diameter for all (a big model's looser cap does not favour it). With
+    ``views``: the fewest pixels of :func:`view_score` (depth tolerance ``tol_rel`` of each model's diameter,
+    mask pixels within the largest candidate's diameter of the median masked depth count for all). ``own`` (the
+    track's model) stays unless another scores better by more than ``margin`` (a fraction of its score) and, with
+    views, by more than ``min_px`` pixels per view."""
+    if not fits:
+        raise ValueError("pick_model needs at least one fitted model")
+    score: dict[int, float]
+    if views:
+        near = max(geoms[k].diameter_m for k in fits)
+        score = {k: view_score(geoms[k], T, views, tol_rel * geoms[k].diameter_m, band_px, near, mask_weight)
+                 for k, T in fits.items()}
+    else:
+        cap = 0.1 * min(geoms[k].diameter_m for k in fits)
+        score = {k: float(np.mean(np.minimum(geoms[k].tree.query(T.inverse().apply(P))[0], cap)))
+                 for k, T in fits.items()}
+    best = min(score, key=lambda k: (score[k], k))
+    if own in score and score[own] <= max(score[best] * (1.0 + margin), score[best] + min_px * len(views)):
+        return own
+    return best
+
+
 @dataclass(frozen=True)
 class FittedTrack:
     """A track after the refit, for :func:`duplicates`."""
@@ -183,6 +362,8 @@ class FittedTrack:
     geom: ModelGeometry
     T_world_from_obj: Rigid3
     points: np.ndarray
+    obj_id: int | None = None
+    """The CAD model fitted (with ``choose_model``, maybe not the track's own)."""
 
 
 def duplicates(tracks: Sequence[FittedTrack], cfg: RefitConfig) -> dict[int, int]:
@@ -275,15 +456,24 @@ def refit_world_pose(geom: ModelGeometry, T_fused: Rigid3, P: np.ndarray, C: np.
         P, C = P[pick], C[pick]
     sub = rng.choice(len(P), min(cfg.coarse_points, len(P)), replace=False)
     Ps, Cs = P[sub], C[sub]
-    centre = P.mean(0)
+    centre = np.median(P, 0)  # a few detections bring far background: the mean can be metres off
     starts = [Rigid3(R, centre - R @ a) for R in _distinct(T_fused.R @ _cube_rotations(), symmetry)
               for a in _anchors(geom, cfg.anchors)]
-    coarse = icp_world(geom, starts, Ps, Cs, cfg.coarse_iters, cfg.huber_m)
+    fused, *coarse = icp_world(geom, [T_fused, *starts], Ps, Cs, cfg.coarse_iters, cfg.huber_m)
     order = np.argsort([depth_fit(geom, T, Ps) for T in coarse], kind="stable")
-    fine = icp_world(geom, [T_fused, *(coarse[k] for k in order[:cfg.keep])], P, C, cfg.iters, cfg.huber_m)
+    picked = [coarse[k] for k in order[:cfg.keep]]
+    n_starts = len(starts) + 1
+    if cfg.hops:  # kept apart: the hops of one basin would crowd the other basins out of the best few
+        axes = np.linalg.svd(geom.samples - geom.samples.mean(0), full_matrices=False)[2]
+        hops = [Rigid3(T.R, T.t + T.R @ (sign * h * geom.diameter_m * a)) for T in (fused, *picked) for a in axes
+                for sign in (1.0, -1.0) for h in cfg.hops]
+        hopped = icp_world(geom, hops, Ps, Cs, cfg.coarse_iters, cfg.huber_m)
+        picked += [hopped[k] for k in np.argsort([depth_fit(geom, T, Ps) for T in hopped], kind="stable")[:cfg.keep]]
+        n_starts += len(hopped)
+    fine = icp_world(geom, [T_fused, *picked], P, C, cfg.iters, cfg.huber_m)
     fits = [depth_fit(geom, T, P) for T in fine]
     best = min(fits)
     near = [i for i, f in enumerate(fits) if f <= best * (1.0 + cfg.tie_rel)]
     pick_i = min(near, key=lambda i: (rotation_error_deg(fine[i].R, T_fused.R, symmetry), i))
     T = canonicalize(fine[pick_i], symmetry, T_fused.R)
-    return RefitResult(T, fits[pick_i], fits[0], len(starts) + 1)
+    return RefitResult(T, fits[pick_i], fits[0], n_starts)

@@ -97,6 +97,7 @@ class _Rec:
     mask: object = None
     source: str = "detector"
     box_detector: object = None
+    obj_id: int = 7  # the CAD model of the tests' tracks
 
 
 def _cams(n: int) -> list[Rigid3]:
@@ -136,6 +137,22 @@ def test_a_missed_frame_is_completed_with_the_world_pose(cube: ModelGeometry) ->
     assert isinstance(added[0].mask, CroppedMask) and added[0].refine_iters == {}
     assert [r.frame for r in out] == [0, 1, 2, 3, 4]
     assert summary == {"tracks": 1, "untrusted": 0, "duplicates": 0, "added": {"valve": 1}, "dropped": 0}
+    assert {r.obj_id for r in out} == {7}  # the track's model (the refit's choice), on its own detections too
+
+
+def test_a_track_whose_model_changed_reports_it_with_the_world_pose(cube: ModelGeometry) -> None:
+    # the refit chose model 8 for track 0, whose detections were refined with model 7: without ``smooth`` they
+    # still take the world pose (their own poses are of the other model)
+    recs, cams = _video(cube, {0: [0, 1, 3, 4]})
+    recs = [replace(r, obj_id=7, T_cam_from_obj=Rigid3(np.eye(3), r.T_cam_from_obj.t + 1.0)) for r in recs]
+    T_wo = _at(0.0)
+    out, _ = _complete(cube, recs, cams, [WorldTrack(0, 2, 8, T_wo)], CompleteConfig(smooth=False))
+    assert {r.obj_id for r in out} == {8}
+    for r in out:
+        assert np.allclose(r.T_cam_from_obj.t, (cams[r.frame].inverse() @ T_wo).t)
+    same, _ = _complete(cube, recs, cams, [WorldTrack(0, 2, 7, T_wo)], CompleteConfig(smooth=False))
+    assert all(np.allclose(a.T_cam_from_obj.t, b.T_cam_from_obj.t) for a, b in zip(recs, same[:2] + same[3:],
+                                                                                  strict=True))
 
 
 def test_short_tracks_are_dropped_and_not_completed(cube: ModelGeometry) -> None:

@@ -4,6 +4,7 @@ handing refitted (also retired) tracks to completion."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -21,9 +22,13 @@ from cadalign.infer.track_fit import (
     FittedTrack,
     RefitConfig,
     TrackPoints,
+    TrackView,
     duplicates,
     icp_world,
+    pick_model,
     refit_world_pose,
+    turn_by_view,
+    view_score,
 )
 from cadalign.types import Rigid3
 
@@ -65,8 +70,30 @@ def _views(geom: ModelGeometry, T_wo: Rigid3, n: int = 5, track_id: int = 0,
            pts: TrackPoints | None = None) -> TrackPoints:
     pts = pts or TrackPoints(RefitConfig(points_per_frame=200))
     for T_wc in _cameras(geom, T_wo, n):
-        pts.add(track_id, _frame_points(geom, T_wo, T_wc), T_wc)
+        pts.add(track_id, _frame_points(geom, T_wo, T_wc), T_wc, _view(geom, T_wo, T_wc))
     return pts
+
+
+def _view(geom: ModelGeometry, T_wo: Rigid3, T_wc: Rigid3) -> TrackView:
+    """The part's view in one frame: its exact mask, and its depth in front of a wall 1 m behind its origin."""
+    T = T_wc.inverse() @ T_wo
+    z = render_depth(geom, T, K, SHAPE)
+    mask = np.isfinite(z)
+    view = TrackView.crop(K, T_wc, mask, np.where(mask, z, T.t[2] + 1.0), 1.0)
+    assert view is not None
+    return view
+
+
+def _with_handle(model: CadModel) -> CadModel:
+    """A decoy of ``model``: the same mesh plus a 0.3 m bar beside it (a longer part of the same class)."""
+    import trimesh
+
+    bar = trimesh.creation.box(extents=(0.3, 0.04, 0.04))
+    lo, hi = model.vertices_m.min(0), model.vertices_m.max(0)
+    bar.apply_translation([hi[0] + 0.15, 0.5 * (lo[1] + hi[1]), 0.5 * (lo[2] + hi[2])])
+    V = np.concatenate([model.vertices_m, bar.vertices])
+    F = np.concatenate([model.faces, np.asarray(bar.faces) + len(model.vertices_m)])
+    return CadModel("decoy", V, F, class_name=model.class_name)
 
 
 def _flipped(T: Rigid3, geom: ModelGeometry) -> Rigid3:
@@ -92,6 +119,89 @@ def test_track_points_keep_a_subset_per_detection_in_the_world_frame(stab: Model
     assert pts.frames(7) == 0 and pts.of(7)[0].shape == (0, 3)
 
 
+def test_a_view_is_cropped_around_the_mask_with_its_intrinsics() -> None:
+    mask = np.zeros(SHAPE, bool)
+    mask[50:60, 70:74] = True  # 10 x 4 px: grown by 10 + 8 px on each side, clipped to the frame
+    depth = np.arange(SHAPE[0] * SHAPE[1], dtype=float).reshape(SHAPE)
+    T_wc = Rigid3(np.eye(3), np.array([1.0, 2.0, 3.0]))
+    v = TrackView.crop(K, T_wc, mask, depth, 1.0)
+    assert v is not None and v.mask.shape == (46, 40) and v.mask.sum() == 40
+    assert v.depth_m[0, 0] == depth[32, 52] and v.depth_m.dtype == np.float32
+    assert np.allclose(v.K[:2, 2], K[:2, 2] - [52, 32]) and np.allclose(v.K[:2, :2], K[:2, :2])
+    assert np.allclose(v.T_cam_from_world.t, -T_wc.t)
+    edge = np.zeros(SHAPE, bool)
+    edge[0:3, 0:2] = True
+    assert TrackView.crop(K, T_wc, edge, depth, 1.0).mask.shape == (14, 13)
+    assert TrackView.crop(K, T_wc, np.zeros(SHAPE, bool), depth, 1.0) is None
+
+
+def test_the_view_picks_the_model_the_frames_do_not_see_through(stab_model: CadModel, stab: ModelGeometry) -> None:
+    """The points of a part fit a longer decoy (the part plus a bar) as well as the part; only the views show that
+    the bar is not there (the wall behind is seen where it would be)."""
+    decoy = ModelGeometry.from_cad(_with_handle(stab_model), 3000)
+    pts = _views(stab, T_WO, n=4)
+    P, views = pts.of(0)[0], pts.views(0)
+    assert len(views) == 4
+    geoms, fits = {6: stab, 12: decoy}, {6: T_WO, 12: T_WO}
+    assert depth_fit(decoy, T_WO, P) <= depth_fit(stab, T_WO, P) + 1e-4
+    # by the points the decoy, the track's model, stays
+    assert pick_model(fits, geoms, P, own=12, margin=0.1) == 12
+    # by the views the part wins, from either
+    assert pick_model(fits, geoms, P, own=12, margin=0.1, views=views, tol_rel=0.05, band_px=1.5) == 6
+    assert pick_model(fits, geoms, P, own=6, margin=0.1, views=views, tol_rel=0.05, band_px=1.5) == 6
+    # unless the views' difference is within min_px per view
+    own_px = view_score(decoy, T_WO, views, 0.05 * decoy.diameter_m, 1.5, decoy.diameter_m)
+    assert own_px > 4 * 20
+    for min_px, want in ((0.25 * own_px / 4, 6), (own_px / 4, 12)):
+        assert pick_model(fits, geoms, P, own=12, margin=0.1, views=views, tol_rel=0.05, band_px=1.5,
+                          min_px=min_px) == want
+    # a model fitted far off disagrees everywhere
+    off = Rigid3(T_WO.R, T_WO.t + np.array([0.0, 0.0, 0.5]))
+    assert pick_model({6: off, 12: T_WO}, geoms, P, own=6, margin=0.1, views=views) == 12
+    with pytest.raises(ValueError, match="at least one"):
+        pick_model({}, geoms, P, own=6, margin=0.1)
+
+
+def test_a_turn_the_points_cannot_see_is_decided_by_the_views() -> None:
+    """A rod with a thin fin: the points (on the rod only) fit any roll about its axis alike; the views show the
+    fin, and the roll is turned back from 20 deg to what they resolve (the fin's tip moves ~1 px per 8 deg, and
+    disagreement within 1.5 px of an outline is not counted)."""
+    import trimesh
+
+    rod = trimesh.creation.cylinder(radius=0.03, height=0.5, sections=48)
+    rod.apply_transform(trimesh.transformations.rotation_matrix(math.pi / 2, [0, 1, 0]))  # along x
+    fin = trimesh.creation.box(extents=(0.3, 0.04, 0.2))  # through the rod: the centroid stays on its axis
+    part = trimesh.util.concatenate([rod, fin])
+    geom = ModelGeometry.from_cad(CadModel("finned", np.asarray(part.vertices), np.asarray(part.faces)), 4000)
+    rng = np.random.default_rng(0)
+    a, x = rng.uniform(0, 2 * math.pi, 1500), rng.uniform(-0.24, 0.24, 1500)
+    P = T_WO.apply(np.stack([x, 0.03 * np.cos(a), 0.03 * np.sin(a)], 1))  # the rod's surface, not its samples
+    views = [_view(geom, T_WO, T_wc) for T_wc in _cameras(geom, T_WO, 5)]
+    c = geom.samples.mean(0)
+
+    def rolled(deg: float) -> Rigid3:
+        R = T_WO.R @ axis_angle_to_matrix(np.array([math.radians(deg), 0.0, 0.0]))
+        return Rigid3(R, T_WO.apply(c[None])[0] - R @ c)
+
+    assert abs(depth_fit(geom, rolled(20.0), P) - depth_fit(geom, T_WO, P)) < 1e-3
+    T = turn_by_view(geom, rolled(20.0), P, views, (16.0, 8.0, 4.0), 0.02, 0.01, 1.5, geom.diameter_m)
+    assert _err(T, T_WO)[1] <= 8.5 and _err(T, T_WO)[0] < 0.01
+    # nothing to look at, or no steps: unchanged
+    assert _err(turn_by_view(geom, rolled(20.0), P, [], (16.0,), 0.02, 0.01, 1.5, 1.0), rolled(20.0))[1] < 1e-6
+    assert _err(turn_by_view(geom, rolled(20.0), P, views, (), 0.02, 0.01, 1.5, 1.0), rolled(20.0))[1] < 1e-6
+    # each turn fitted again to the points (the rod's axis keeps its place): the same
+    C = np.repeat(_cameras(geom, T_WO, 1)[0].t[None], len(P), 0)
+    T = turn_by_view(geom, rolled(20.0), P, views, (16.0, 8.0, 4.0), 0.02, 0.01, 1.5, geom.diameter_m, C=C,
+                     icp_iters=5)
+    assert _err(T, T_WO)[1] <= 8.5 and _err(T, T_WO)[0] < 0.01
+    # a gain within min_gain pixels is not taken
+    start = view_score(geom, rolled(20.0), views, 0.01, 1.5, geom.diameter_m)
+    assert _err(turn_by_view(geom, rolled(20.0), P, views, (16.0, 8.0, 4.0), 0.02, 0.01, 1.5, geom.diameter_m,
+                             min_gain=start), rolled(20.0))[1] < 1e-6
+    # the true pose stays
+    assert _err(turn_by_view(geom, T_WO, P, views, (16.0, 8.0, 4.0), 0.02, 0.01, 1.5, 1.0), T_WO)[1] < 1e-6
+
+
 def test_refit_turns_an_end_for_end_flip_back(stab: ModelGeometry) -> None:
     P, C = _views(stab, T_WO).of(0)
     start = _flipped(T_WO, stab)
@@ -102,6 +212,9 @@ def test_refit_turns_an_end_for_end_flip_back(stab: ModelGeometry) -> None:
     t_err, r_err = _err(res.T_world_from_obj, T_WO)
     assert t_err < 0.005 and r_err < 1.0
     assert res.fit_m < res.fused_fit_m and res.starts > 100
+    # the hops: 12 more coarse starts (3 axes, 2 ways, 2 fractions) around the fused pose and each of the 4 kept
+    no_hops = refit_world_pose(stab, start, P, C, RefitConfig(hops=()))
+    assert res.starts - no_hops.starts == 5 * 12
 
 
 def test_refit_keeps_a_pose_that_fits(stab: ModelGeometry) -> None:
@@ -166,5 +279,24 @@ def test_the_pipeline_refits_world_tracks_retired_ones_included(stab_model: CadM
     assert _err(track.T_world_from_obj, T_WO)[0] < 0.005 and _err(track.T_world_from_obj, T_WO)[1] < 1.0
     pipe.fuser.retire(track.track_id)
     assert [w.track_id for w in pipe.world_tracks()] == [track.track_id]
+
+
+def test_the_pipeline_refit_chooses_the_model_of_the_class_the_views_agree_with(stab_model: CadModel,
+                                                                                stab: ModelGeometry) -> None:
+    """A track given the decoy model of its class (the part plus a bar) on its first views: the refit fits both
+    models and hands completion the part's model, unless ``choose_model`` is off."""
+    decoy = _with_handle(stab_model)
+    for choose, want in (("view", 6), ("off", 12)):
+        cfg = replace(PRESETS["accurate"], complete=replace(
+            PRESETS["accurate"].complete, refit=replace(RefitConfig(), choose_model=choose)))
+        pipe = PosePipeline(None, {6: stab_model, 12: decoy}, ("background", "structure", "valve", "hot_stab"), cfg)
+        for f, T_wc in enumerate(_cameras(stab, T_WO, 5)):
+            obs = [Observation(3, T_wc.inverse() @ T_WO, 12, decoy.symmetry, decoy.diameter_m)]
+            fused = pipe.fuser.update(f, obs, T_wc)
+            pipe.points.add(fused[0].track_id, _frame_points(stab, T_WO, T_wc), T_wc,
+                            _view(stab, T_WO, T_wc) if choose == "view" else None)
+        [track] = pipe.world_tracks()
+        assert track.obj_id == want
+        assert _err(track.T_world_from_obj, T_WO)[0] < 0.01
     no_refit = PosePipeline(None, {6: stab_model}, pipe.class_names, PRESETS["balanced"])
     assert no_refit.points is None and no_refit.world_tracks() == []
