@@ -149,7 +149,7 @@ def infer_stage(ctx: DemoContext) -> dict:
     # enhance = "auto": the raw frames are prepared as the network's training images were (a built dataset's
     # were CLAHE-enhanced by SfM, the simulator's exact truth is raw), as the training run recorded
     cfg = PRESETS["fast"]
-    detector = det.TorchDetector(net, cfg.score_thresh, "cpu", cfg.tiles, cfg.nms_iou)
+    detector = det.TorchDetector(net, cfg.detector_score_thresh, "cpu", cfg.tiles, cfg.nms_iou)
     out = ctx.out / "infer" / "poses"
     run(cfg, clip, detector, structure.models, tuple(meta.get("classes", structure.class_names)), out,
         calib=calibration_from_scene(scene), detector_info={"kind": "network", "run": str(ctx.out / "train" / "pose")},

@@ -54,7 +54,7 @@ def command(
 
             net, meta = load_pose_model(model, device)
             class_names = tuple(meta.get("classes", class_names))
-            detector = det.TorchDetector(net, cfg.score_thresh, device, cfg.tiles, cfg.nms_iou)
+            detector = det.TorchDetector(net, cfg.detector_score_thresh, device, cfg.tiles, cfg.nms_iou)
             info = {"kind": "network", "run": str(model), "step": meta.get("step")}
         else:
             scene = det.resolve_scene_dir(oracle_gt)

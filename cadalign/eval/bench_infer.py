@@ -126,7 +126,7 @@ def infer_sweep(data: BenchData, cfg: BenchConfig, source: InferSource | None = 
         icfg = resolve(InferConfig, PRESETS, knobs["preset"], overrides=overrides)
         out = data.work("infer", "runs", run_folder_name(knobs["preset"], knobs["overrides"]))
         shutil.rmtree(out)  # every repeat runs from scratch (run() would reuse a finished folder)
-        detector = TorchDetector(s["net"], icfg.score_thresh, tiles=icfg.tiles, nms_iou=icfg.nms_iou)
+        detector = TorchDetector(s["net"], icfg.detector_score_thresh, tiles=icfg.tiles, nms_iou=icfg.nms_iou)
         t0 = time.perf_counter()
         run(icfg, src.frames, detector, s["models"], s["classes"], out, calib=s["calib"], detector_info=s["info"],
             depth_scene=s["depth"], gt_scene=s["gt"], max_frames=src.max_frames)

@@ -203,7 +203,7 @@ def pose_scores(sim: Path, scene_toml: Path, run_dir: Path) -> dict[str, float]:
     cfg = resolve(InferConfig, PRESETS, "fast", overrides={"overlay": False})
     structure = load_structure(scene_toml)
     net, meta = load_pose_model(run_dir, "cpu")
-    detector = det.TorchDetector(net, cfg.score_thresh, "cpu", cfg.tiles, cfg.nms_iou)
+    detector = det.TorchDetector(net, cfg.detector_score_thresh, "cpu", cfg.tiles, cfg.nms_iou)
     out = sim.parent / f"{sim.name}_pose"
     run(cfg, sim / "frames", detector, structure.models, tuple(meta.get("classes", structure.class_names)), out,
         calib=calibration_from_scene(scene), detector_info={"kind": "network", "run": str(run_dir)},

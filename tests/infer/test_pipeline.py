@@ -187,6 +187,35 @@ def test_preset_none_reports_the_detector_pose_unchanged(scene: Path, tiny_struc
         np.testing.assert_array_equal(r.T_cam_from_obj.matrix(), r.T_detector.matrix())
 
 
+def test_a_class_threshold_keeps_that_class_below_the_score_threshold(scene: Path, tiny_structure) -> None:
+    class Unsure:  # the oracle's detections at score 0.4
+        def __init__(self, det: OracleDetector) -> None:
+            self.det = det
+
+        def for_frame(self, name: str) -> Unsure:
+            self.frame = self.det.for_frame(name)
+            return self
+
+        def detect(self, image: object, K: object) -> list:
+            return [replace(d, score=0.4) for d in self.frame.detect(image, K)]
+
+    det = Unsure(OracleDetector(scene, OracleConfig(seed=1)))
+    K = det.det.scene.frame(1).camera.K
+    image = np.zeros((120, 160, 3), np.uint8)
+    kept = {}
+    for classes, thresh in (({}, 0.5), ({"valve": 0.3}, 0.5), ({"hot_stab": 0.3}, 0.5), ({}, 0.3)):
+        cfg = replace(PRESETS["none"], class_score_thresh=classes, score_thresh=thresh)
+        pipe = PosePipeline(det.for_frame("000001.png"), tiny_structure.models, tiny_structure.class_names, cfg)
+        kept[(*classes, thresh)] = sorted(r.class_name for r in pipe.process(1, "000001.png", image, K)[0])
+    assert kept[(0.5,)] == [] and {"valve", "hot_stab"} <= set(kept[(0.3,)])
+    for name in ("valve", "hot_stab"):  # each class's own threshold keeps that class only
+        assert kept[(name, 0.5)] == [c for c in kept[(0.3,)] if c == name]
+    assert replace(PRESETS["none"], class_score_thresh={"valve": 0.3}).detector_score_thresh == 0.3
+    assert PRESETS["accurate"].detector_score_thresh == PRESETS["accurate"].score_thresh
+    with pytest.raises(ValueError, match="class_score_thresh"):
+        replace(PRESETS["none"], class_score_thresh={"valve": 1.5})
+
+
 def test_calibration_uses_only_metric_poses(tmp_path: Path, tiny_sim: Path) -> None:
     from cadalign.infer.run import load_calibration
     from cadalign.io import read_json, write_json
