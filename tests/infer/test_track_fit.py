@@ -133,6 +133,16 @@ def test_a_view_is_cropped_around_the_mask_with_its_intrinsics() -> None:
     edge[0:3, 0:2] = True
     assert TrackView.crop(K, T_wc, edge, depth, 1.0).mask.shape == (14, 13)
     assert TrackView.crop(K, T_wc, np.zeros(SHAPE, bool), depth, 1.0) is None
+    # a track keeps at most max_views of its views, a uniform sample of them
+    counts = np.zeros(10)
+    for seed in range(200):
+        pts = TrackPoints(RefitConfig(max_views=3, seed=seed))
+        for k in range(10):
+            pts.add(0, np.zeros((0, 3)), T_wc, TrackView(K, T_wc.inverse(), mask, np.full(SHAPE, float(k))))
+        kept = [int(view.depth_m[0, 0]) for view in pts.views(0)]
+        assert len(kept) == len(set(kept)) == 3
+        counts[kept] += 1
+    assert counts.min() > 0.5 * counts.mean()  # the late views as likely as the first ones
 
 
 def test_the_view_picks_the_model_the_frames_do_not_see_through(stab_model: CadModel, stab: ModelGeometry) -> None:
