@@ -101,7 +101,9 @@ class CompleteConfig:
     stab tracked with the procedural hot stab's model: 13 matches at 109 deg, 15 false), and 0.951 / 0.600, 0.004 m /
     2.12 deg, 0.179 m / 34.5 deg -> 0.951 / 0.578, 0.001 m / 1.87 deg, 0.019 m / 1.22 deg (a hot stab track dropped
     as a duplicate of a worse one: 9 fewer hot stab matches). ~1 s per track (the completion pass 0.9 -> ~30 s on
-    those 33 frames)."""
+    those 33 frames). Session 25 added the choice of each track's CAD model by its views, a turn by the views, hops
+    and a median centre in the search (numbers at ``RefitConfig.choose_model``): those two networks 0.917 / 1.000,
+    0.001 m / 0.14 deg, 0.001 m / 0.65 deg and 0.951 / 0.813, 0.001 m / 1.87 deg, 0.006 m / 0.21 deg."""
     smooth: bool = True
     """A completed track's detections report its final world pose too (fused from all its frames, later ones
     included) instead of the running mean of the frames up to theirs. Default orbit, 33 held-out frames, four

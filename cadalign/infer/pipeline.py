@@ -84,10 +84,11 @@ class InferConfig:
     """Per-class ``score_thresh`` (class name -> threshold) where it differs; the detector runs at the lowest of
     them all (:attr:`detector_score_thresh`). Empty in every preset. Default orbit, 33 held-out frames, true depth,
     ``accurate`` (with ``complete.refit.choose_model``), ``{"hot_stab": 0.3}`` (valve / hot stab F1, hot stab t /
-    R mean): seed 2, 3700 steps 0.951 / 0.813, 0.006 m / 0.21 deg -> 0.951 / 0.984, 0.011 m / 0.47 deg (the UUV
-    hot stab, never scored >= 0.5 there, tracked from 0.33-0.36 detections and completed); seed 0, 3700 steps
-    0.917 / 1.000, 0.001 m / 0.41 deg -> 0.917 / 0.984, 0.002 m / 1.77 deg (a false hot stab track on the
-    structure); ``thesis`` seed 0, 3700 steps 0.912 / 0.788 -> 0.912 / 0.769 (more false hot stabs)."""
+    R mean): seed 2, 3700 steps 0.951 / 0.813, 0.006 m / 0.21 deg -> 0.951 / 0.984, 0.011 m / 2.26 deg (the UUV
+    hot stab, never scored >= 0.5 there, tracked from 0.33-0.36 detections and completed: 30 of 30 at 6 deg); seed
+    0, 3700 steps 0.917 / 1.000, 0.001 m / 0.65 deg -> 0.917 / 0.984, 0.002 m / 1.77 deg (a false hot stab track on
+    the structure); ``thesis`` seed 0, 3700 steps 0.912 / 0.788, 0.011 m / 13.2 deg -> 0.912 / 0.769, 0.024 m /
+    18.1 deg (28 more false hot stabs)."""
     nms_iou: float = bounded(0.5, gt=0, le=1)
     """A trained network's detections (with those of its ``tiles`` windows) are non-maximum suppressed per class:
     of two same-class boxes overlapping by more than this IoU the lower-scoring goes (0.5, the network's own

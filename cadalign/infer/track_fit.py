@@ -99,10 +99,11 @@ class RefitConfig:
     receptacle's fit the procedural hot stab's longer model better than its own (18.5 against 21.7 mm). ``off``:
     the track's model only. Default orbit, 33 held-out frames, true depth, ``accurate``; session 24's refit ->
     ``view`` with the turn, ``hops`` and the median centre (valve / hot stab F1, hot stab t / R mean): seed 0, 3700
-    steps 0.917 / 0.825, 0.031 m / 18.3 deg -> 0.917 / 1.000, 0.001 m / 0.4 deg (the UUV hot stab's track, fitted with
-    the procedural model 109 deg off, now has its own: 30 of 30 at 0.003 m / 0.5 deg); seed 2, 3700 steps 0.951 /
-    0.578 -> 0.951 / 0.813 (the second procedural hot stab's track refitted 0.01 m / 0.3 deg: the hops); 4200-step
-    seeds 0, 1 unchanged, seed 2 hot stab R 1.74 -> 0.75 deg. One track's model changed wrongly during tuning (the
+    steps 0.917 / 0.825, 0.031 m / 18.3 deg -> 0.917 / 1.000, 0.001 m / 0.65 deg (the UUV hot stab's track, fitted
+    with the procedural model 109 deg off, now has its own: 30 of 30 at 0.003 m / 1.8 deg); seed 2, 3700 steps 0.951
+    / 0.578, 0.019 m / 1.22 deg -> 0.951 / 0.813, 0.006 m / 0.21 deg (the second procedural hot stab's track
+    refitted 0.011 m / 0.3 deg: the hops); 4200-step seeds 0, 1 unchanged, seed 2 hot stab R 1.74 -> 0.75 deg
+    (before the median centre and the two-variant turn). One track's model changed wrongly during tuning (the
     87 mm valve's, to the 145 mm one: ``mask_weight``, ``model_min_px``). The completion pass takes ~1 s per
     frame more (the other models' screening fits)."""
     model_margin: float = bounded(0.1, ge=0)
