@@ -20,7 +20,7 @@ import numpy as np
 
 from cadalign.cad.model import CadModel
 from cadalign.config import bounded
-from cadalign.eval.pose_metrics import box_iou
+from cadalign.eval.pose_metrics import box_iou, rotation_error_deg
 from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.infer.complete import CompleteConfig, WorldTrack
 from cadalign.infer.detect import Detector, TileConfig
@@ -324,6 +324,7 @@ class PosePipeline:
                 fits = {obj_id: own, k: full or fits[k]}
                 k = self._pick_model(track_id, fits, P, obj_id)
         r = fits[k]
+        turned_deg = 0.0
         if cfg.choose_model == "view" and cfg.view_turns_deg:
             g = self.geometry(k)
             near = max(self.geometry(m).diameter_m for m in fits)
@@ -337,10 +338,13 @@ class PosePipeline:
                                    min_gain=cfg.turn_min_px * len(views)) for n in cfg.turn_icp_iters]
             if turned:
                 scores = [view_score(g, T2, views, tol, band, near, cfg.mask_weight) for T2 in turned]
-                r = replace(r, T_world_from_obj=turned[int(np.argmin(scores))])
-        log.info("track %d (model %d): refit on %d frames, %d points: fit %.1f mm (fused pose %.1f mm), moved %.3f m%s",
-                 track_id, obj_id, n, len(P), 1e3 * r.fit_m, 1e3 * fits[obj_id].fused_fit_m,
-                 float(np.linalg.norm(r.T_world_from_obj.t - T.t)), "" if k == obj_id else f", now model {k}")
+                T_turned = turned[int(np.argmin(scores))]
+                turned_deg = rotation_error_deg(T_turned.R, r.T_world_from_obj.R)
+                r = replace(r, T_world_from_obj=T_turned)
+        log.info("track %d (model %d): refit on %d frames, %d points: fit %.1f mm (fused pose %.1f mm), "
+                 "moved %.3f m%s%s", track_id, obj_id, n, len(P), 1e3 * r.fit_m, 1e3 * fits[obj_id].fused_fit_m,
+                 float(np.linalg.norm(r.T_world_from_obj.t - T.t)), "" if k == obj_id else f", now model {k}",
+                 f", then turned {turned_deg:.1f} deg by its views" if turned_deg > 0 else "")
         return FittedTrack(track_id, label, world, n, self.geometry(k), r.T_world_from_obj, P, k)
 
     def _pick_model(self, track_id: int, fits: dict[int, RefitResult], P: np.ndarray, own: int) -> int:

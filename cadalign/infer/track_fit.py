@@ -336,9 +336,10 @@ def turn_by_view(geom: ModelGeometry, T: Rigid3, P: np.ndarray, views: Sequence[
                 turned = icp_world(geom, turned, P, C, icp_iters, huber_m)
             cands = [(view_score(geom, T2, views, tol_m, band_px, near_m, mask_weight), i, T2)
                      for i, T2 in enumerate(turned) if depth_fit(geom, T2, P) <= fit_max]
-            if not cands or min(cands, key=lambda x: (x[0], x[1]))[0] >= best_v:
+            top = min(cands, key=lambda x: (x[0], x[1]), default=None)
+            if top is None or top[0] >= best_v:
                 break
-            best_v, _, best = min(cands, key=lambda x: (x[0], x[1]))
+            best_v, _, best = top
     return best if start_v - best_v > min_gain else T
 
 
