@@ -46,8 +46,7 @@ from cadalign.infer.track_fit import (
     duplicates,
     pick_model,
     refit_world_pose,
-    turn_by_view,
-    view_score,
+    turn_track,
 )
 from cadalign.types import Rigid3
 
@@ -327,20 +326,11 @@ class PosePipeline:
         turned_deg = 0.0
         if cfg.choose_model == "view" and cfg.view_turns_deg:
             g = self.geometry(k)
-            near = max(self.geometry(m).diameter_m for m in fits)
-            views, Pt, Ct = self.points.views(track_id), P, C
-            if len(P) > cfg.max_points:  # as many points as the refit's final ICP
-                pick = np.random.default_rng(cfg.seed).choice(len(P), cfg.max_points, replace=False)
-                Pt, Ct = P[pick], C[pick]
-            tol, band = self.cfg.refine.half_turn_tol * g.diameter_m, self.cfg.refine.half_turn_band_px
-            turned = [turn_by_view(g, r.T_world_from_obj, Pt, views, cfg.view_turns_deg, cfg.tie_rel, tol, band, near,
-                                   mask_weight=cfg.mask_weight, C=Ct, icp_iters=n, huber_m=cfg.huber_m,
-                                   min_gain=cfg.turn_min_px * len(views)) for n in cfg.turn_icp_iters]
-            if turned:
-                scores = [view_score(g, T2, views, tol, band, near, cfg.mask_weight) for T2 in turned]
-                T_turned = turned[int(np.argmin(scores))]
-                turned_deg = rotation_error_deg(T_turned.R, r.T_world_from_obj.R)
-                r = replace(r, T_world_from_obj=T_turned)
+            T_turned = turn_track(g, r.T_world_from_obj, P, C, self.points.views(track_id), cfg,
+                                  self.cfg.refine.half_turn_tol * g.diameter_m, self.cfg.refine.half_turn_band_px,
+                                  max(self.geometry(m).diameter_m for m in fits))
+            turned_deg = rotation_error_deg(T_turned.R, r.T_world_from_obj.R)
+            r = replace(r, T_world_from_obj=T_turned)
         log.info("track %d (model %d): refit on %d frames, %d points: fit %.1f mm (fused pose %.1f mm), "
                  "moved %.3f m%s%s", track_id, obj_id, n, len(P), 1e3 * r.fit_m, 1e3 * fits[obj_id].fused_fit_m,
                  float(np.linalg.norm(r.T_world_from_obj.t - T.t)), "" if k == obj_id else f", now model {k}",

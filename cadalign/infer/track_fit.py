@@ -319,8 +319,16 @@ def turn_by_view(geom: ModelGeometry, T: Rigid3, P: np.ndarray, views: Sequence[
     (N, 3) within ``tie_rel`` of ``T``'s (at most ``max_moves`` turns per step). With ``icp_iters`` and the points'
     camera centres ``C``, each turned pose is first fitted again to the points by that many ICP iterations (its
     position follows the turn). ``T`` itself unless the score falls by more than ``min_gain`` in all."""
+    return _turn(geom, T, P, views, steps_deg, tie_rel, tol_m, band_px, near_m, max_moves, mask_weight, C, icp_iters,
+                 huber_m, min_gain)[0]
+
+
+def _turn(geom: ModelGeometry, T: Rigid3, P: np.ndarray, views: Sequence[TrackView], steps_deg: Sequence[float],
+          tie_rel: float, tol_m: float, band_px: float, near_m: float, max_moves: int, mask_weight: float,
+          C: np.ndarray | None, icp_iters: int, huber_m: float, min_gain: float) -> tuple[Rigid3, float]:
+    """:func:`turn_by_view` and the view score of the pose it returns (0 without views or points)."""
     if not views or not len(P):
-        return T
+        return T, 0.0
     c = geom.samples.mean(0)
     fit_max = depth_fit(geom, T, P) * (1.0 + tie_rel)
     best, best_v = T, view_score(geom, T, views, tol_m, band_px, near_m, mask_weight)
@@ -340,7 +348,27 @@ def turn_by_view(geom: ModelGeometry, T: Rigid3, P: np.ndarray, views: Sequence[
             if top is None or top[0] >= best_v:
                 break
             best_v, _, best = top
-    return best if start_v - best_v > min_gain else T
+    return (best, best_v) if start_v - best_v > min_gain else (T, start_v)
+
+
+def turn_track(geom: ModelGeometry, T: Rigid3, P: np.ndarray, C: np.ndarray, views: Sequence[TrackView],
+               cfg: RefitConfig, tol_m: float, band_px: float, near_m: float) -> Rigid3:
+    """A track's refitted pose turned by its views (``cfg.view_turns_deg``): :func:`turn_by_view` on the final ICP's
+    points (``cfg.max_points`` of ``P`` (N, 3) seen from ``C``), once per ``cfg.turn_icp_iters``; the result with the
+    lowest :func:`view_score` wins (ties: the first). ``T`` without turns or views."""
+    P, C = _at_most(np.asarray(P, float).reshape(-1, 3), np.asarray(C, float).reshape(-1, 3), cfg.max_points,
+                    np.random.default_rng(cfg.seed))
+    out = [_turn(geom, T, P, views, cfg.view_turns_deg, cfg.tie_rel, tol_m, band_px, near_m, 8, cfg.mask_weight, C,
+                 n, cfg.huber_m, cfg.turn_min_px * len(views)) for n in cfg.turn_icp_iters]
+    return min(out, key=lambda x: x[1])[0] if out else T
+
+
+def _at_most(P: np.ndarray, C: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` of the points ``P`` and their camera centres ``C``, drawn by ``rng`` (all when there are no more)."""
+    if len(P) <= n:
+        return P, C
+    pick = rng.choice(len(P), n, replace=False)
+    return P[pick], C[pick]
 
 
 def pick_model(fits: dict[int, Rigid3], geoms: dict[int, ModelGeometry], P: np.ndarray, own: int, margin: float,
@@ -363,8 +391,7 @@ def pick_model(fits: dict[int, Rigid3], geoms: dict[int, ModelGeometry], P: np.n
                  for k, T in fits.items()}
     else:
         cap = 0.1 * min(geoms[k].diameter_m for k in fits)
-        score = {k: float(np.mean(np.minimum(geoms[k].tree.query(T.inverse().apply(P))[0], cap)))
-                 for k, T in fits.items()}
+        score = {k: depth_fit(geoms[k], T, P, cap) for k, T in fits.items()}
     best = min(score, key=lambda k: (score[k], k))
     if own in score and score[own] <= max(score[best] * (1.0 + margin), score[best] + min_px * len(views)):
         return own
@@ -471,9 +498,7 @@ def refit_world_pose(geom: ModelGeometry, T_fused: Rigid3, P: np.ndarray, C: np.
     if len(P) < cfg.min_points:
         return None
     rng = np.random.default_rng(cfg.seed)
-    if len(P) > cfg.max_points:
-        pick = rng.choice(len(P), cfg.max_points, replace=False)
-        P, C = P[pick], C[pick]
+    P, C = _at_most(P, C, cfg.max_points, rng)
     sub = rng.choice(len(P), min(cfg.coarse_points, len(P)), replace=False)
     Ps, Cs = P[sub], C[sub]
     centre = np.median(P, 0)  # a few detections bring far background: the mean can be metres off
