@@ -112,6 +112,11 @@ def test_windows_find_a_part_too_small_for_the_whole_frame_with_frame_coordinate
         np.testing.assert_allclose(d.t_cam_from_obj_m, [(u - 80) / 100, (v - 60) / 100, 1.0], atol=1e-9)
     strict = TorchDetector(_BlobNet(), tiles=TileConfig(zoom=2.0, score_thresh=0.95)).detect(img, K)
     assert [tuple(d.box_xyxy) for d in strict] == [(20, 70, 30, 80)]  # windows' detections (0.9) under their bar
+    # windows keep only boxes up to max_box_px: the 3 px part stays, the 10 px one is the whole frame's alone
+    det = TorchDetector(_BlobNet(), tiles=TileConfig(zoom=2.0, max_box_px=5.0), nms_iou=0.99)
+    assert sorted(tuple(np.round(d.box_xyxy, 6)) for d in det.detect(img, K)) == [(20, 70, 30, 80), (100, 30, 103, 33)]
+    det = TorchDetector(_BlobNet(), tiles=TileConfig(zoom=2.0, max_box_px=2.0), nms_iou=0.99)
+    assert [tuple(d.box_xyxy) for d in det.detect(img, K)] == [(20, 70, 30, 80)]
 
 
 def test_a_part_cut_by_an_inner_window_edge_is_left_to_another_window() -> None:
