@@ -62,18 +62,17 @@ class TileConfig:
     the windows add recall and, at the same threshold, false positives."""
     max_box_px: float = bounded(0.0, ge=0)
     """A window's detection whose box is longer than this (frame pixels) on either side is dropped (0 = keep all):
-    the windows then add only the parts too small for the whole frame, which it leaves to itself. Default orbit, 33
-    held-out frames, zoom 2 (9 windows), windows' detections from 0.5, merged across windows: with a 24 px cap the
-    windows add 144-192 false valve boxes over the 33 frames (two 3700-step networks, ``improved`` seeds 0 and 2),
-    with 8 px 13; the two 87 mm panel
-    valves (3-6 px boxes) are then found from 0.5 in 13 of 24 frames against 5 on the whole frame alone (seed 0).
-    Through ``infer --preset accurate`` (true depth, hot stabs from 0.3; valve / hot stab F1, fused valve t / R): seed
-    2 0.951 / 0.984, 0.001 m / 1.87 deg -> 0.986 / 0.984, 0.001 m / 0.16 deg; seed 0 0.917 -> 0.907 (its 87 mm valve
-    misses halve, 22 -> 11, but its boxes there stay ~2 px off and 17 false valves are added); seed 1 0.970 -> 0.947
-    (misses 11 -> 6, background false valves 1 -> 17); ``thesis`` seed 2 0.946 -> 0.881 (35 background false
-    valves). Hot stab F1 moves by at most 0.036. Without the cap (zoom 2) 0.917 / 0.984 -> 0.785 / 0.927 (seed 0),
-    0.970 / 0.737 -> 0.814 / 0.695 (seed 1). Mixed, so off: the windows find the small valves, and small false
-    ones with them."""
+    the windows then add only parts too small for the whole frame, and larger parts come from the whole frame alone.
+    Default orbit, 33 held-out frames, zoom 2 (9 windows), windows' detections from 0.5, merged across windows: with
+    a 24 px cap the windows add 144-192 false valve boxes over the 33 frames (two 3700-step networks, ``improved``
+    seeds 0 and 2), with 8 px 13; the two 87 mm panel valves (3-6 px boxes) are then found from 0.5 in 13 of 24
+    frames against 5 on the whole frame alone (seed 0). Through ``infer --preset accurate`` (true depth, hot stabs
+    from 0.3; valve / hot stab F1, fused valve t / R): seed 2 0.951 / 0.984, 0.001 m / 1.87 deg -> 0.986 / 0.984,
+    0.001 m / 0.16 deg; seed 0 0.917 -> 0.907 (its 87 mm valve misses halve, 22 -> 11, but its boxes there stay ~2 px
+    off and 17 false valves are added); seed 1 0.970 -> 0.947 (misses 11 -> 6, background false valves 1 -> 17);
+    ``thesis`` seed 2 0.946 -> 0.881 (35 background false valves). Hot stab F1 moves by at most 0.036. Without the
+    cap (zoom 2) 0.917 / 0.984 -> 0.785 / 0.927 (seed 0), 0.970 / 0.737 -> 0.814 / 0.695 (seed 1). Mixed, so off:
+    the windows find the small valves, and small false ones with them."""
 
 
 def tile_windows(height: int, width: int, cfg: TileConfig) -> list[tuple[int, int, int, int]]:
