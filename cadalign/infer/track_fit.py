@@ -173,6 +173,13 @@ class TrackView:
     depth_m: np.ndarray
     """(h, w) observed depth in the crop, metres (not finite or <= 0: none)."""
 
+    @functools.cached_property
+    def mask_depth_m(self) -> float | None:
+        """Median observed depth over the mask (None without any): computed once, every pose scored against it."""
+        z = self.depth_m[self.mask]
+        z = z[np.isfinite(z) & (z > 0)]
+        return float(np.median(z)) if len(z) else None
+
     @staticmethod
     def crop(K: np.ndarray, T_world_from_cam: Rigid3, mask: np.ndarray, depth_m: np.ndarray,
              pad: float) -> TrackView | None:
@@ -300,9 +307,7 @@ def view_score(geom: ModelGeometry, T_world_from_obj: Rigid3, views: Sequence[Tr
     depth; ``band_px`` along outlines not counted."""
     total = 0.0
     for v in views:
-        z = v.depth_m[v.mask]
-        z = z[np.isfinite(z) & (z > 0)]
-        near = (float(np.median(z)), near_m) if len(z) else None
+        near = None if v.mask_depth_m is None else (v.mask_depth_m, near_m)
         h, w = v.mask.shape
         seen, unexplained = view_disagreement_parts(geom, v.T_cam_from_world @ T_world_from_obj, v.K, v.mask,
                                                     v.depth_m, tol_m, (0, 0, w, h), band_px, near)
