@@ -299,44 +299,56 @@ def explained(geom: ModelGeometry, T: Rigid3, P: np.ndarray, tol_m: float) -> fl
     return float(np.mean(geom.tree.query(T.inverse().apply(P), distance_upper_bound=tol_m)[0] <= tol_m))
 
 
-def view_score(geom: ModelGeometry, T_world_from_obj: Rigid3, views: Sequence[TrackView], tol_m: float,
-               band_px: float, near_m: float, mask_weight: float = 1.0) -> float:
+@dataclass(frozen=True)
+class ViewScoring:
+    """How :func:`view_score` counts the pixels where a pose disagrees with a track's views."""
+
+    tol_m: float
+    """Depth tolerance: a model pixel is seen through when the view's depth lies farther than this behind it."""
+    band_px: float
+    """Pixels within this distance of an outline are not counted."""
+    near_m: float
+    """Mask pixels the model leaves unexplained count only within this of the mask's median depth."""
+    mask_weight: float = 1.0
+    """Weight of an unexplained mask pixel against a seen-through one."""
+
+
+def view_score(geom: ModelGeometry, T_world_from_obj: Rigid3, views: Sequence[TrackView],
+               scoring: ViewScoring) -> float:
     """Pixels, summed over ``views``, where the model at ``T_world_from_obj`` disagrees with the view
-    (:func:`cadalign.infer.half_turn.view_disagreement`): seen through (depth tolerance ``tol_m``), plus
-    ``mask_weight`` times the mask pixels it leaves unexplained that lie within ``near_m`` of the mask's median
-    depth; ``band_px`` along outlines not counted."""
+    (:func:`cadalign.infer.half_turn.view_disagreement`): seen through, plus ``scoring.mask_weight`` times the mask
+    pixels it leaves unexplained (see :class:`ViewScoring`)."""
     total = 0.0
     for v in views:
-        near = None if v.mask_depth_m is None else (v.mask_depth_m, near_m)
+        near = None if v.mask_depth_m is None else (v.mask_depth_m, scoring.near_m)
         h, w = v.mask.shape
         seen, unexplained = view_disagreement_parts(geom, v.T_cam_from_world @ T_world_from_obj, v.K, v.mask,
-                                                    v.depth_m, tol_m, (0, 0, w, h), band_px, near)
-        total += seen + mask_weight * unexplained
+                                                    v.depth_m, scoring.tol_m, (0, 0, w, h), scoring.band_px, near)
+        total += seen + scoring.mask_weight * unexplained
     return total
 
 
 def turn_by_view(geom: ModelGeometry, T: Rigid3, P: np.ndarray, views: Sequence[TrackView], steps_deg: Sequence[float],
-                 tie_rel: float, tol_m: float, band_px: float, near_m: float, max_moves: int = 8,
-                 mask_weight: float = 1.0, C: np.ndarray | None = None, icp_iters: int = 0,
-                 huber_m: float = 0.005, min_gain: float = 0.0) -> Rigid3:
+                 scoring: ViewScoring, tie_rel: float, *, max_moves: int = 8, C: np.ndarray | None = None,
+                 icp_iters: int = 0, huber_m: float = 0.005, min_gain: float = 0.0) -> Rigid3:
     """``T`` turned about the model's axes through its centroid, by each of ``steps_deg`` in turn, while a turn lowers
     :func:`view_score` over ``views`` and keeps :func:`~cadalign.infer.depth_icp.depth_fit` of the points ``P``
     (N, 3) within ``tie_rel`` of ``T``'s (at most ``max_moves`` turns per step). With ``icp_iters`` and the points'
     camera centres ``C``, each turned pose is first fitted again to the points by that many ICP iterations (its
     position follows the turn). ``T`` itself unless the score falls by more than ``min_gain`` in all."""
-    return _turn(geom, T, P, views, steps_deg, tie_rel, tol_m, band_px, near_m, max_moves, mask_weight, C, icp_iters,
-                 huber_m, min_gain)[0]
+    return _turn(geom, T, P, views, steps_deg, scoring, tie_rel, max_moves=max_moves, C=C, icp_iters=icp_iters,
+                 huber_m=huber_m, min_gain=min_gain)[0]
 
 
 def _turn(geom: ModelGeometry, T: Rigid3, P: np.ndarray, views: Sequence[TrackView], steps_deg: Sequence[float],
-          tie_rel: float, tol_m: float, band_px: float, near_m: float, max_moves: int, mask_weight: float,
-          C: np.ndarray | None, icp_iters: int, huber_m: float, min_gain: float) -> tuple[Rigid3, float]:
+          scoring: ViewScoring, tie_rel: float, *, max_moves: int, C: np.ndarray | None, icp_iters: int,
+          huber_m: float, min_gain: float) -> tuple[Rigid3, float]:
     """:func:`turn_by_view` and the view score of the pose it returns (0 without views or points)."""
     if not views or not len(P):
         return T, 0.0
     c = geom.samples.mean(0)
     fit_max = depth_fit(geom, T, P) * (1.0 + tie_rel)
-    best, best_v = T, view_score(geom, T, views, tol_m, band_px, near_m, mask_weight)
+    best, best_v = T, view_score(geom, T, views, scoring)
     start_v = best_v
     for step in steps_deg:
         for _ in range(max_moves):
@@ -347,7 +359,7 @@ def _turn(geom: ModelGeometry, T: Rigid3, P: np.ndarray, views: Sequence[TrackVi
                 turned.append(Rigid3(R, centre - R @ c))
             if icp_iters and C is not None:
                 turned = icp_world(geom, turned, P, C, icp_iters, huber_m)
-            cands = [(view_score(geom, T2, views, tol_m, band_px, near_m, mask_weight), i, T2)
+            cands = [(view_score(geom, T2, views, scoring), i, T2)
                      for i, T2 in enumerate(turned) if depth_fit(geom, T2, P) <= fit_max]
             top = min(cands, key=lambda x: (x[0], x[1]), default=None)
             if top is None or top[0] >= best_v:
@@ -360,11 +372,13 @@ def turn_track(geom: ModelGeometry, T: Rigid3, P: np.ndarray, C: np.ndarray, vie
                cfg: RefitConfig, tol_m: float, band_px: float, near_m: float) -> Rigid3:
     """A track's refitted pose turned by its views (``cfg.view_turns_deg``): :func:`turn_by_view` on the final ICP's
     points (``cfg.max_points`` of ``P`` (N, 3) seen from ``C``), once per ``cfg.turn_icp_iters``; the result with the
-    lowest :func:`view_score` wins (ties: the first). ``T`` without turns or views."""
+    lowest :func:`view_score` (:class:`ViewScoring` of ``tol_m``, ``band_px``, ``near_m`` and ``cfg.mask_weight``)
+    wins (ties: the first). ``T`` without turns or views."""
     P, C = _at_most(np.asarray(P, float).reshape(-1, 3), np.asarray(C, float).reshape(-1, 3), cfg.max_points,
                     np.random.default_rng(cfg.seed))
-    out = [_turn(geom, T, P, views, cfg.view_turns_deg, cfg.tie_rel, tol_m, band_px, near_m, 8, cfg.mask_weight, C,
-                 n, cfg.huber_m, cfg.turn_min_px * len(views)) for n in cfg.turn_icp_iters]
+    scoring = ViewScoring(tol_m, band_px, near_m, cfg.mask_weight)
+    out = [_turn(geom, T, P, views, cfg.view_turns_deg, scoring, cfg.tie_rel, max_moves=8, C=C, icp_iters=n,
+                 huber_m=cfg.huber_m, min_gain=cfg.turn_min_px * len(views)) for n in cfg.turn_icp_iters]
     return min(out, key=lambda x: x[1])[0] if out else T
 
 
@@ -392,8 +406,8 @@ def pick_model(fits: dict[int, Rigid3], geoms: dict[int, ModelGeometry], P: np.n
     score: dict[int, float]
     if views:
         near = max(geoms[k].diameter_m for k in fits)
-        score = {k: view_score(geoms[k], T, views, tol_rel * geoms[k].diameter_m, band_px, near, mask_weight)
-                 for k, T in fits.items()}
+        score = {k: view_score(geoms[k], T, views, ViewScoring(tol_rel * geoms[k].diameter_m, band_px, near,
+                                                                mask_weight)) for k, T in fits.items()}
     else:
         cap = 0.1 * min(geoms[k].diameter_m for k in fits)
         score = {k: depth_fit(geoms[k], T, P, cap) for k, T in fits.items()}

@@ -23,6 +23,7 @@ from cadalign.infer.track_fit import (
     RefitConfig,
     TrackPoints,
     TrackView,
+    ViewScoring,
     duplicates,
     icp_world,
     pick_model,
@@ -160,7 +161,7 @@ def test_the_view_picks_the_model_the_frames_do_not_see_through(stab_model: CadM
     assert pick_model(fits, geoms, P, own=12, margin=0.1, views=views, tol_rel=0.05, band_px=1.5) == 6
     assert pick_model(fits, geoms, P, own=6, margin=0.1, views=views, tol_rel=0.05, band_px=1.5) == 6
     # unless the views' difference is within min_px per view
-    own_px = view_score(decoy, T_WO, views, 0.05 * decoy.diameter_m, 1.5, decoy.diameter_m)
+    own_px = view_score(decoy, T_WO, views, ViewScoring(0.05 * decoy.diameter_m, 1.5, decoy.diameter_m))
     assert own_px > 4 * 20
     for min_px, want in ((0.25 * own_px / 4, 6), (own_px / 4, 12)):
         assert pick_model(fits, geoms, P, own=12, margin=0.1, views=views, tol_rel=0.05, band_px=1.5,
@@ -194,22 +195,23 @@ def test_a_turn_the_points_cannot_see_is_decided_by_the_views() -> None:
         return Rigid3(R, T_WO.apply(c[None])[0] - R @ c)
 
     assert abs(depth_fit(geom, rolled(20.0), P) - depth_fit(geom, T_WO, P)) < 1e-3
-    T = turn_by_view(geom, rolled(20.0), P, views, (16.0, 8.0, 4.0), 0.02, 0.01, 1.5, geom.diameter_m)
+    T = turn_by_view(geom, rolled(20.0), P, views, (16.0, 8.0, 4.0), ViewScoring(0.01, 1.5, geom.diameter_m), 0.02)
     assert _err(T, T_WO)[1] <= 8.5 and _err(T, T_WO)[0] < 0.01
     # nothing to look at, or no steps: unchanged
-    assert _err(turn_by_view(geom, rolled(20.0), P, [], (16.0,), 0.02, 0.01, 1.5, 1.0), rolled(20.0))[1] < 1e-6
-    assert _err(turn_by_view(geom, rolled(20.0), P, views, (), 0.02, 0.01, 1.5, 1.0), rolled(20.0))[1] < 1e-6
+    loose = ViewScoring(0.01, 1.5, 1.0)
+    assert _err(turn_by_view(geom, rolled(20.0), P, [], (16.0,), loose, 0.02), rolled(20.0))[1] < 1e-6
+    assert _err(turn_by_view(geom, rolled(20.0), P, views, (), loose, 0.02), rolled(20.0))[1] < 1e-6
     # each turn fitted again to the points (the rod's axis keeps its place): the same
     C = np.repeat(_cameras(geom, T_WO, 1)[0].t[None], len(P), 0)
-    T = turn_by_view(geom, rolled(20.0), P, views, (16.0, 8.0, 4.0), 0.02, 0.01, 1.5, geom.diameter_m, C=C,
-                     icp_iters=5)
+    T = turn_by_view(geom, rolled(20.0), P, views, (16.0, 8.0, 4.0), ViewScoring(0.01, 1.5, geom.diameter_m), 0.02,
+                     C=C, icp_iters=5)
     assert _err(T, T_WO)[1] <= 8.5 and _err(T, T_WO)[0] < 0.01
     # a gain within min_gain pixels is not taken
-    start = view_score(geom, rolled(20.0), views, 0.01, 1.5, geom.diameter_m)
-    assert _err(turn_by_view(geom, rolled(20.0), P, views, (16.0, 8.0, 4.0), 0.02, 0.01, 1.5, geom.diameter_m,
-                             min_gain=start), rolled(20.0))[1] < 1e-6
+    start = view_score(geom, rolled(20.0), views, ViewScoring(0.01, 1.5, geom.diameter_m))
+    assert _err(turn_by_view(geom, rolled(20.0), P, views, (16.0, 8.0, 4.0),
+                             ViewScoring(0.01, 1.5, geom.diameter_m), 0.02, min_gain=start), rolled(20.0))[1] < 1e-6
     # the true pose stays
-    assert _err(turn_by_view(geom, T_WO, P, views, (16.0, 8.0, 4.0), 0.02, 0.01, 1.5, 1.0), T_WO)[1] < 1e-6
+    assert _err(turn_by_view(geom, T_WO, P, views, (16.0, 8.0, 4.0), loose, 0.02), T_WO)[1] < 1e-6
 
 
 def test_refit_turns_an_end_for_end_flip_back(stab: ModelGeometry) -> None:
