@@ -28,13 +28,23 @@ def masked_depth_points(depth_m: np.ndarray, mask: np.ndarray, K: np.ndarray, ma
 
     A mask whose interior holds fewer than ``min_points`` valid pixels gives all of its pixels instead: a thin
     part's mask is all edge (the default scene's hot stabs at 11 m: masks of ~33 px, 1 px after erosion), and
-    ICP's correspondence gate and Huber loss cope with a few mixed depths better than no depth at all."""
+    ICP's correspondence gate and Huber loss cope with a few mixed depths better than no depth at all.
+
+    Only the mask's bounding box is looked at (the pixels outside it are not the mask's, so eroding the box with a
+    zero border erodes the mask alike); the points and their order are those of the whole frame."""
     mask = np.asarray(mask, bool)
-    valid = np.isfinite(depth_m) & (depth_m > 0)
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if len(rows) == 0:
+        return np.zeros((0, 3))
+    y0, x0 = int(rows[0]), int(cols[0])
+    box = (slice(y0, int(rows[-1]) + 1), slice(x0, int(cols[-1]) + 1))
+    mask, depth = mask[box], np.asarray(depth_m)[box]
+    valid = np.isfinite(depth) & (depth > 0)
     inner = binary_erosion(mask, iterations=1, border_value=0) & valid
     if np.count_nonzero(inner) < min_points:
         inner = mask & valid
     r, c = np.nonzero(inner)
+    r, c = r + y0, c + x0
     if len(r) > max_points:
         pick = np.sort(rng.choice(len(r), max_points, replace=False))
         r, c = r[pick], c[pick]

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from infer_testdata import perturb, render_close_view
 
 from cadalign.eval.pose_metrics import add, rotation_error_deg, translation_error_m
@@ -194,3 +196,43 @@ def test_icp_from_a_pose_beside_the_points_starts_again_on_them(valve_view) -> N
     T1, iters, _ = refine_depth_icp(geom, T0, view.camera.K, view.depth_m, view.mask, RefineConfig())
     assert iters >= 1
     assert translation_error_m(T1.t, T_gt.t) < 0.05 and rotation_error_deg(T1.R, T_gt.R) < 5.0
+
+
+def _full_frame_points(depth_m, mask, K, max_points, rng, min_points):
+    """The definition of masked_depth_points, over the whole frame."""
+    from scipy.ndimage import binary_erosion
+
+    valid = np.isfinite(depth_m) & (depth_m > 0)
+    inner = binary_erosion(mask, iterations=1, border_value=0) & valid
+    if np.count_nonzero(inner) < min_points:
+        inner = mask & valid
+    r, c = np.nonzero(inner)
+    if len(r) > max_points:
+        pick = np.sort(rng.choice(len(r), max_points, replace=False))
+        r, c = r[pick], c[pick]
+    z = depth_m[r, c]
+    return np.stack([(c + 0.5 - K[0, 2]) / K[0, 0] * z, (r + 0.5 - K[1, 2]) / K[1, 1] * z, z], axis=1)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.integers(0, 2**31), st.integers(1, 120), st.integers(0, 40), st.floats(0.0, 0.5))
+def test_masked_depth_points_look_only_at_the_mask_box_and_give_the_whole_frame_points(seed, max_points, min_points,
+                                                                                          fill):
+    """The points come from the mask's bounding box only; they (and their sampling) equal the whole frame's,
+    masks on the frame border, blobs, one pixel, empty masks and NaN / zero depth included."""
+    from cadalign.infer.depth_icp import masked_depth_points
+
+    rng = np.random.default_rng(seed)
+    h, w = 24, 32
+    depth = rng.uniform(0.5, 9.0, (h, w))
+    depth[rng.random((h, w)) < 0.1] = np.nan
+    depth[rng.random((h, w)) < 0.05] = 0.0
+    mask = np.zeros((h, w), bool)
+    y, x = rng.integers(0, h), rng.integers(0, w)
+    mask[y:y + rng.integers(1, 14), x:x + rng.integers(1, 14)] = True
+    mask |= rng.random((h, w)) < fill * 0.2
+    K = np.array([[30.0, 0.0, 16.0], [0.0, 30.0, 12.0], [0.0, 0.0, 1.0]])
+    got = masked_depth_points(depth, mask, K, max_points, np.random.default_rng(seed), min_points)
+    want = _full_frame_points(depth, mask, K, max_points, np.random.default_rng(seed), min_points)
+    assert got.shape == want.shape and np.array_equal(got, want)
+    assert masked_depth_points(depth, np.zeros_like(mask), K, max_points, rng).shape == (0, 3)
