@@ -40,9 +40,11 @@ from cadalign.infer.refine import (
 from cadalign.infer.temporal import TemporalConfig, TemporalFuser
 from cadalign.infer.track_fit import (
     FittedTrack,
+    RefitConfig,
     RefitResult,
     TrackPoints,
     TrackView,
+    ViewScoring,
     duplicates,
     pick_model,
     refit_world_pose,
@@ -306,7 +308,16 @@ class PosePipeline:
             return None
         P, C = self.points.of(track_id)
         cfg = self.cfg.complete.refit
-        own = refit_world_pose(self.geometry(obj_id), T, P, C, cfg, self.models[obj_id].symmetry)
+        views = self.points.views(track_id) if cfg.choose_model == "view" else ()
+        near_m = max(self.geometry(m).diameter_m for m in self.candidates(label)) if views else 0.0
+
+        def fit(m: int, c: RefitConfig) -> RefitResult | None:
+            g = self.geometry(m)
+            scoring = ViewScoring(self.cfg.refine.half_turn_tol * g.diameter_m, self.cfg.refine.half_turn_band_px,
+                                  max(near_m, g.diameter_m), c.mask_weight)
+            return refit_world_pose(g, T, P, C, c, self.models[m].symmetry, views, scoring)
+
+        own = fit(obj_id, cfg)
         if own is None:  # too few points: the same for every model
             return None
         fits, k = {obj_id: own}, obj_id
@@ -314,12 +325,12 @@ class PosePipeline:
         if others:
             quick = cfg.screening() if cfg.screen else cfg
             for m in others:
-                r = refit_world_pose(self.geometry(m), T, P, C, quick, self.models[m].symmetry)
+                r = fit(m, quick)
                 if r is not None:
                     fits[m] = r
             k = self._pick_model(track_id, fits, P, obj_id)
             if k != obj_id and cfg.screen:  # the winner of the cheap search, fitted in full, against the own fit
-                full = refit_world_pose(self.geometry(k), T, P, C, cfg, self.models[k].symmetry)
+                full = fit(k, cfg)
                 fits = {obj_id: own, k: full or fits[k]}
                 k = self._pick_model(track_id, fits, P, obj_id)
         r = fits[k]

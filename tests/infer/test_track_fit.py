@@ -312,3 +312,31 @@ def test_the_pipeline_refit_chooses_the_model_of_the_class_the_views_agree_with(
         assert _err(track.T_world_from_obj, T_WO)[0] < 0.01
     no_refit = PosePipeline(None, {6: stab_model}, pipe.class_names, PRESETS["balanced"])
     assert no_refit.points is None and no_refit.world_tracks() == []
+
+
+def test_the_refit_compares_its_fits_by_the_views_where_the_points_cannot_tell(stab: ModelGeometry) -> None:
+    """Points on the middle of the probe only: the probe fits them anywhere along its axis. The views (the whole
+    part's mask, its depth before a wall) tell where it is: the fit shifted along the axis shows wall through
+    its far end and leaves the near end's mask unexplained."""
+    pts = _views(stab, T_WO, n=5)
+    P, C = pts.of(0)
+    local = T_WO.inverse().apply(P)
+    mid = (np.abs(local[:, 1]) < 0.1) & (local[:, 2] < 0.05)
+    P, C = P[mid], C[mid]
+    T_off = Rigid3(T_WO.R, T_WO.t + T_WO.R @ np.array([0.0, 0.2, 0.0]))  # 0.2 m along the probe
+    assert abs(depth_fit(stab, T_off, P) - depth_fit(stab, T_WO, P)) < 1e-3
+    scoring = ViewScoring(0.05 * stab.diameter_m, 1.5, stab.diameter_m)
+    cfg = RefitConfig(view_pick_rel=1.0, view_pick_max_fit=0.04)
+    blind = refit_world_pose(stab, T_off, P, C, cfg)
+    seeing = refit_world_pose(stab, T_off, P, C, cfg, None, pts.views(0), scoring)
+    assert blind is not None and seeing is not None
+    # the fits slide along the axis: the views pick the one nearest the part (measured 0.05 m against 0.13 m)
+    far = _err(blind.T_world_from_obj, T_WO)[0]
+    assert far > 0.1
+    assert _err(seeing.T_world_from_obj, T_WO)[0] < min(0.07, 0.5 * far)
+    assert view_score(stab, seeing.T_world_from_obj, pts.views(0), scoring) < view_score(
+        stab, blind.T_world_from_obj, pts.views(0), scoring)
+    # off (view_pick_rel = 0), or when no fit explains the points within view_pick_max_fit, the views change nothing
+    for cfg in (RefitConfig(view_pick_rel=0.0), RefitConfig(view_pick_rel=1.0, view_pick_max_fit=1e-6)):
+        off = refit_world_pose(stab, T_off, P, C, cfg, None, pts.views(0), scoring)
+        assert off is not None and np.allclose(off.T_world_from_obj.matrix(), blind.T_world_from_obj.matrix())
