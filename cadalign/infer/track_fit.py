@@ -11,7 +11,9 @@ median. All starts run a few ICP iterations on a subsample; the fused pose and t
 the model's principal axes and run again (``hops``: ICP slides along a cylinder into the nearest minimum); the best
 few and the fused start run to convergence on all points. The best fit (mean data -> model distance, each capped at
 a tenth of the diameter) wins; fits within ``tie_rel`` of it are ties, and of those the one that turns least from the
-fused pose (symmetry-aware) wins.
+fused pose (symmetry-aware) wins. With the track's views, the fits that explain the points nearly as well are first
+compared by what the points cannot show: where the model would cover background or leave the masks unexplained
+(``view_pick_rel``).
 
 A track's model was chosen on its first, smallest views. With ``choose_model``, every model of its class is fitted the
 same way and the one that agrees best with the track's views is kept (:func:`pick_model`); the chosen fit is then
