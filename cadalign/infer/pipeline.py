@@ -311,11 +311,14 @@ class PosePipeline:
         views = self.points.views(track_id) if cfg.choose_model == "view" else ()
         near_m = max(self.geometry(m).diameter_m for m in self.candidates(label)) if views else 0.0
 
-        def fit(m: int, c: RefitConfig) -> RefitResult | None:
+        def scoring(m: int, near: float) -> ViewScoring:
+            """How model ``m``'s poses are scored against the views (half-turn check's tolerances)."""
             g = self.geometry(m)
-            scoring = ViewScoring(self.cfg.refine.half_turn_tol * g.diameter_m, self.cfg.refine.half_turn_band_px,
-                                  max(near_m, g.diameter_m), c.mask_weight)
-            return refit_world_pose(g, T, P, C, c, self.models[m].symmetry, views, scoring)
+            return ViewScoring(self.cfg.refine.half_turn_tol * g.diameter_m, self.cfg.refine.half_turn_band_px,
+                               max(near, g.diameter_m), cfg.mask_weight)
+
+        def fit(m: int, c: RefitConfig) -> RefitResult | None:
+            return refit_world_pose(self.geometry(m), T, P, C, c, self.models[m].symmetry, views, scoring(m, near_m))
 
         own = fit(obj_id, cfg)
         if own is None:  # too few points: the same for every model
@@ -336,10 +339,8 @@ class PosePipeline:
         r = fits[k]
         turned_deg = 0.0
         if cfg.choose_model == "view" and cfg.view_turns_deg:
-            g = self.geometry(k)
-            T_turned = turn_track(g, r.T_world_from_obj, P, C, self.points.views(track_id), cfg,
-                                  self.cfg.refine.half_turn_tol * g.diameter_m, self.cfg.refine.half_turn_band_px,
-                                  max(self.geometry(m).diameter_m for m in fits))
+            T_turned = turn_track(self.geometry(k), r.T_world_from_obj, P, C, views, cfg,
+                                  scoring(k, max(self.geometry(m).diameter_m for m in fits)))
             turned_deg = rotation_error_deg(T_turned.R, r.T_world_from_obj.R)
             r = replace(r, T_world_from_obj=T_turned)
         log.info("track %d (model %d): refit on %d frames, %d points: fit %.1f mm (fused pose %.1f mm), "

@@ -390,14 +390,12 @@ def _turn(geom: ModelGeometry, T: Rigid3, P: np.ndarray, views: Sequence[TrackVi
 
 
 def turn_track(geom: ModelGeometry, T: Rigid3, P: np.ndarray, C: np.ndarray, views: Sequence[TrackView],
-               cfg: RefitConfig, tol_m: float, band_px: float, near_m: float) -> Rigid3:
+               cfg: RefitConfig, scoring: ViewScoring) -> Rigid3:
     """A track's refitted pose turned by its views (``cfg.view_turns_deg``): :func:`turn_by_view` on the final ICP's
     points (``cfg.max_points`` of ``P`` (N, 3) seen from ``C``), once per ``cfg.turn_icp_iters``; the result with the
-    lowest :func:`view_score` (:class:`ViewScoring` of ``tol_m``, ``band_px``, ``near_m`` and ``cfg.mask_weight``)
-    wins (ties: the first). ``T`` without turns or views."""
+    lowest :func:`view_score` wins (ties: the first). ``T`` without turns or views."""
     P, C = _at_most(np.asarray(P, float).reshape(-1, 3), np.asarray(C, float).reshape(-1, 3), cfg.max_points,
                     np.random.default_rng(cfg.seed))
-    scoring = ViewScoring(tol_m, band_px, near_m, cfg.mask_weight)
     out = [_turn(geom, T, P, views, cfg.view_turns_deg, scoring, cfg.tie_rel, max_moves=8, C=C, icp_iters=n,
                  huber_m=cfg.huber_m, min_gain=cfg.turn_min_px * len(views)) for n in cfg.turn_icp_iters]
     return min(out, key=lambda x: x[1])[0] if out else T
@@ -566,8 +564,8 @@ def refit_world_pose(geom: ModelGeometry, T_fused: Rigid3, P: np.ndarray, C: np.
         seen = {i: view_score(geom, fine[i], views, scoring) for i in wide}
         least = min(seen.values())
         ties = [i for i in wide if seen[i] <= least + cfg.turn_min_px * len(views)]
-        best = min(fits[i] for i in ties)
-        near = [i for i in ties if fits[i] <= best * (1.0 + cfg.tie_rel)]
+        best_seen = min(fits[i] for i in ties)  # the best points' fit among the views' ties
+        near = [i for i in ties if fits[i] <= best_seen * (1.0 + cfg.tie_rel)]
     pick_i = min(near, key=lambda i: (rotation_error_deg(fine[i].R, T_fused.R, symmetry), i))
     T = canonicalize(fine[pick_i], symmetry, T_fused.R)
     return RefitResult(T, fits[pick_i], fits[0], n_starts)
