@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pose_testutils import TINY_K as K
 from pose_testutils import tiny_cfg, tiny_pose_loss, tiny_scene
 from typer.testing import CliRunner
@@ -17,10 +19,13 @@ from cadalign.errors import TrainingError
 from cadalign.models.maskrcnn import Detection, MaskRCNNPose, load_pose_model
 from cadalign.models.maskrcnn.roi_heads import (
     SampledRoIs,
+    box_losses,
     context_windows,
+    instance_weights,
     jitter_boxes,
     mask_targets,
     paste_masks,
+    sample_balanced,
     sample_rois,
 )
 from cadalign.models.ops import box_iou
@@ -28,11 +33,13 @@ from cadalign.models.ops import box_iou
 REPO = Path(__file__).resolve().parents[2]
 
 
-@pytest.mark.parametrize(("param", "context"), [("improved", (1.0, 0.0)), ("thesis", (1.0, 0.0)),
-                                              ("improved", (2.0, 16.0))])
-def test_losses_decrease_on_a_tiny_image(param: str, context: tuple[float, float]):
+@pytest.mark.parametrize(("param", "context", "balance"), [("improved", (1.0, 0.0), False),
+                                                         ("thesis", (1.0, 0.0), False),
+                                                         ("improved", (2.0, 16.0), False),
+                                                         ("improved", (1.0, 0.0), True)])
+def test_losses_decrease_on_a_tiny_image(param: str, context: tuple[float, float], balance: bool):
     torch.manual_seed(0)
-    cfg = tiny_cfg(pose=param, box_context=context[0], box_context_px=context[1])
+    cfg = tiny_cfg(pose=param, box_context=context[0], box_context_px=context[1], roi_balance=balance)
     model = MaskRCNNPose(cfg, ["background", "square", "bar"])
     img, tgt = tiny_scene(0)
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
@@ -100,6 +107,56 @@ def test_jittered_gt_copies_spread_as_asked_and_train_as_their_box():
     assert 2 <= int(pos.sum()) <= 9 and (moved.labels[pos] == 2).all() and (moved.gt_index[pos] == 0).all()
     iou = box_iou(gt[:1], moved.boxes)[0]
     assert (iou[pos] >= 0.5).all() and (iou[~pos] < 0.5).all()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.integers(1, 30), min_size=1, max_size=8), st.integers(0, 40), st.integers(1, 64),
+       st.integers(0, 2**31 - 1))
+def test_balanced_positives_go_round_robin_over_instances(per_inst: list[int], n_neg: int, batch: int, seed: int):
+    torch.manual_seed(seed)
+    m = torch.cat([torch.full((n,), g) for g, n in enumerate(per_inst)] + [torch.full((n_neg,), -1)])
+    m = m[torch.randperm(m.numel())]
+    pos, neg = sample_balanced(m, m == -1, batch, 0.5)
+    n_pos = min(batch // 2, sum(per_inst))
+    assert pos.numel() == n_pos and neg.numel() == min(batch - n_pos, n_neg)
+    assert (m[pos] >= 0).all() and (m[neg] == -1).all() and pos.unique().numel() == pos.numel()
+    got = torch.bincount(m[pos], minlength=len(per_inst)).tolist()
+    # round-robin: an instance with fewer draws than another's minus one has run out of candidates
+    for a, ga in enumerate(got):
+        assert ga <= per_inst[a]
+        assert all(ga == per_inst[a] or ga >= gb - 1 for gb in got)
+
+
+def test_instance_weights_give_each_instance_the_same_total_and_keep_the_loss_scale():
+    gi = torch.tensor([0, 0, 0, 0, 1, 2, 2, -1, -1, -1])
+    lab = torch.tensor([1, 1, 1, 1, 2, 3, 3, 0, 0, 0])
+    w = instance_weights(gi, lab)
+    # 7 positives over 3 instances: each instance weighs 7 / 3 in all; background 1
+    for g in range(3):
+        assert float(w[gi == g].sum()) == pytest.approx(7 / 3)
+    assert torch.equal(w[lab == 0], torch.ones(3)) and float(w.sum()) == pytest.approx(10.0)
+    torch.manual_seed(0)
+    boxes = torch.rand(10, 2) * 50
+    boxes = torch.cat([boxes, boxes + 5 + torch.rand(10, 2) * 20], 1)
+    targets = [{"boxes": boxes[:3] + 1.0, "labels": torch.tensor([1, 2, 3])}]
+    rois = SampledRoIs(boxes, torch.zeros(10, dtype=torch.long), lab, gi)
+    logits, deltas = torch.randn(10, 4), torch.randn(10, 16)
+    plain = box_losses(logits, deltas, rois, targets)
+    ones = box_losses(logits, deltas, SampledRoIs(boxes, rois.image, lab, gi, torch.ones(10)), targets)
+    weighted = box_losses(logits, deltas, SampledRoIs(boxes, rois.image, lab, gi, w), targets)
+    for k in ("roi_cls", "roi_box"):
+        assert float(ones[k]) == pytest.approx(float(plain[k]), rel=1e-6)
+        assert float(weighted[k]) != pytest.approx(float(plain[k]), rel=1e-3)
+    # a tiny part with one candidate beside a big one with many: uniform draws often miss it, balanced never
+    big = torch.tensor([[0.0, 0, 100, 100]])
+    props = [big + torch.randn(200, 4) for _ in range(1)]
+    target = {"boxes": torch.tensor([[0.0, 0, 100, 100], [150, 150, 154, 154]]), "labels": torch.tensor([1, 2])}
+    hits = [int((sample_rois(props, [target], 16, 0.25, balance=b).gt_index == 1).sum() > 0) for b in (False,) * 50]
+    assert sum(hits) < 25
+    for _ in range(20):
+        r = sample_rois(props, [target], 16, 0.25, balance=True)
+        assert int((r.gt_index == 1).sum()) == 1 and r.weight is not None
+        assert float(r.weight[r.gt_index == 1].sum()) == pytest.approx(float(r.weight[r.gt_index == 0].sum()))
 
 
 def test_stage_boxes_are_the_networks_in_image_pixels():
@@ -176,8 +233,8 @@ def test_cli_train_pose_end_to_end_resume_and_load(pose_bop: Path, tmp_path: Pat
     report = json.loads((out / "eval_heldout.json").read_text())
     assert report["frames"] == len(report["ids"]) >= 1 and 0 <= report["summary"]["f1"] <= 1
     assert report["stage_recall"] and "structure" not in report["stage_recall"]
-    for st in report["stage_recall"].values():
-        assert st["n"] >= 1 and all(0 <= st[k] <= 1 for k in ("anchor", "proposal", "head", "detection"))
+    for sr in report["stage_recall"].values():
+        assert sr["n"] >= 1 and all(0 <= sr[k] <= 1 for k in ("anchor", "proposal", "head", "detection"))
     # resume extends the run; the same folder with another parameterisation is refused
     res = _train_tiny(pose_bop, out, ["--resume", "--steps", "6"])
     assert res.exit_code == 0, res.output

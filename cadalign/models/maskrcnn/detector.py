@@ -90,6 +90,12 @@ class MaskRCNNConfig:
     0.828 / 0.358 against 0.817 / 0.367 and 0.838 / 0.386 without, at 4-5 % more CPU per step."""
     roi_jitter_sigma: float = bounded(0.1, ge=0)
     """Spread of those copies: centre shift and log-size change, as a fraction of the box's side."""
+    roi_balance: bool = False
+    """Draw the second stage's positive RoIs round-robin over the ground-truth instances and weight the box
+    head's losses so each instance counts the same (:func:`~cadalign.models.maskrcnn.roi_heads.sample_rois`).
+    Uniform draws starve the smallest parts: a trained network's proposals on the default scene's whole training
+    frames (128 RoIs, at most 32 positive) give the 87 mm panel valves no positive RoI in 56 % of draws and the
+    UUV hot stab in 38 %, against 2-5 % for the larger valves."""
     box_context: float = bounded(1.0, ge=1)
     """The box head pools a window this many times each proposal's side (same centre; see ``box_context_px``):
     a part of a few pixels fills a fraction of one stride-4 feature cell, and the head then also sees what
@@ -196,7 +202,8 @@ class MaskRCNNPose(nn.Module):
         hw = (images.shape[-2], images.shape[-1])
         proposals, losses = self.rpn(feats, hw, [t["boxes"] for t in targets])
         rois = sample_rois(proposals, targets, self.cfg.roi_batch_per_image, self.cfg.roi_pos_fraction,
-                           jitter=self.cfg.roi_jitter, jitter_sigma=self.cfg.roi_jitter_sigma)
+                           jitter=self.cfg.roi_jitter, jitter_sigma=self.cfg.roi_jitter_sigma,
+                           balance=self.cfg.roi_balance)
         logits, deltas = self._box_logits(feats, self._rois(rois))
         losses.update(box_losses(logits, deltas, rois, targets))
         pos = rois.positive()

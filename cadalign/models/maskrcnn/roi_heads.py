@@ -120,10 +120,13 @@ class SampledRoIs:
     image: Tensor
     labels: Tensor
     gt_index: Tensor
+    weight: Tensor | None = None
+    """(R,) weight of each RoI in the box head's losses (None = all 1): see :func:`instance_weights`."""
 
     def positive(self) -> SampledRoIs:
         keep = self.labels > 0
-        return SampledRoIs(self.boxes[keep], self.image[keep], self.labels[keep], self.gt_index[keep])
+        return SampledRoIs(self.boxes[keep], self.image[keep], self.labels[keep], self.gt_index[keep],
+                           None if self.weight is None else self.weight[keep])
 
 
 def jitter_boxes(gt: Tensor, copies: int, sigma: float) -> Tensor:
@@ -138,20 +141,60 @@ def jitter_boxes(gt: Tensor, copies: int, sigma: float) -> Tensor:
     return torch.cat([c - half, c + half], 1)
 
 
+def sample_balanced(m: Tensor, is_neg: Tensor, batch: int, pos_fraction: float) -> tuple[Tensor, Tensor]:
+    """As :func:`~cadalign.models.maskrcnn.rpn.sample`, but the positives are drawn round-robin over the
+    ground-truth instances they match (``m`` >= 0 is a candidate's instance): every instance gets one before any
+    gets a second, and so on, in random order within a round. Uniform draws favour parts with many matching
+    proposals; a part of a few pixels has one or two candidates (its own box) and then often gets none."""
+    pos = torch.nonzero(m >= 0).squeeze(1)
+    neg = torch.nonzero(is_neg).squeeze(1)
+    n_pos = min(int(batch * pos_fraction), pos.numel())
+    n_neg = min(batch - n_pos, neg.numel())
+    if pos.numel():
+        pos = pos[torch.randperm(pos.numel(), device=pos.device)]
+        inst = m[pos]
+        order = torch.argsort(inst, stable=True)
+        pos, inst = pos[order], inst[order]
+        counts = torch.bincount(inst)
+        rank = torch.arange(pos.numel(), device=pos.device) - (torch.cumsum(counts, 0) - counts)[inst]
+        tie = torch.randperm(counts.numel(), device=pos.device)[inst]  # random instance order within a round
+        pos = pos[torch.argsort(rank * counts.numel() + tie)[:n_pos]]
+    neg = neg[torch.randperm(neg.numel(), device=neg.device)[:n_neg]]
+    return pos, neg
+
+
+def instance_weights(gt_index: Tensor, labels: Tensor) -> Tensor:
+    """Box-head loss weights that give every matched instance the same total: a positive RoI weighs
+    ``P / (G * n_g)`` (``P`` positives over ``G`` instances, ``n_g`` of them on its instance), so the positives
+    still weigh ``P`` in all; background RoIs weigh 1."""
+    w = torch.ones(labels.shape[0], dtype=torch.float32, device=labels.device)
+    pos = labels > 0
+    if pos.any():
+        _, inv, counts = torch.unique(gt_index[pos], return_inverse=True, return_counts=True)
+        w[pos] = float(pos.sum()) / (counts.numel() * counts[inv].float())
+    return w
+
+
 def sample_rois(proposals: list[Tensor], targets: list[dict], batch: int, pos_fraction: float,
-                iou_thresh: float = 0.5, jitter: int = 0, jitter_sigma: float = 0.1) -> SampledRoIs:
+                iou_thresh: float = 0.5, jitter: int = 0, jitter_sigma: float = 0.1,
+                balance: bool = False) -> SampledRoIs:
     """Match proposals (plus the ground-truth boxes) to the targets and sample a balanced set.
 
     With ``jitter`` > 0 that many randomly moved copies of each ground-truth box (:func:`jitter_boxes`) join
     the candidates: a part of a few pixels otherwise has almost no proposal at IoU >= 0.5 besides its exact box,
-    while at inference the head scores proposals a pixel or two off.
+    while at inference the head scores proposals a pixel or two off. With ``balance`` the positives are drawn
+    per instance (:func:`sample_balanced`) and weighted so that each instance counts the same in the box head's
+    losses (:func:`instance_weights`, per image).
     """
-    boxes, image, labels, gt_index = [], [], [], []
+    boxes, image, labels, gt_index, weight = [], [], [], [], []
     for i, (props, t) in enumerate(zip(proposals, targets, strict=True)):
         gt = t["boxes"]
         cand = torch.cat([props, gt, jitter_boxes(gt, jitter, jitter_sigma).to(props.dtype)])
         m = match(box_iou(gt, cand), iou_thresh, iou_thresh, allow_low_quality=False)
-        pos, neg = sample(m >= 0, m == BELOW, batch, pos_fraction)
+        if balance:
+            pos, neg = sample_balanced(m, m == BELOW, batch, pos_fraction)
+        else:
+            pos, neg = sample(m >= 0, m == BELOW, batch, pos_fraction)
         idx = torch.cat([pos, neg])
         gi = torch.cat([m[pos], torch.full_like(neg, -1)])
         lab = torch.cat([t["labels"][m[pos]], torch.zeros_like(neg)])
@@ -159,12 +202,20 @@ def sample_rois(proposals: list[Tensor], targets: list[dict], batch: int, pos_fr
         image.append(torch.full_like(idx, i))
         labels.append(lab)
         gt_index.append(gi)
-    return SampledRoIs(torch.cat(boxes), torch.cat(image), torch.cat(labels), torch.cat(gt_index))
+        if balance:
+            weight.append(instance_weights(gi, lab))
+    return SampledRoIs(torch.cat(boxes), torch.cat(image), torch.cat(labels), torch.cat(gt_index),
+                       torch.cat(weight) if balance else None)
 
 
 def box_losses(logits: Tensor, deltas: Tensor, rois: SampledRoIs, targets: list[dict]) -> dict[str, Tensor]:
-    """Cross-entropy over classes and smooth-L1 on the true class's deltas (normalised by all RoIs)."""
-    cls_loss = F.cross_entropy(logits, rois.labels)
+    """Cross-entropy over classes and smooth-L1 on the true class's deltas (normalised by all RoIs), each RoI
+    weighted by ``rois.weight`` when it is set (the weights sum to the RoI count, so the scale is unchanged)."""
+    if rois.weight is None:
+        cls_loss = F.cross_entropy(logits, rois.labels)
+    else:
+        ce = F.cross_entropy(logits, rois.labels, reduction="none")
+        cls_loss = (ce * rois.weight.to(ce.dtype)).sum() / max(rois.labels.numel(), 1)
     pos = torch.nonzero(rois.labels > 0).squeeze(1)
     if pos.numel() == 0:
         return {"roi_cls": cls_loss, "roi_box": deltas.sum() * 0}
@@ -173,7 +224,10 @@ def box_losses(logits: Tensor, deltas: Tensor, rois: SampledRoIs, targets: list[
     target = encode_boxes(gt, rois.boxes[pos], BOX_WEIGHTS)
     lab = rois.labels[pos]
     pred = deltas.view(deltas.shape[0], -1, 4)[pos, lab]
-    box_loss = F.smooth_l1_loss(pred, target, beta=1 / 9, reduction="sum") / max(rois.labels.numel(), 1)
+    per = F.smooth_l1_loss(pred, target, beta=1 / 9, reduction="none").sum(1)
+    if rois.weight is not None:
+        per = per * rois.weight[pos].to(per.dtype)
+    box_loss = per.sum() / max(rois.labels.numel(), 1)
     return {"roi_cls": cls_loss, "roi_box": box_loss}
 
 
