@@ -224,10 +224,11 @@ def box_losses(logits: Tensor, deltas: Tensor, rois: SampledRoIs, targets: list[
     target = encode_boxes(gt, rois.boxes[pos], BOX_WEIGHTS)
     lab = rois.labels[pos]
     pred = deltas.view(deltas.shape[0], -1, 4)[pos, lab]
-    per = F.smooth_l1_loss(pred, target, beta=1 / 9, reduction="none").sum(1)
-    if rois.weight is not None:
-        per = per * rois.weight[pos].to(per.dtype)
-    box_loss = per.sum() / max(rois.labels.numel(), 1)
+    if rois.weight is None:
+        box_loss = F.smooth_l1_loss(pred, target, beta=1 / 9, reduction="sum") / max(rois.labels.numel(), 1)
+    else:
+        per = F.smooth_l1_loss(pred, target, beta=1 / 9, reduction="none").sum(1) * rois.weight[pos].to(pred.dtype)
+        box_loss = per.sum() / max(rois.labels.numel(), 1)
     return {"roi_cls": cls_loss, "roi_box": box_loss}
 
 
