@@ -99,8 +99,9 @@ class MaskRCNNConfig:
     (2.3), against 0-7 % for the larger parts; balanced, none goes without (1.6 and 3.1), and with the weights
     each instance of a crop weighs the same. Measured there (3700 steps, ~3360 CPU-s, the 33 held-out frames,
     ``infer --preset accurate`` with true depth and training/infer_hot_stab_03.toml; valve / hot stab F1):
-    seed 1 0.970 / 0.737 -> 0.986 / 0.964, seed 3 0.948 / 0.774 -> 0.986 / 0.892; the UUV hot stab and the
-    87 mm panel valves, missed before, are found in every frame. The network alone (score 0.5, per frame) finds
+    seed 1 0.970 / 0.737 -> 0.986 / 0.964, seed 3 0.948 / 0.774 -> 0.986 / 0.892 (the UUV hot stab and the
+    87 mm panel valves, missed before, found in every frame), seed 0 0.917 / 0.984 -> 0.943 / 0.720 (its UUV hot
+    stab lost); thesis seed 1 0.970 / 0.798 -> 0.977 / 0.728. The network alone (score 0.5, per frame) finds
     more and also more falsely: hot stab true / false positives 33 / 47 -> 39 / 70 and 41 / 56 -> 45 / 111, valve
     false positives 22 -> 69 and 17 -> 60; the tracking drops most of those."""
     box_context: float = bounded(1.0, ge=1)
