@@ -293,7 +293,8 @@ class PosePipeline:
                 if f is not None:
                     fitted.append(f)
                 out.append(WorldTrack(tr.track_id, tr.label, tr.obj_id if f is None else f.obj_id,
-                                      tr.T if f is None else f.T_world_from_obj, tr.world))
+                                      tr.T if f is None else f.T_world_from_obj, tr.world,
+                                      fit_rel=None if f is None else f.fit_rel))
         dup = duplicates(fitted, self.cfg.complete.refit)
         for k, j in dup.items():
             log.info("track %d duplicates track %d (that track's pose explains its points)", k, j)
@@ -347,7 +348,8 @@ class PosePipeline:
                  "moved %.3f m%s%s", track_id, obj_id, n, len(P), 1e3 * r.fit_m, 1e3 * fits[obj_id].fused_fit_m,
                  float(np.linalg.norm(r.T_world_from_obj.t - T.t)), "" if k == obj_id else f", now model {k}",
                  f", then turned {turned_deg:.1f} deg by its views" if turned_deg > 0 else "")
-        return FittedTrack(track_id, label, world, n, self.geometry(k), r.T_world_from_obj, P, k)
+        return FittedTrack(track_id, label, world, n, self.geometry(k), r.T_world_from_obj, P, k,
+                           r.fit_m / (0.1 * self.geometry(k).diameter_m))
 
     def _pick_model(self, track_id: int, fits: dict[int, RefitResult], P: np.ndarray, own: int) -> int:
         """:func:`~cadalign.infer.track_fit.pick_model` of a track's fitted models (its views with ``choose_model =

@@ -449,6 +449,9 @@ class FittedTrack:
     points: np.ndarray
     obj_id: int | None = None
     """The CAD model fitted (with ``choose_model``, maybe not the track's own)."""
+    fit_rel: float = math.nan
+    """How well the fitted model explains the track's points: their mean distance to its surface, each capped at
+    0.1 diameters, over that cap (0: on the surface; 1: every point a cap or more away)."""
 
 
 def duplicates(tracks: Sequence[FittedTrack], cfg: RefitConfig) -> dict[int, int]:

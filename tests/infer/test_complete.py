@@ -192,6 +192,37 @@ def test_a_track_its_detections_disagree_with_is_not_completed(cube: ModelGeomet
     assert sum(r.source == "track" for r in out) == 1
 
 
+def test_drop_untrusted_drops_only_the_detections_of_untrusted_tracks(cube: ModelGeometry) -> None:
+    # track 0 agrees with its projection, track 1's detections are far from it: with drop_untrusted only track 1's
+    # detections go; a track no frame could check (no camera pose / depth) and a short one are left to the other rules
+    recs0, cams = _video(cube, {0: [0, 1, 3, 4]})
+    recs1, _ = _video(cube, {1: [0, 1, 2]}, shift_px=30.0)
+    tracks = [WorldTrack(0, 2, 7, _at(0.0)), WorldTrack(1, 2, 7, _at(0.0, x=1.0))]
+    out, summary = _complete(cube, recs0 + recs1, cams, tracks)
+    assert summary["untrusted"] == 1 and sum(r.track_id == 1 for r in out) == 3
+    out, summary = _complete(cube, recs0 + recs1, cams, tracks, CompleteConfig(drop_untrusted=True))
+    assert {r.track_id for r in out} == {0} and summary["dropped"] == 3
+    assert [r.frame for r in out if r.source == "track"] == [2]
+    # nothing checked (no frame fed): nothing dropped
+    c = TrackCompleter(CompleteConfig(drop_untrusted=True), tracks, recs0 + recs1, lambda oid: cube)
+    out, _ = c.result()
+    assert len(out) == len(recs0) + len(recs1)
+
+
+def test_a_track_its_model_does_not_fit_is_not_trusted(cube: ModelGeometry) -> None:
+    # a consistent track whose refitted model explains its depth poorly (fit_rel 0.6) is not completed under
+    # max_fit_rel = 0.55, and with drop_untrusted its detections go; one that was not refitted (None) is never gated
+    recs, cams = _video(cube, {0: [0, 1, 3, 4]})
+    for fit, cap, trusted in ((0.6, 0.55, False), (0.5, 0.55, True), (0.6, 1.0, True), (None, 0.01, True)):
+        track = [WorldTrack(0, 2, 7, _at(0.0), fit_rel=fit)]
+        out, summary = _complete(cube, recs, cams, track, CompleteConfig(max_fit_rel=cap))
+        assert summary["untrusted"] == (0 if trusted else 1)
+        assert sum(r.source == "track" for r in out) == (1 if trusted else 0)
+    out, _ = _complete(cube, recs, cams, [WorldTrack(0, 2, 7, _at(0.0), fit_rel=0.6)],
+                       CompleteConfig(max_fit_rel=0.55, drop_untrusted=True))
+    assert out == []
+
+
 def test_a_part_already_reported_is_not_added_twice(cube: ModelGeometry) -> None:
     # track 1 holds the same part as track 0 in frame 2 (fragmented tracks): no completion of track 0 there
     recs, cams = _video(cube, {0: [0, 1, 3, 4]})

@@ -289,6 +289,7 @@ def test_the_pipeline_refits_world_tracks_retired_ones_included(stab_model: CadM
     assert _err(before, T_WO)[1] > 90
     [track] = pipe.world_tracks()
     assert _err(track.T_world_from_obj, T_WO)[0] < 0.005 and _err(track.T_world_from_obj, T_WO)[1] < 1.0
+    assert 0.0 <= track.fit_rel < 0.05  # its points lie on the model (completion's max_fit_rel reads this)
     pipe.fuser.retire(track.track_id)
     assert [w.track_id for w in pipe.world_tracks()] == [track.track_id]
 
