@@ -80,8 +80,8 @@ class CompleteConfig:
     A track completion never saw (no frame with camera pose and depth) is kept: nothing was checked. Default orbit,
     33 held-out frames, true depth, ``accurate`` with ``training/infer_hot_stab_03.toml``, two ``roi_balance``
     networks of session 29 (3700 steps): hot stab F1 0.913 -> 1.000 (seed 3: 18 false positives of six 3-detection
-    tracks) and 0.749 -> 0.813 (seed 1: 17 false positives, and two wrong matches of the UUV hot stab); valves
-    unchanged."""
+    tracks) and 0.749 -> 0.813 (seed 1: 17 false positives, and the UUV hot stab's only two matches, 10 deg off);
+    valves unchanged."""
     max_fit_rel: float = bounded(1.0, gt=0, le=1)
     """A refitted track whose CAD model explains its masked depth worse than this (:attr:`WorldTrack.fit_rel`) is not
     trusted: a part of the structure taken for a valve in a few neighbouring frames makes a track whose projection

@@ -160,8 +160,12 @@ def _icp(geom: ModelGeometry, T_init: Rigid3, Q: np.ndarray, cfg: RefineConfig, 
     return T, done, costs
 
 
+FIT_CAP = 0.1
+""":func:`depth_fit`'s default cap on a point's distance, in model diameters."""
+
+
 def depth_fit(geom: ModelGeometry, T: Rigid3, Q: np.ndarray, cap_m: float | None = None) -> float:
     """Mean distance (m) of the observed points ``Q (N, 3)`` to the model surface at ``T``, each capped at
-    ``cap_m``, by default 0.1 diameters (occluders and background in the mask count, but only so much)."""
+    ``cap_m``, by default :data:`FIT_CAP` diameters (occluders and background in the mask count, but only so much)."""
     d = geom.tree.query(T.inverse().apply(Q))[0]
-    return float(np.mean(np.minimum(d, 0.1 * geom.diameter_m if cap_m is None else cap_m)))
+    return float(np.mean(np.minimum(d, FIT_CAP * geom.diameter_m if cap_m is None else cap_m)))
