@@ -144,7 +144,7 @@ class WorldTrack:
     completed, this one's detections are dropped and it is not completed."""
     fit_rel: float | None = None
     """How well its CAD model explains its masked depth after the refit (:attr:`cadalign.infer.track_fit.FittedTrack.
-    fit_rel`: mean distance capped at 0.1 diameters, over that cap); None when it was not refitted."""
+    fit_rel`); None when it was not refitted."""
 
 
 @dataclass(frozen=True)
@@ -289,9 +289,8 @@ class TrackCompleter:
         trusted = [tr for tr in self.tracks if self.trusted(tr.track_id)]
         keepers = {tr.track_id for tr in trusted}
         dup = {tr.track_id for tr in self.tracks if tr.duplicate_of in keepers}
-        untrusted = {tr.track_id for tr in self.tracks
-                     if tr.track_id not in keepers and tr.track_id not in dup and tr.track_id in self._ious}
-        drop = dup | untrusted if self.cfg.drop_untrusted else dup
+        checked = {tr.track_id for tr in self.tracks if tr.track_id in self._ious}  # untrusted unless a keeper
+        drop = dup | (checked - keepers) if self.cfg.drop_untrusted else dup
         keep = [r for r in keep if r.track_id not in drop]
         trusted = [tr for tr in trusted if tr.track_id not in dup]
         by_id = {tr.track_id: tr for tr in trusted}

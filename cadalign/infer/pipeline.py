@@ -23,7 +23,6 @@ from cadalign.config import bounded
 from cadalign.eval.pose_metrics import box_iou, rotation_error_deg
 from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.infer.complete import CompleteConfig, WorldTrack
-from cadalign.infer.depth_icp import FIT_CAP
 from cadalign.infer.detect import Detector, TileConfig
 from cadalign.infer.half_turn import view_disagreement, view_window
 from cadalign.infer.hypotheses import yaw_hypotheses_rad
@@ -349,8 +348,7 @@ class PosePipeline:
                  "moved %.3f m%s%s", track_id, obj_id, n, len(P), 1e3 * r.fit_m, 1e3 * fits[obj_id].fused_fit_m,
                  float(np.linalg.norm(r.T_world_from_obj.t - T.t)), "" if k == obj_id else f", now model {k}",
                  f", then turned {turned_deg:.1f} deg by its views" if turned_deg > 0 else "")
-        return FittedTrack(track_id, label, world, n, self.geometry(k), r.T_world_from_obj, P, k,
-                           r.fit_m / (FIT_CAP * self.geometry(k).diameter_m))
+        return FittedTrack(track_id, label, world, n, self.geometry(k), r.T_world_from_obj, P, k, r.fit_m)
 
     def _pick_model(self, track_id: int, fits: dict[int, RefitResult], P: np.ndarray, own: int) -> int:
         """:func:`~cadalign.infer.track_fit.pick_model` of a track's fitted models (its views with ``choose_model =

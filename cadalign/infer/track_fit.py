@@ -40,7 +40,7 @@ from cadalign.cad.symmetry import Symmetry
 from cadalign.config import bounded
 from cadalign.eval.pose_metrics import rotation_error_deg
 from cadalign.geometry.rotations import axis_angle_to_matrix, orthonormalize
-from cadalign.infer.depth_icp import depth_fit
+from cadalign.infer.depth_icp import FIT_CAP, depth_fit
 from cadalign.infer.half_turn import view_disagreement_parts
 from cadalign.infer.model_geom import ModelGeometry
 from cadalign.infer.pose_math import canonicalize
@@ -449,9 +449,14 @@ class FittedTrack:
     points: np.ndarray
     obj_id: int | None = None
     """The CAD model fitted (with ``choose_model``, maybe not the track's own)."""
-    fit_rel: float = math.nan
-    """How well the fitted model explains the track's points: their mean distance to its surface, each capped at
-    0.1 diameters, over that cap (0: on the surface; 1: every point a cap or more away)."""
+    fit_m: float = math.nan
+    """The refit's fit (:attr:`RefitResult.fit_m`: the points' mean capped distance to the fitted model, m)."""
+
+    @property
+    def fit_rel(self) -> float:
+        """How well the fitted model explains the track's points: ``fit_m`` over :func:`~cadalign.infer.depth_icp.
+        depth_fit`'s cap (0: on the surface; 1: every point a cap or more away)."""
+        return self.fit_m / (FIT_CAP * self.geom.diameter_m)
 
 
 def duplicates(tracks: Sequence[FittedTrack], cfg: RefitConfig) -> dict[int, int]:

@@ -146,21 +146,17 @@ def sample_balanced(m: Tensor, is_neg: Tensor, batch: int, pos_fraction: float) 
     ground-truth instances they match (``m`` >= 0 is a candidate's instance): every instance gets one before any
     gets a second, and so on, in random order within a round. Uniform draws favour parts with many matching
     proposals; a part of a few pixels has one or two candidates (its own box) and then often gets none."""
-    pos = torch.nonzero(m >= 0).squeeze(1)
-    neg = torch.nonzero(is_neg).squeeze(1)
-    n_pos = min(int(batch * pos_fraction), pos.numel())
-    n_neg = min(batch - n_pos, neg.numel())
-    if pos.numel():
-        pos = pos[torch.randperm(pos.numel(), device=pos.device)]
+
+    def round_robin(pos: Tensor) -> Tensor:
         inst = m[pos]
         order = torch.argsort(inst, stable=True)
         pos, inst = pos[order], inst[order]
         counts = torch.bincount(inst)
         rank = torch.arange(pos.numel(), device=pos.device) - (torch.cumsum(counts, 0) - counts)[inst]
         tie = torch.randperm(counts.numel(), device=pos.device)[inst]  # random instance order within a round
-        pos = pos[torch.argsort(rank * counts.numel() + tie)[:n_pos]]
-    neg = neg[torch.randperm(neg.numel(), device=neg.device)[:n_neg]]
-    return pos, neg
+        return pos[torch.argsort(rank * counts.numel() + tie)]
+
+    return sample(m >= 0, is_neg, batch, pos_fraction, order=round_robin)
 
 
 def instance_weights(gt_index: Tensor, labels: Tensor) -> Tensor:

@@ -5,6 +5,7 @@ Also holds the box matcher and the balanced sampler shared with the RoI heads (t
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -37,13 +38,18 @@ def match(iou: Tensor, high: float, low: float, allow_low_quality: bool) -> Tens
     return matches
 
 
-def sample(is_pos: Tensor, is_neg: Tensor, batch: int, pos_fraction: float) -> tuple[Tensor, Tensor]:
-    """Random positive and negative indices: at most ``batch * pos_fraction`` positives, ``batch`` in all."""
+def sample(is_pos: Tensor, is_neg: Tensor, batch: int, pos_fraction: float,
+           order: Callable[[Tensor], Tensor] | None = None) -> tuple[Tensor, Tensor]:
+    """Random positive and negative indices: at most ``batch * pos_fraction`` positives, ``batch`` in all.
+    ``order``, when given, reorders the shuffled positive indices before the first ones are taken."""
     pos = torch.nonzero(is_pos).squeeze(1)
     neg = torch.nonzero(is_neg).squeeze(1)
     n_pos = min(int(batch * pos_fraction), pos.numel())
     n_neg = min(batch - n_pos, neg.numel())
-    pos = pos[torch.randperm(pos.numel(), device=pos.device)[:n_pos]]
+    pos = pos[torch.randperm(pos.numel(), device=pos.device)]
+    if order is not None and pos.numel():
+        pos = order(pos)
+    pos = pos[:n_pos]
     neg = neg[torch.randperm(neg.numel(), device=neg.device)[:n_neg]]
     return pos, neg
 
