@@ -282,7 +282,7 @@ class PosePipeline:
         again to all its points, and duplicates among them are marked (:mod:`cadalign.infer.track_fit`).
 
         Retired tracks are among them when refitted (an ego world left behind, or a model re-identified: with the
-        refit, whichever of the old and the new track explains both tracks' points better is kept)."""
+        refit, whichever of the old and the new track lies closer to both tracks' points is kept)."""
         out, fitted = [], []
         for tr in self.fuser.tracks:
             space = tr.retired_from if tr.space == "retired" else tr.space

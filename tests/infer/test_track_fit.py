@@ -24,7 +24,9 @@ from cadalign.infer.track_fit import (
     TrackPoints,
     TrackView,
     ViewScoring,
+    closeness,
     duplicates,
+    explained,
     icp_world,
     pick_model,
     refit_world_pose,
@@ -272,6 +274,27 @@ def test_the_track_explaining_both_tracks_points_is_kept(stab: ModelGeometry) ->
     assert duplicates([_fitted(0, stab, T_WO, right, 4), _fitted(1, stab, far, right + [2.0, 0, 0], 3)], cfg) == {}
     assert duplicates([_fitted(0, stab, T_WO, right, 4), _fitted(1, stab, wrong, wrong_pts, 3)],
                       RefitConfig(dup_share=0.0)) == {}
+
+
+
+def test_the_track_its_points_hug_is_kept_over_a_loose_one(stab: ModelGeometry) -> None:
+    """A track a little off (0.7 tolerances), its own points loose (noise of half a tolerance: a mask spilling off
+    the part), has nearly all of both tracks' points within the tolerance, more than the right track has; the right
+    track's points lie on its pose, so its pose is closer to both and it is kept."""
+    cfg = RefitConfig()
+    tol = cfg.dup_tol * stab.diameter_m
+    right = _views(stab, T_WO, n=4).of(0)[0]
+    off = Rigid3(T_WO.R, T_WO.t + np.array([0.0, 0.0, 0.7 * tol]))
+    loose = _views(stab, off, n=3).of(0)[0]
+    loose = loose + np.random.default_rng(0).normal(scale=0.5 * tol / math.sqrt(3), size=loose.shape)
+    both = np.concatenate([right, loose])
+    assert explained(stab, off, both, tol) > explained(stab, T_WO, both, tol)  # the share would keep the loose one
+    assert closeness(stab, T_WO, both, tol) > closeness(stab, off, both, tol)
+    for frames in (2, 9):  # visited first or second
+        assert duplicates([_fitted(0, stab, T_WO, right, 4), _fitted(1, stab, off, loose, frames)], cfg) == {1: 0}
+    # points on the surface are as close as the samples' spacing allows; none within the tolerance, or none: 0
+    assert closeness(stab, T_WO, right, tol) > 0.6
+    assert closeness(stab, T_WO, right + [0.0, 0.0, 1.0], tol) == 0 == closeness(stab, T_WO, right[:0], tol)
 
 
 def test_the_pipeline_refits_world_tracks_retired_ones_included(stab_model: CadModel, stab: ModelGeometry) -> None:
