@@ -325,9 +325,10 @@ def explained(geom: ModelGeometry, T: Rigid3, P: np.ndarray, tol_m: float) -> fl
 
 
 def closeness(geom: ModelGeometry, T: Rigid3, P: np.ndarray, tol_m: float) -> float:
-    """Mean over the points ``P`` (N, 3) of ``1 - d / tol_m``, ``d`` a point's distance to the model surface at ``T``
-    (0 from ``tol_m`` on; 0 for no points): :func:`explained`'s share, graded, so a pose the points hug scores above
-    one they merely lie within ``tol_m`` of (the share integrated over tolerances up to ``tol_m``)."""
+    """Mean over the points ``P`` (N, 3) of ``1 - d / tol_m``, ``d`` a point's distance to the nearest of the model's
+    surface samples at ``T`` (0 from ``tol_m`` on; 0 for no points): :func:`explained`'s share, graded, so a pose the
+    points hug scores above one they merely lie within ``tol_m`` of (the share averaged over tolerances up to
+    ``tol_m``). Points on the surface score below 1 by the samples' spacing."""
     if len(P) == 0:
         return 0.0
     d = geom.tree.query(T.inverse().apply(P), distance_upper_bound=tol_m)[0]
