@@ -321,7 +321,7 @@ def explained(geom: ModelGeometry, T: Rigid3, P: np.ndarray, tol_m: float) -> fl
     """Share of the points ``P`` (N, 3) within ``tol_m`` of the model surface at ``T`` (0 for no points)."""
     if len(P) == 0:
         return 0.0
-    return float(np.mean(geom.tree.query(T.inverse().apply(P), distance_upper_bound=tol_m)[0] <= tol_m))
+    return float(np.mean(_distances_within(geom, T, P, tol_m) <= tol_m))
 
 
 def closeness(geom: ModelGeometry, T: Rigid3, P: np.ndarray, tol_m: float) -> float:
@@ -331,8 +331,12 @@ def closeness(geom: ModelGeometry, T: Rigid3, P: np.ndarray, tol_m: float) -> fl
     ``tol_m``). Points on the surface score below 1 by the samples' spacing."""
     if len(P) == 0:
         return 0.0
-    d = geom.tree.query(T.inverse().apply(P), distance_upper_bound=tol_m)[0]
-    return float(np.mean(np.clip(1.0 - d / tol_m, 0.0, 1.0)))
+    return float(np.mean(np.clip(1.0 - _distances_within(geom, T, P, tol_m) / tol_m, 0.0, 1.0)))
+
+
+def _distances_within(geom: ModelGeometry, T: Rigid3, P: np.ndarray, tol_m: float) -> np.ndarray:
+    """Each point's distance to the nearest of the model's surface samples at ``T``; inf beyond ``tol_m``."""
+    return geom.tree.query(T.inverse().apply(P), distance_upper_bound=tol_m)[0]
 
 
 @dataclass(frozen=True)

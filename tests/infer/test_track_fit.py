@@ -276,7 +276,6 @@ def test_the_track_explaining_both_tracks_points_is_kept(stab: ModelGeometry) ->
                       RefitConfig(dup_share=0.0)) == {}
 
 
-
 def test_the_track_its_points_hug_is_kept_over_a_loose_one(stab: ModelGeometry) -> None:
     """A track a little off (0.7 tolerances), its own points loose (noise of half a tolerance: a mask spilling off
     the part), has nearly all of both tracks' points within the tolerance, more than the right track has; the right
