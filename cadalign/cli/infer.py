@@ -14,6 +14,12 @@ def command(
     cad: Path = typer.Option(..., "--cad", help="Scene spec (TOML/YAML: parts and classes) or one CAD mesh."),
     out: Path = typer.Option(..., "--out", help="Output folder (poses.jsonl, overlay.mp4, timings.json, eval)."),
     model: Path | None = typer.Option(None, "--model", help="'cadalign train pose' run folder (the detector)."),
+    init_pose: Path | None = typer.Option(
+        None, "--init-pose", help="Tracker start: JSON {\"T_cam_from_world\": 4x4, metres} of the first frame, "
+        "rough (a navigation pose, ~0.5 m / 10 deg)."),
+    tracker: bool | None = typer.Option(
+        None, "--tracker/--no-tracker", help="Track the whole structure in the RGB frames (default whenever there "
+        "is no --depth and no metric camera poses in --calib)."),
     oracle_gt: Path | None = typer.Option(
         None, "--oracle-gt", help="TEST/DEMO ONLY, instead of --model: ground-truth detections of this simulation "
         "with noisy poses (exercises refinement and fusion without a trained network)."),
@@ -42,6 +48,12 @@ def command(
     from cadalign.infer.run import calibration_from_scene, load_calibration, run
 
     with user_errors():
+        use_tracker = tracker if tracker is not None else (
+            depth is None and oracle_gt is None and (calib is None or not _has_metric_poses(calib)))
+        if use_tracker:
+            _track(source, cad, out, model, init_pose, gt, calib, max_frames, cad_unit, device, preset, config,
+                   overwrite)
+            return
         if (model is None) == (oracle_gt is None):
             raise InputError("pass exactly one detector: --model RUN (a trained network) or --oracle-gt SIM_DIR")
         overrides = {} if refine_iters is None else {"refine": {"silhouette_iters": refine_iters,
@@ -80,6 +92,70 @@ def command(
                    progress=track, device=device)
     console.print(f"[green]poses written to {path}[/]")
     _print_summary(out)
+
+
+def _has_metric_poses(calib: Path) -> bool:
+    from cadalign.infer.run import load_calibration
+    from cadalign.io import read_json
+
+    if "K" in read_json(calib):  # a bare calibration: intrinsics only
+        return False
+    return bool(load_calibration(calib).T_world_from_cam_of)
+
+
+def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Path | None, gt: Path | None,
+           calib: Path | None, max_frames: int | None, cad_unit: str | None, device: str, preset: str,
+           config: Path | None, overwrite: bool) -> None:
+    """The tracker branch of ``infer`` (:mod:`cadalign.infer.track.run`)."""
+    from cadalign.build_dataset import load_structure
+    from cadalign.config import resolve
+    from cadalign.errors import InputError
+    from cadalign.infer import detect as det
+    from cadalign.infer.track.run import PRESETS, TrackRunConfig, camera_from_calibration, read_init_pose, track_video
+    from cadalign.infer.video import iter_frames
+
+    cfg = resolve(TrackRunConfig, PRESETS, preset if preset in PRESETS else "balanced", config, {})
+    structure = load_structure(cad, cad_unit)
+    gt_scene = det.resolve_scene_dir(gt) if gt is not None else None
+    first = next(iter(iter_frames(source, max_frames=1)), None)
+    if first is None:
+        raise InputError(f"{source} holds no readable frame")
+    if calib is not None:
+        camera = camera_from_calibration(calib, first.image.shape[:2])
+    elif gt_scene is not None:
+        from cadalign.infer.run import calibration_from_scene
+        from cadalign.types import Camera
+
+        h, w = first.image.shape[:2]
+        camera = Camera(calibration_from_scene(gt_scene, use_poses=False).K_default, w, h)
+    else:
+        raise InputError("no camera intrinsics: pass --calib calibration.json (your camera's calibration)")
+    restart = None
+    info: dict = {"kind": "none"}
+    if model is not None:
+        from cadalign.infer.track.start import detector_restarts
+
+        restart, info = detector_restarts(model, structure, camera, device)
+    T0 = read_init_pose(init_pose) if init_pose is not None else None
+    path = track_video(cfg, source, structure, camera, out, init_pose=T0, restart_source=restart, gt_scene=gt_scene,
+                       max_frames=max_frames, overwrite=overwrite, progress=track,
+                       record={"detector": info, "cad": str(cad)})
+    console.print(f"[green]poses written to {path}[/]")
+    _print_track_summary(out)
+
+
+def _print_track_summary(out: Path) -> None:
+    from cadalign.io import read_json
+
+    t = read_json(out / "timings.json")
+    fps = t["frames_per_s"]
+    console.print(f"{t['frames']} frames: {t['tracked']} tracked, {t['lost']} lost; "
+                  f"{'n/a' if fps is None else f'{fps:.1f}'} frames/s (tracking, overlay apart)")
+    if (out / "eval.json").is_file():
+        rep = read_json(out / "eval.json")["fused"]
+        o = rep["overall"]
+        console.print(f"tracked: F1 {rep['detection']['f1']:.3f}  t_err mean {o['t_err_m']['mean']:.4f} m  "
+                      f"R_err mean {o['r_err_deg']['mean']:.2f} deg")
 
 
 def _print_summary(out: Path) -> None:

@@ -178,7 +178,7 @@ def search_edges(gray: np.ndarray, uv: np.ndarray, normal: np.ndarray, cfg: Edge
     return np.where(ok, off, np.nan)
 
 
-def _jacobian(X_cam: np.ndarray, R_cw: np.ndarray, X_w_rel: np.ndarray, K: np.ndarray,
+def edge_jacobian(X_cam: np.ndarray, R_cw: np.ndarray, X_w_rel: np.ndarray, K: np.ndarray,
               normal: np.ndarray, with_scale: bool = False) -> np.ndarray:
     """d(normal . u)/d(omega, t[, sigma]) for the world motion X_w -> c + e^sigma exp(omega)(X_w - c) + t,
     (N, 6) or (N, 7)."""
@@ -243,13 +243,13 @@ def _tukey_schedule(cfg: EdgeRefineConfig) -> np.ndarray:
     return np.linspace(2.0, 1.0, max(int(cfg.rounds), 1)) * cfg.tukey_px
 
 
-def _motion(xi: np.ndarray, centre: np.ndarray) -> Sim3:
+def motion(xi: np.ndarray, centre: np.ndarray) -> Sim3:
     R = axis_angle_to_matrix(xi[:3])
     s = float(np.exp(xi[6])) if len(xi) > 6 else 1.0
     return Sim3(s, R, centre - s * (R @ centre) + xi[3:6])
 
 
-def _frame_rows(renderer: Any, gray: np.ndarray, T_wc: Rigid3, centre: np.ndarray | None, cfg: EdgeRefineConfig,
+def frame_rows(renderer: Any, gray: np.ndarray, T_wc: Rigid3, centre: np.ndarray | None, cfg: EdgeRefineConfig,
                 with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(J (N, 6), residuals (N,), world points (N, 3)) of one frame's matched contour samples; ``centre``
     None: the samples' own centroid."""
@@ -264,13 +264,13 @@ def _frame_rows(renderer: Any, gray: np.ndarray, T_wc: Rigid3, centre: np.ndarra
         return None
     X_w = T_wc.apply(X_cam)
     c = X_w.mean(axis=0) if centre is None else centre
-    J = _jacobian(X_cam, T_wc.R.T, X_w - c, renderer.camera.K, n, with_scale)
+    J = edge_jacobian(X_cam, T_wc.R.T, X_w - c, renderer.camera.K, n, with_scale)
     return J, -off, X_w  # residual: predicted minus found position along n
 
 
 def _frame_prior(T_start: Rigid3, T_now: Rigid3, centre: np.ndarray, cfg: EdgeRefineConfig,
                  ) -> tuple[np.ndarray, np.ndarray] | None:
-    """(correction already made since ``T_start`` in ``_motion``'s parameters about ``centre``, precision) of a
+    """(correction already made since ``T_start`` in ``motion``'s parameters about ``centre``, precision) of a
     frame's own fit, or None when ``cfg.frame_prior_px`` is 0."""
     if cfg.frame_prior_px <= 0:
         return None
@@ -287,7 +287,7 @@ def refine_frame(renderer: Any, gray: np.ndarray, T_wc: Rigid3, cfg: EdgeRefineC
     T = T_wc
     n_used, med, seen = 0, None, None
     for tukey in _tukey_schedule(cfg):
-        got = _frame_rows(renderer, gray, T, None, cfg)
+        got = frame_rows(renderer, gray, T, None, cfg)
         if got is None or len(got[1]) < cfg.min_frame_edges:
             return T_wc, {"applied": False, "edges": 0 if got is None else len(got[1])}
         J, r, X_w = got
@@ -295,7 +295,7 @@ def refine_frame(renderer: Any, gray: np.ndarray, T_wc: Rigid3, cfg: EdgeRefineC
         seen = c if seen is None else seen
         xi, w = fit_correction([(J, r)], tukey, prior=_frame_prior(T_wc, T, c, cfg))
         n_used, med = len(r), float(np.median(np.abs(r[w > 0]))) if np.any(w > 0) else None
-        T = moved_camera(_motion(xi, c), T)
+        T = moved_camera(motion(xi, c), T)
     turn = float(np.degrees(geodesic_angle(T_wc.R, T.R)))
     # how far the correction moves what the frame sees (its contours' centroid) in the camera: a turn about
     # that point, which moves the camera centre by distance x angle, does not count twice
@@ -315,7 +315,7 @@ def fit_edge_correction(renderers: Sequence[Any], grays: Sequence[np.ndarray], p
     for tukey in _tukey_schedule(cfg):
         rows = []
         for renderer, gray, T in zip(renderers, grays, poses, strict=True):
-            got = _frame_rows(renderer, gray, moved_camera(H, T), centre, cfg, cfg.scale)
+            got = frame_rows(renderer, gray, moved_camera(H, T), centre, cfg, cfg.scale)
             if got is not None:
                 rows.append(got[:2])
         n_used = int(sum(len(r) for _, r in rows))
@@ -326,7 +326,7 @@ def fit_edge_correction(renderers: Sequence[Any], grays: Sequence[np.ndarray], p
         history.append({"edges": n_used, "inliers": int((w > 0).sum()),
                         "median_abs_offset_px": float(np.median(np.abs(r_all[w > 0]))) if np.any(w > 0) else None,
                         "step_deg": float(np.degrees(np.linalg.norm(xi[:3]))), "step_m": float(np.linalg.norm(xi[3:]))})
-        H = _motion(xi, centre) @ H
+        H = motion(xi, centre) @ H
     turn = float(np.degrees(geodesic_angle(np.eye(3), H.R)))
     shift = float(np.linalg.norm(H.apply(centre[None])[0] - centre))
     scale_rel = abs(H.s - 1.0)

@@ -1,0 +1,134 @@
+"""The structure tracker: predict, correct against the image, judge, and restart when lost.
+
+State per frame: ``ok`` (a pose is reported) or ``lost`` (none is). A frame is ``ok`` when the CAD's contours at
+the corrected pose find enough support in the image (:class:`~cadalign.infer.track.edges.EdgeFit`). While
+lost, every frame tries the restart hypotheses it is given (the detector's, a navigation pose, the last good
+pose) and takes the best-supported one that passes the same test.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cadalign.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from cadalign.infer.track.acquire import AcquireConfig, candidates
+from cadalign.infer.track.edges import EdgeFit, EdgeTrackConfig, EdgeTracker
+from cadalign.render.raycast import RenderMesh
+from cadalign.types import Camera, Rigid3
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """The structure tracker (see the module doc)."""
+
+    edges: EdgeTrackConfig = field(default_factory=EdgeTrackConfig)
+    """Per-frame correction against contours, coarse to fine."""
+    acquire: AcquireConfig = field(default_factory=AcquireConfig)
+    """The pan/tilt/roll search around a restart hypothesis (a rough pose)."""
+    velocity: float = 1.0
+    """Share of the last frame-to-frame motion carried into the prediction (0: the last pose; 1: constant
+    velocity, as a survey ROV flies)."""
+    min_support: float = 0.45
+    """Lost below this share of contour samples with an image edge (see ``EdgeTrackConfig.support_px``)."""
+    min_samples: int = 150
+    """Lost when the CAD shows fewer contour samples at the pose (the structure left the view)."""
+    max_residual_px: float = 0.9
+    """Lost when the supported samples' median offset exceeds this, pixels (a pose near but off the edges)."""
+
+
+@dataclass(frozen=True)
+class TrackStep:
+    """One frame's outcome."""
+
+    index: int
+    state: str
+    """``ok`` or ``lost``."""
+    T_cam_from_world: Rigid3 | None
+    """The structure's pose in the camera; None while lost."""
+    fit: EdgeFit | None
+    source: str
+    """What the pose came from: ``track`` (prediction), or the restart hypothesis' name."""
+    seconds: float
+    restarts_tried: int = 0
+
+
+class StructureTracker:
+    """Online tracker of the whole CAD structure (one rigid assembly) in RGB frames.
+
+    ``meshes``: the structure's parts placed in the world frame (ray-cast instances, as
+    :meth:`cadalign.build_dataset.Structure.render_meshes` gives). ``camera``: intrinsics and frame size.
+    """
+
+    def __init__(self, meshes: list[RenderMesh], camera: Camera, cfg: TrackerConfig | None = None) -> None:
+        self.cfg = cfg or TrackerConfig()
+        self.edges = EdgeTracker(meshes, camera, self.cfg.edges)
+        self._last: Rigid3 | None = None  # T_world_from_cam of the last ok frame
+        self._prev: Rigid3 | None = None  # and of the ok frame before it (for the velocity)
+        self._frames = 0
+        self.lost = True
+        """Whether the last frame was lost (or none was tracked yet)."""
+
+    @property
+    def last_pose(self) -> Rigid3 | None:
+        """``T_cam_from_world`` of the last ok frame."""
+        return None if self._last is None else self._last.inverse()
+
+    def good(self, fit: EdgeFit) -> bool:
+        c = self.cfg
+        return fit.samples >= c.min_samples and fit.support >= c.min_support and fit.residual_px <= c.max_residual_px
+
+    def _prediction(self) -> Rigid3 | None:
+        if self._last is None:
+            return None
+        if self._prev is None or self.cfg.velocity <= 0:
+            return self._last
+        d = self._prev.inverse() @ self._last  # motion in the last camera's frame
+        d = Rigid3(axis_angle_to_matrix(self.cfg.velocity * matrix_to_axis_angle(d.R)), self.cfg.velocity * d.t)
+        return self._last @ d
+
+    def step(self, gray: np.ndarray, restarts: Sequence[tuple[str, Rigid3]] = ()) -> TrackStep:
+        """Track one frame (``gray``: (H, W) float32 0-255). ``restarts``: (name, ``T_cam_from_world``)
+        hypotheses, tried in order when there is no track or the prediction fails."""
+        t0 = time.perf_counter()
+        k = self._frames
+        self._frames += 1
+        tried = 0
+        pred = self._prediction()
+        if pred is not None:
+            fit = self.edges.fit(gray, pred)
+            if self.good(fit):
+                return self._accept(k, fit, "track", t0, tried)
+            if self._prev is not None:  # the motion changed: from the last pose itself
+                tried += 1
+                fit = self.edges.fit(gray, self._last)
+                if self.good(fit):
+                    return self._accept(k, fit, "track", t0, tried)
+        best: tuple[EdgeFit, str] | None = None
+        if not restarts and self._last is not None:  # lost: search round the last good pose
+            restarts = [("last_pose", self._last.inverse())]
+        for name, T_cw in restarts:
+            starts = [T_cw.inverse()] + [T for _, T in candidates(self.edges, gray, T_cw.inverse(), self.cfg.acquire)]
+            for T_wc in starts:
+                tried += 1
+                fit = self.edges.fit(gray, T_wc)
+                if self.good(fit) and (best is None or fit.support > best[0].support):
+                    best = (fit, name)
+        if best is not None:
+            self._prev = None  # a restart has no velocity
+            return self._accept(k, best[0], best[1], t0, tried)
+        self._prev = None  # the last good pose stays the next frame's prediction
+        self.lost = True
+        return TrackStep(k, "lost", None, None, "", time.perf_counter() - t0, tried)
+
+    def _accept(self, k: int, fit: EdgeFit, source: str, t0: float, tried: int) -> TrackStep:
+        self._prev = self._last if source == "track" else None
+        self._last = fit.T_world_from_cam
+        self.lost = False
+        return TrackStep(k, "ok", fit.T_world_from_cam.inverse(), fit, source, time.perf_counter() - t0, tried)
