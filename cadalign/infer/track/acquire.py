@@ -57,7 +57,7 @@ def candidates(tracker: EdgeTracker, gray: np.ndarray, T_world_from_cam: Rigid3,
     import cv2
 
     cfg = cfg or AcquireConfig()
-    r = tracker.renderer(cfg.scale)
+    r = tracker.renderer(tracker.usable(cfg.scale))
     cam = r.camera
     f = r.render(T_world_from_cam, with_full_masks=False)
     X_cam, _, _ = contour_samples(f.depth_m, f.rays_cam, f.range_m, EdgeRefineConfig(point_step=1), f.instance)

@@ -67,6 +67,8 @@ class EdgeTrackConfig:
     """Fewer matched contour samples than this at a level: the level is skipped (too little to fit 6 DoF)."""
     converged_px: float = 0.05
     """A round whose fitted motion moves the contours less than this (pixels of the level, RMS) ends the level."""
+    min_level_width: int = 64
+    """A level whose image would be narrower than this (pixels) is skipped: too few pixels to fit a pose."""
     support_px: float = 1.5
     """An edge within this many full-resolution pixels of a contour sample supports it (quality)."""
     judge_scale: float = 1.0
@@ -93,6 +95,9 @@ class EdgeFit:
     """(N, 2) contour samples' pixel positions (array convention: pixel centres at integers)."""
     supported: np.ndarray | None = None
     """(N,) bool: the sample has an image edge within ``support_px``."""
+    offsets_px: np.ndarray | None = None
+    """(N,) the image edge's offset along the normal within twice ``support_px``, full-resolution pixels; NaN:
+    none."""
 
 
 class EdgeTracker:
@@ -101,13 +106,20 @@ class EdgeTracker:
     def __init__(self, meshes: list[RenderMesh], camera: Camera, cfg: EdgeTrackConfig) -> None:
         self.cfg = cfg
         self.camera = camera
+        self._meshes = meshes
         self._renderers: dict[float, RaycastRenderer] = {}
-        for s in {lv.scale for lv in cfg.levels} | {1.0}:
-            cam = camera if s == 1.0 else camera.scaled(max(int(round(camera.width * s)), 8),
-                                                        max(int(round(camera.height * s)), 8))
-            self._renderers[s] = RaycastRenderer(meshes, cam)
+
+    def usable(self, scale: float) -> float:
+        """``scale``, or the smallest scale whose image is ``min_level_width`` wide when ``scale``'s is not."""
+        return min(max(scale, self.cfg.min_level_width / self.camera.width), 1.0)
 
     def renderer(self, scale: float = 1.0) -> RaycastRenderer:
+        """The CAD's ray caster at an image scale (made on first use)."""
+        if scale not in self._renderers:
+            c = self.camera
+            w, h = max(int(round(c.width * scale)), 8), max(int(round(c.height * scale)), 8)
+            cam = c if scale == 1.0 else c.scaled(w, h)
+            self._renderers[scale] = RaycastRenderer(self._meshes, cam)
         return self._renderers[scale]
 
     def _level_cfg(self, search_px: float) -> EdgeRefineConfig:
@@ -115,9 +127,11 @@ class EdgeTracker:
         return EdgeRefineConfig(search_px=search_px, point_step=c.point_step, depth_jump=c.depth_jump,
                                 min_contrast=c.min_contrast)
 
-    def fit(self, gray: np.ndarray, T_world_from_cam: Rigid3) -> EdgeFit:
+    def fit(self, gray: np.ndarray, T_world_from_cam: Rigid3, levels: tuple[EdgeLevel, ...] | None = None,
+            ) -> EdgeFit:
         """Correct ``T_world_from_cam`` (the prediction) against ``gray`` ((H, W) float32, 0-255, the frame's
-        full resolution) and judge the result.
+        full resolution) and judge the result. ``levels``: instead of the config's (e.g. a restart's wider
+        basin).
 
         Each level renders the CAD once, at the pose it starts from; its rounds move the contour samples' 3-D
         points with the pose and search again (the contour generator hardly moves within a level's
@@ -126,8 +140,10 @@ class EdgeTracker:
 
         T = T_world_from_cam
         last: tuple[Any, np.ndarray, Any] | None = None
-        for lv in self.cfg.levels:
-            r = self._renderers[lv.scale]
+        for lv in self.cfg.levels if levels is None else levels:
+            if self.usable(lv.scale) != lv.scale:  # too small an image to fit (a small video's coarse levels)
+                continue
+            r = self.renderer(lv.scale)
             g = gray if lv.scale == 1.0 else cv2.resize(gray, (r.camera.width, r.camera.height),
                                                           interpolation=cv2.INTER_AREA)
             lcfg = self._level_cfg(lv.search_px)
@@ -164,7 +180,7 @@ class EdgeTracker:
 
     def judge(self, gray: np.ndarray, T_world_from_cam: Rigid3) -> EdgeFit:
         """Edge support of the CAD's contours at ``T_world_from_cam`` in ``gray`` (full resolution)."""
-        r = self._renderers[1.0]
+        r = self.renderer(1.0)
         f = r.render(T_world_from_cam, with_full_masks=False)
         cfg = self._level_cfg(2.0 * self.cfg.support_px)
         X_cam, _, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, cfg, f.instance)
@@ -174,7 +190,7 @@ class EdgeTracker:
     def _support(self, T: Rigid3, uv: np.ndarray, n: np.ndarray, g: np.ndarray, instance: np.ndarray,
                  cfg: EdgeRefineConfig, tol_px: float, to_full: float) -> EdgeFit:
         if len(uv) == 0:
-            return EdgeFit(T, 0, 0.0, float("nan"), {}, instance, uv, np.zeros(0, bool))
+            return EdgeFit(T, 0, 0.0, float("nan"), {}, instance, uv, np.zeros(0, bool), np.zeros(0))
         off = search_edges(g, uv, n, cfg)
         ok = np.isfinite(off) & (np.abs(np.nan_to_num(off, nan=np.inf)) <= tol_px)
         H, W = instance.shape
@@ -186,7 +202,7 @@ class EdgeTracker:
             m = inst == k
             per[int(k)] = (int(m.sum()), float(ok[m].mean()))
         res = float(np.median(np.abs(off[ok]))) * to_full if ok.any() else float("nan")
-        return EdgeFit(T, len(off), float(ok.mean()), res, per, instance, uv * to_full, ok)
+        return EdgeFit(T, len(off), float(ok.mean()), res, per, instance, uv * to_full, ok, off * to_full)
 
 
 def _pixels(K: np.ndarray, X_cam: np.ndarray) -> np.ndarray:

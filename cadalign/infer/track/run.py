@@ -158,7 +158,7 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                                      f"calibration is {camera.width}x{camera.height}; pass the calibration of this "
                                      "video")
                 restarts = []
-                if not names and init_pose is not None:
+                if init_pose is not None and tracker.last_pose is None:  # until the track first starts
                     restarts.append(("init_pose", init_pose))
                 if restart_source is not None and tracker.lost:
                     restarts += list(restart_source(vf.image, vf.name))

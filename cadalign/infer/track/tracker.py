@@ -17,7 +17,7 @@ import numpy as np
 
 from cadalign.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from cadalign.infer.track.acquire import AcquireConfig, candidates
-from cadalign.infer.track.edges import EdgeFit, EdgeTrackConfig, EdgeTracker
+from cadalign.infer.track.edges import EdgeFit, EdgeLevel, EdgeTrackConfig, EdgeTracker
 from cadalign.render.raycast import RenderMesh
 from cadalign.types import Camera, Rigid3
 
@@ -32,14 +32,32 @@ class TrackerConfig:
     """Per-frame correction against contours, coarse to fine."""
     acquire: AcquireConfig = field(default_factory=AcquireConfig)
     """The pan/tilt/roll search around a restart hypothesis (a rough pose)."""
+    restart_levels: tuple[EdgeLevel, ...] = (
+        EdgeLevel(0.125, 8, 4.0, 3.0),
+        EdgeLevel(0.25, 8, 6.0, 4.0),
+        EdgeLevel(0.5, 4, 4.0, 2.5),
+        EdgeLevel(1.0, 3, 2.5, 1.5),
+    )
+    """The contour fit of a restart hypothesis: a wider basin than a tracked frame's (a 1/8 level, more rounds)."""
+    acquire_rounds: int = 2
+    """Searches per hypothesis: when none of a search's candidates passes, the next searches round the best of
+    them (a rough pose whose error is partly translation needs two)."""
     velocity: float = 1.0
     """Share of the last frame-to-frame motion carried into the prediction (0: the last pose; 1: constant
     velocity, as a survey ROV flies)."""
-    min_support: float = 0.45
-    """Lost below this share of contour samples with an image edge (see ``EdgeTrackConfig.support_px``)."""
+    min_support: float = 0.35
+    """Lost below this share of contour samples with an image edge (see ``EdgeTrackConfig.support_px``), in any
+    water: right poses measured 0.45-0.75 (turbid to clear simulated water), wrong ones 0.27-0.51."""
+    min_start_support: float = 0.4
+    """A restart hypothesis is taken only with at least this support (and the best-supported one wins)."""
+    relative_support: float = 0.7
+    """Lost below this share of the track's recent median support (a drop, where the absolute level depends on
+    the water and the structure)."""
+    history: int = 10
+    """Tracked frames whose median support ``relative_support`` refers to."""
     min_samples: int = 150
     """Lost when the CAD shows fewer contour samples at the pose (the structure left the view)."""
-    max_residual_px: float = 0.9
+    max_residual_px: float = 1.5
     """Lost when the supported samples' median offset exceeds this, pixels (a pose near but off the edges)."""
 
 
@@ -74,15 +92,22 @@ class StructureTracker:
         self._frames = 0
         self.lost = True
         """Whether the last frame was lost (or none was tracked yet)."""
+        self._supports: list[float] = []
 
     @property
     def last_pose(self) -> Rigid3 | None:
         """``T_cam_from_world`` of the last ok frame."""
         return None if self._last is None else self._last.inverse()
 
-    def good(self, fit: EdgeFit) -> bool:
+    def good(self, fit: EdgeFit, start: bool = False) -> bool:
+        """Whether a fit passes as tracked: enough contours, support and a small residual; a start needs
+        ``min_start_support``, a tracked frame also ``relative_support`` of the track's recent support."""
         c = self.cfg
-        return fit.samples >= c.min_samples and fit.support >= c.min_support and fit.residual_px <= c.max_residual_px
+        floor = c.min_start_support if start else max(c.min_support, c.relative_support * self._typical_support())
+        return fit.samples >= c.min_samples and fit.support >= floor and fit.residual_px <= c.max_residual_px
+
+    def _typical_support(self) -> float:
+        return float(np.median(self._supports)) if self._supports else 0.0
 
     def _prediction(self) -> Rigid3 | None:
         if self._last is None:
@@ -114,14 +139,22 @@ class StructureTracker:
         if not restarts and self._last is not None:  # lost: search round the last good pose
             restarts = [("last_pose", self._last.inverse())]
         for name, T_cw in restarts:
-            starts = [T_cw.inverse()] + [T for _, T in candidates(self.edges, gray, T_cw.inverse(), self.cfg.acquire)]
-            for T_wc in starts:
-                tried += 1
-                fit = self.edges.fit(gray, T_wc)
-                if self.good(fit) and (best is None or fit.support > best[0].support):
-                    best = (fit, name)
+            start, top = T_cw.inverse(), None
+            for _ in range(max(self.cfg.acquire_rounds, 1)):  # a second round searches round the best fit
+                starts = [start] + [T for _, T in candidates(self.edges, gray, start, self.cfg.acquire)]
+                for T_wc in starts:
+                    tried += 1
+                    fit = self.edges.fit(gray, T_wc, self.cfg.restart_levels)
+                    if self.good(fit, start=True) and (best is None or fit.support > best[0].support):
+                        best = (fit, name)
+                    if top is None or fit.support > top.support:
+                        top = fit
+                if best is not None or top is None:
+                    break
+                start = top.T_world_from_cam
         if best is not None:
             self._prev = None  # a restart has no velocity
+            self._supports = []  # nor a history of support
             return self._accept(k, best[0], best[1], t0, tried)
         self._prev = None  # the last good pose stays the next frame's prediction
         self.lost = True
@@ -131,4 +164,5 @@ class StructureTracker:
         self._prev = self._last if source == "track" else None
         self._last = fit.T_world_from_cam
         self.lost = False
+        self._supports = (self._supports + [fit.support])[-self.cfg.history:]
         return TrackStep(k, "ok", fit.T_world_from_cam.inverse(), fit, source, time.perf_counter() - t0, tried)
