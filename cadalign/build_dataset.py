@@ -263,6 +263,7 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     from cadalign.errors import ConfigError
     from cadalign.sfm import PRESETS as SFM_PRESETS
     from cadalign.sfm import run as sfm_run
+    from cadalign.sfm.colmap_log import colmap_log
 
     if preset not in SFM_PRESETS or preset not in ALIGN_PRESETS:
         raise ConfigError(f"unknown preset {preset!r}; allowed values: {', '.join(SFM_PRESETS)}")
@@ -300,8 +301,9 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     prepare_stage_dir(ds, "build-dataset", config, overwrite=overwrite)
     t0 = time.perf_counter()
     cameras = read_json(sfm_dir / "cameras.json")["frames"]
-    frame_names, verified = render_frames(structure, cameras, cad_from_sfm, sfm_dir, ds / SCENE, progress,
-                                          refine=refine_cfg, executor=executor)
+    with colmap_log() as colmap_said:  # the CAD-anchored camera refinement is a COLMAP bundle adjustment
+        frame_names, verified = render_frames(structure, cameras, cad_from_sfm, sfm_dir, ds / SCENE, progress,
+                                              refine=refine_cfg, executor=executor)
     splits = write_dataset_extras(ds, structure, verified)
     write_record(ds, prep_of_frame_config(sfm_cfg.frames), source="sfm/images (the SfM stage's prepared frames)")
     seconds["render_and_write"] = time.perf_counter() - t0
@@ -311,6 +313,7 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
         "splits": {k: len(v) for k, v in splits.items()},
         "alignment": {k: v for k, v in read_json(align_json).items() if k in ("cad_from_sfm", "metrics", "gates")},
         "seconds": seconds, "sfm_report": read_json(sfm_dir / "sfm_report.json"),
+        "colmap_log": colmap_said.to_json(),
     }
     if (ds / "seabed.json").is_file():
         report["seabed"] = read_json(ds / "seabed.json")

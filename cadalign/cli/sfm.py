@@ -53,7 +53,6 @@ def command(
     from cadalign.config import merge_mappings, resolve
     from cadalign.sfm import PRESETS, SfMConfig, run
 
-    _colmap_log_level()
     with user_errors():
         extra = merge_mappings(_calibration(calib), parse_overrides(overrides)) if calib else parse_overrides(overrides)
         cfg = resolve(SfMConfig, PRESETS, preset, config, extra)
@@ -67,15 +66,6 @@ def command(
     console.print(f"[green]SfM written to {out_dir}[/]")
 
 
-def _colmap_log_level() -> None:
-    """COLMAP's own (glog) messages only with --log-level debug; warnings and errors always."""
-    import logging
-
-    import pycolmap
-
-    pycolmap.logging.minloglevel = 0 if logging.getLogger().getEffectiveLevel() <= logging.DEBUG else 1
-
-
 def _summary(report_path: Path) -> None:
     from cadalign.io import read_json
 
@@ -85,6 +75,10 @@ def _summary(report_path: Path) -> None:
         f"reprojection {r['mean_reprojection_error_px'] or 0:.2f} px, track length {r['mean_track_length'] or 0:.2f}, "
         f"{r['seconds_total']:.0f} s"
     )
+    said = r.get("colmap_log") or {}
+    if said.get("warnings") or said.get("errors"):
+        console.print(f"COLMAP: {said['warnings']} warnings, {said['errors']} errors (colmap_log in {report_path}; "
+                      "--log-level debug shows COLMAP's log)")
     if r["unregistered"]:
         console.print(f"[yellow]{len(r['unregistered'])} frames not registered (see unregistered in the report)[/]")
     if "gt" in r:

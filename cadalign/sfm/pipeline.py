@@ -10,7 +10,8 @@ Output layout (``OUT``)::
     OUT/cameras.json             per registered frame K, size, R/t_cam_from_world (SfM units)
     OUT/depth/<stem>.npy         float32 semi-dense depth per registered frame, SfM units, 0 = invalid
     OUT/trajectory.png           top-down camera trajectory (plane of the cameras) with the sparse points
-    OUT/sfm_report.json          frames in / registered, points, errors, unregistered frames, seconds per step
+    OUT/sfm_report.json          frames in / registered, points, errors, unregistered frames, seconds per step,
+                                 COLMAP's warnings/errors counted (``colmap_log``; its log is shown only at debug)
     OUT/steps/<step>.json        marker of each finished step (frames, features, matches, mapping, refine, export)
     OUT/cadalign_stage.json      resolved config, input identity and version
 
@@ -33,6 +34,7 @@ import numpy as np
 from cadalign.errors import InputError
 from cadalign.io import MANIFEST_NAME, atomic_path, fingerprint, prepare_stage_dir, read_json, write_json
 from cadalign.sfm import colmap
+from cadalign.sfm.colmap_log import colmap_log, summed
 from cadalign.sfm.config import SfMConfig
 from cadalign.sfm.depth import sparse_depth
 from cadalign.sfm.frames import IMAGE_SUFFIXES, Progress, extract_frames, is_video
@@ -149,8 +151,10 @@ def run(
             rerun = True
         log.info("sfm step '%s'", name)
         t0 = time.perf_counter()
-        info = steps[name]()
-        write_json(lay.marker(name), {"step": name, "seconds": time.perf_counter() - t0, **info})
+        with colmap_log() as colmap_said:
+            info = steps[name]()
+        write_json(lay.marker(name), {"step": name, "seconds": time.perf_counter() - t0, **info,
+                                      "colmap_log": colmap_said.to_json()})
     _finish_report(lay, keep_gt=not rerun)
     return out_dir
 
@@ -276,6 +280,7 @@ def _finish_report(lay: Layout, keep_gt: bool) -> None:
         "depth": marks["export"]["depth"],
         "seconds": {s: marks[s]["seconds"] for s in STEPS},
         "seconds_total": float(sum(marks[s]["seconds"] for s in STEPS)),
+        "colmap_log": summed([marks[s].get("colmap_log", {}) for s in STEPS]),
     }
     if keep_gt and "gt" in old:
         report["gt"] = old["gt"]

@@ -1,0 +1,63 @@
+"""Issue 46: COLMAP's own log is off at the default log level, counted in the report, shown with --log-level debug;
+and no numpy scalar reprs (``np.float64(``) in what the CLI prints."""
+
+from __future__ import annotations
+
+import logging
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from cadalign.cli.main import app
+from cadalign.io import read_json
+
+GLOG_LINE = re.compile(r"^[IWE]\d{8} ", re.MULTILINE)
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def five_frames(tiny_dive: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("five") / "frames"
+    out.mkdir()
+    for f in sorted((tiny_dive / "frames").glob("*.png"))[:5]:
+        shutil.copy(f, out / f.name)
+    return out
+
+
+def _sfm(args: list[str], capfd: pytest.CaptureFixture[str]) -> str:
+    root = logging.getLogger()
+    level, handlers = root.level, list(root.handlers)
+    try:
+        res = runner.invoke(app, args)
+    finally:  # --log-level reconfigures the root logger for the whole test process
+        root.handlers[:] = handlers
+        root.setLevel(level)
+    captured = capfd.readouterr()
+    assert res.exit_code == 0, res.output + captured.err
+    return res.output + captured.out + captured.err
+
+
+def test_colmap_log_is_quiet_by_default_and_counted(five_frames: Path, tmp_path: Path,
+                                                     capfd: pytest.CaptureFixture[str]):
+    out = tmp_path / "sfm"
+    text = _sfm(["sfm", str(five_frames), "--out", str(out), "--preset", "fast", "--set", "num_threads=1"], capfd)
+    assert not GLOG_LINE.search(text), text
+    assert "np.float64(" not in text and "np.float32(" not in text
+    assert "registered" in text  # the stage's own summary is still printed
+    said = read_json(out / "sfm_report.json")["colmap_log"]
+    assert said["shown_not_counted"] is False
+    assert said["warnings"] >= 0 and said["errors"] == 0
+
+
+def test_colmap_log_is_shown_with_log_level_debug(five_frames: Path, tmp_path: Path,
+                                                  capfd: pytest.CaptureFixture[str]):
+    out = tmp_path / "sfm"
+    text = _sfm(["--log-level", "debug", "sfm", str(five_frames), "--out", str(out), "--preset", "fast",
+                 "--set", "num_threads=1"], capfd)
+    lines = GLOG_LINE.findall(text)
+    assert len(lines) > 10, text[-2000:]
+    assert "feature_extraction" in text
+    assert read_json(out / "sfm_report.json")["colmap_log"]["shown_not_counted"] is True
