@@ -242,8 +242,10 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
                   sfm_set: Mapping[str, Any] | None = None) -> Path:
     """Run frames -> SfM -> align -> render -> write; returns ``out``. See the module doc for the layout.
 
-    ``calib``: the camera's known intrinsics (a ``calibration.json`` ``{"K": [...]}`` as 'cadalign sim'
-    writes, or a cameras.json). SfM maps self-calibrated, then sets and holds this calibration while it
+    ``calib``: the camera's known intrinsics and lens distortion, any format of
+    :mod:`cadalign.formats.calibration` (``{"K": [...]}`` as 'cadalign sim' writes, a cameras.json, COLMAP
+    cameras.txt, OpenCV YAML/XML, ROS CameraInfo YAML); its image size must be the frames'. SfM undistorts the
+    frames once, maps self-calibrated, then sets and holds this calibration while it
     refines the model (``camera.known_intrinsics_from``), and the CAD-anchored camera refinement keeps it
     too. Without it the focal length is self-calibrated: on the default orbit it comes out ~0.8 % long,
     which moves every object ~4 cm in its camera frame; calibrate the ROV camera underwater and pass it.
@@ -272,11 +274,10 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     sfm_cfg = SFM_PRESETS[preset]
-    if calib is not None:
-        from cadalign.sfm.report import intrinsics_from_cameras_json
+    if calib is not None:  # any --calib format; frames are undistorted by its lens distortion at extraction
+        from cadalign.sfm.known_camera import with_calibration
 
-        sfm_cfg = dataclasses.replace(sfm_cfg, camera=dataclasses.replace(
-            sfm_cfg.camera, intrinsics=intrinsics_from_cameras_json(calib)))
+        sfm_cfg = with_calibration(sfm_cfg, Path(calib), Path(source))
     if sfm_set:
         from cadalign.config import from_dict
         from cadalign.sfm import SfMConfig

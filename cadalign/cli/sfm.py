@@ -30,11 +30,12 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
     return out
 
 
-def _calibration(path: Path) -> dict[str, Any]:
-    """``camera.intrinsics`` from a calibration file (a simulation's calibration.json, or a cameras.json)."""
-    from cadalign.sfm.report import intrinsics_from_cameras_json
+def _calibration(path: Path, source: Path) -> dict[str, Any]:
+    """``camera`` settings (intrinsics, lens distortion) of a calibration file in any ``--calib`` format, checked
+    against the size of the first frame of ``source``."""
+    from cadalign.sfm.known_camera import camera_settings, checked_calibration
 
-    return {"camera": {"intrinsics": list(intrinsics_from_cameras_json(path))}}
+    return camera_settings(checked_calibration(path, source))
 
 
 def command(
@@ -45,8 +46,9 @@ def command(
     config: Path | None = typer.Option(None, "--config", help="TOML/YAML/JSON file with SfMConfig keys."),
     overrides: list[str] = typer.Option([], "--set", help="Override a key, e.g. --set matching.overlap=15."),
     calib: Path | None = typer.Option(
-        None, "--calib", help="Known intrinsics: a calibration.json {\"K\": [...]} (as sim writes) or a "
-        "cameras.json; set after self-calibrated mapping and held fixed (camera.known_intrinsics_from)."),
+        None, "--calib", help="Known intrinsics and lens distortion: {\"K\": [...]} JSON (as sim writes), "
+        "cameras.json, COLMAP cameras.txt, OpenCV YAML/XML or ROS CameraInfo YAML; frames are undistorted once, "
+        "the K is set after self-calibrated mapping and held fixed (camera.known_intrinsics_from)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Delete SfM results of another config in --out."),
 ) -> None:
     """Structure from motion: frames -> SIFT -> matching -> mapping -> cameras.json, SfM depth, report."""
@@ -54,7 +56,9 @@ def command(
     from cadalign.sfm import PRESETS, SfMConfig, run
 
     with user_errors():
-        extra = merge_mappings(_calibration(calib), parse_overrides(overrides)) if calib else parse_overrides(overrides)
+        extra = parse_overrides(overrides)
+        if calib:
+            extra = merge_mappings(_calibration(calib, source), extra)
         cfg = resolve(SfMConfig, PRESETS, preset, config, extra)
         out_dir = run(cfg, source, out, overwrite=overwrite, progress=track)
         report = out_dir / "sfm_report.json"

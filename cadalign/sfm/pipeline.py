@@ -4,7 +4,8 @@ Output layout (``OUT``)::
 
     OUT/images/<name>            the frames SfM used (pre-processed), names as in the input
     OUT/masks/<name>.png         COLMAP feature masks (only with frames.mask / frames.mask_rects)
-    OUT/frames.json              every candidate frame: kept or why not (blurred, near-duplicate)
+    OUT/frames.json              every candidate frame: kept or why not (blurred, near-duplicate); the lens
+                                 distortion undone (``undistorted``) when the calibration has one
     OUT/database.db              COLMAP database: features and verified matches
     OUT/sparse/0/                the largest model, COLMAP binary (cameras.bin, images.bin, points3D.bin …)
     OUT/cameras.json             per registered frame K, size, R/t_cam_from_world (SfM units)
@@ -31,7 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from cadalign.errors import InputError
+from cadalign.errors import ConfigError, InputError
+from cadalign.formats.calibration import Undistorter
 from cadalign.io import MANIFEST_NAME, atomic_path, fingerprint, prepare_stage_dir, read_json, write_json
 from cadalign.sfm import colmap
 from cadalign.sfm.colmap_log import colmap_log, summed
@@ -159,6 +161,20 @@ def run(
     return out_dir
 
 
+def undistorter(cfg: SfMConfig) -> Undistorter:
+    """The undistortion of ``cfg.camera``'s known lens distortion (inactive without one).
+
+    Raises:
+        ConfigError: a distortion without known intrinsics (the pinhole camera it undistorts to).
+    """
+    cam = cfg.camera
+    if cam.distortion_model != "none" and any(cam.distortion) and cam.intrinsics is None:
+        raise ConfigError("camera.distortion is set but camera.intrinsics is not: undistortion keeps the calibrated "
+                          "K, so pass both (e.g. --calib with the lens calibration)")
+    fx, fy, cx, cy = cam.intrinsics or (1.0, 1.0, 0.0, 0.0)
+    return Undistorter(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), cam.distortion_model, cam.distortion)
+
+
 def _kept_names(lay: Layout) -> list[str]:
     return [f["name"] for f in read_json(lay.root / "frames.json")["frames"] if f["kept"]]
 
@@ -167,8 +183,11 @@ def _step_frames(cfg: SfMConfig, source: Path, lay: Layout, progress: Progress |
     for d in (lay.images, lay.masks):
         if d.exists():
             shutil.rmtree(d)
-    decisions = extract_frames(source, cfg.frames, lay.images, lay.masks, progress)
-    write_json(lay.root / "frames.json", {"source": str(source), "frames": [dataclasses.asdict(d) for d in decisions]})
+    undistort = undistorter(cfg)
+    decisions = extract_frames(source, cfg.frames, lay.images, lay.masks, progress,
+                               undistort=undistort if undistort.active else None)
+    write_json(lay.root / "frames.json", {"source": str(source), "frames": [dataclasses.asdict(d) for d in decisions],
+                                          "undistorted": undistort.record() if undistort.active else None})
     return {"candidates": len(decisions), "kept": sum(d.kept for d in decisions)}
 
 
