@@ -26,8 +26,12 @@ def write_all(folder: Path, K: np.ndarray, width: int, height: int, dist: Sequen
     out["K-json"].write_text(json.dumps({"K": K.ravel().tolist(), "width": width, "height": height,
                                          "distortion": {"model": "opencv", "coeffs": d5} if dist else None}))
     out["cameras.json"] = folder / "cameras.json"
-    cam = ({"model": "OPENCV", "params": [fx, fy, cx, cy, *d5[:4]]} if dist
-           else {"model": "PINHOLE", "params": [fx, fy, cx, cy]})
+    if not dist:
+        cam = {"model": "PINHOLE", "params": [fx, fy, cx, cy]}
+    elif d5[4]:  # COLMAP's OPENCV model has no k3
+        cam = {"model": "FULL_OPENCV", "params": [fx, fy, cx, cy, *d5, 0.0, 0.0, 0.0]}
+    else:
+        cam = {"model": "OPENCV", "params": [fx, fy, cx, cy, *d5[:4]]}
     out["cameras.json"].write_text(json.dumps({"units": "m", "camera": {**cam, "K": K.ravel().tolist(),
                                                                         "width": width, "height": height},
                                                "frames": {}}))
