@@ -9,6 +9,7 @@ Output layout (``OUT``)::
     OUT/database.db              COLMAP database: features and verified matches
     OUT/sparse/0/                the largest model, COLMAP binary (cameras.bin, images.bin, points3D.bin …)
     OUT/cameras.json             per registered frame K, size, R/t_cam_from_world (SfM units)
+    OUT/trajectory.tum           the same poses in TUM format (camera-in-world, for evo; :mod:`cadalign.formats.tum`)
     OUT/depth/<stem>.npy         float32 semi-dense depth per registered frame, SfM units, 0 = invalid
     OUT/trajectory.png           top-down camera trajectory (plane of the cameras) with the sparse points
     OUT/sfm_report.json          frames in / registered, points, errors, unregistered frames, seconds per step,
@@ -34,6 +35,7 @@ import numpy as np
 
 from cadalign.errors import ConfigError, InputError
 from cadalign.formats.calibration import Undistorter
+from cadalign.formats.tum import TUM_NAME, write_cameras_tum
 from cadalign.io import MANIFEST_NAME, atomic_path, fingerprint, prepare_stage_dir, read_json, write_json
 from cadalign.sfm import colmap
 from cadalign.sfm.colmap_log import colmap_log, summed
@@ -55,8 +57,8 @@ STEPS = ("frames", "features", "matches", "mapping", "refine", "export")
 REPORT_NAME = "sfm_report.json"
 _OUTPUTS = ("images", "masks", "frames.json", "database.db", "database.db-shm", "database.db-wal", "sparse",
             "database.pre_loop.db", "database.kept.db",
-            "mapping_tmp", "cameras.json", "depth", "trajectory.png", "trajectory_vs_gt.png", REPORT_NAME, "steps",
-            MANIFEST_NAME)
+            "mapping_tmp", "cameras.json", TUM_NAME, "depth", "trajectory.png", "trajectory_vs_gt.png", REPORT_NAME,
+            "steps", MANIFEST_NAME)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -227,6 +229,7 @@ def _step_export(cfg: SfMConfig, source: Path, lay: Layout, progress: Progress |
     rec = pycolmap.Reconstruction(str(lay.model))
     cams = cameras_json(rec)
     write_json(lay.root / "cameras.json", cams)
+    write_cameras_tum(cams, lay.root / TUM_NAME)
     coverage = []
     if cfg.depth.enabled:
         images = registered_images(rec)

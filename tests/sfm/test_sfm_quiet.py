@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import logging
 import re
-import shutil
 from pathlib import Path
 
 import pytest
@@ -16,15 +15,6 @@ from cadalign.io import read_json
 
 GLOG_LINE = re.compile(r"^[IWE]\d{8} ", re.MULTILINE)
 runner = CliRunner()
-
-
-@pytest.fixture(scope="module")
-def five_frames(tiny_dive: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("five") / "frames"
-    out.mkdir()
-    for f in sorted((tiny_dive / "frames").glob("*.png"))[:5]:
-        shutil.copy(f, out / f.name)
-    return out
 
 
 def _sfm(args: list[str], capfd: pytest.CaptureFixture[str]) -> str:
