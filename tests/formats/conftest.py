@@ -2,13 +2,10 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
 from sim_testdata import write_tiny_scene
-
-sys.path.insert(0, str(Path(__file__).parent))  # calib_files, the five-format writer
 
 
 @pytest.fixture(scope="session")

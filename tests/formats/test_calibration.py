@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from calib_files import write_all
+from calib_testdata import write_all
 
 from cadalign.errors import InputError
 from cadalign.formats.calibration import Undistorter, read_calibration, undistort_maps
