@@ -96,6 +96,10 @@ def _label_map(scene: BopScene, im_id: int, classes: ClassMap) -> np.ndarray:
 
         return read_image(png, unchanged=True).astype(np.int64)
     frame = scene.frame(im_id)
+    if frame.instances and not (scene.dir / "mask_visib").is_dir():
+        raise InputError(f"{scene.dir} has no ground-truth labels (neither class/ nor mask_visib/, as in a plain BOP "
+                         "scene): segmentation needs them; add the BOP visible masks (mask_visib/) or use a dataset "
+                         "built by 'cadalign build-dataset'")
     label = np.zeros((frame.camera.height, frame.camera.width), dtype=np.int64)
     for g, inst in enumerate(frame.instances):
         label[scene.mask(im_id, g, visible=True)] = classes.class_of_obj[inst.obj_id]

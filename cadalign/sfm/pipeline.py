@@ -303,6 +303,7 @@ def _finish_report(lay: Layout, keep_gt: bool) -> None:
         "seconds": {s: marks[s]["seconds"] for s in STEPS},
         "seconds_total": float(sum(marks[s]["seconds"] for s in STEPS)),
         "colmap_log": summed([marks[s].get("colmap_log", {}) for s in STEPS]),
+        "undistorted": frames.get("undistorted"),
     }
     if keep_gt and "gt" in old:
         report["gt"] = old["gt"]

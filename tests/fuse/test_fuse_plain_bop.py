@@ -13,7 +13,7 @@ import trimesh
 from typer.testing import CliRunner
 
 from cadalign.cli.main import app
-from cadalign.data.torch_datasets import DepthDataset, load_class_map
+from cadalign.data.torch_datasets import DepthDataset, SegmentationDataset, load_class_map
 from cadalign.errors import InputError
 from cadalign.fuse.run import REPORT
 from cadalign.io import read_json
@@ -79,3 +79,8 @@ def test_torch_depth_dataset_reads_a_plain_scene(plain: Path) -> None:
     item = ds[0]
     assert item["image"].shape[0] == 3 and float(item["depth"].max()) > 0
     assert ds.classes.names[0] == "background" and len(ds.classes.names) > 1
+
+
+def test_segmentation_on_a_plain_scene_says_it_has_no_labels(plain: Path) -> None:
+    with pytest.raises(InputError, match=r"000001 has no ground-truth labels .* add the BOP visible masks"):
+        SegmentationDataset(plain)[0]

@@ -30,10 +30,12 @@ def _sfm(args: list[str], capfd: pytest.CaptureFixture[str]) -> str:
     return res.output + captured.out + captured.err
 
 
-def test_colmap_log_is_quiet_by_default_and_counted(five_frames: Path, tmp_path: Path,
+@pytest.mark.parametrize("mapper", ["incremental", "global"])
+def test_colmap_log_is_quiet_by_default_and_counted(five_frames: Path, tmp_path: Path, mapper: str,
                                                      capfd: pytest.CaptureFixture[str]):
     out = tmp_path / "sfm"
-    text = _sfm(["sfm", str(five_frames), "--out", str(out), "--preset", "fast", "--set", "num_threads=1"], capfd)
+    text = _sfm(["sfm", str(five_frames), "--out", str(out), "--preset", "fast", "--set", "num_threads=1",
+                 "--set", f"mapper.kind={mapper}"], capfd)
     assert not GLOG_LINE.search(text), text
     assert "np.float64(" not in text and "np.float32(" not in text
     assert "registered" in text  # the stage's own summary is still printed
