@@ -19,7 +19,7 @@ def test_infer_gives_the_same_poses_for_the_calibration_in_any_format(tiny_sim: 
     cal = read_json(tiny_sim / "calibration.json")
     files = write_all(tmp_path / "calib", np.reshape(cal["K"], (3, 3)), cal["width"], cal["height"])
     runs = {}
-    for fmt in ("K-json", "ros", "colmap-cameras.txt", "opencv"):
+    for fmt in ("K-json", "ros", "colmap-cameras.txt", "opencv", "cameras.json"):
         calib = tiny_sim / "calibration.json" if fmt == "K-json" else files[fmt]  # the simulator's own file first
         out = tmp_path / fmt
         res = runner.invoke(app, ["infer", str(tiny_sim / "frames"), "--oracle-gt", str(tiny_sim), "--cad",
