@@ -109,6 +109,7 @@ def colmap_log(show: bool | None = None) -> Iterator[ColmapLog]:
 
 @contextlib.contextmanager
 def _glog_flags(L: Any, out: ColmapLog) -> Iterator[None]:
+    """Set glog's flags (``L``: ``pycolmap.logging``) for the block, restore them after; count into ``out``."""
     saved = (L.minloglevel, L.alsologtostderr, L.stderrthreshold)
     if out.shown:
         L.minloglevel, L.alsologtostderr, L.stderrthreshold = 0, True, 2

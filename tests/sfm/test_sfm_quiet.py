@@ -53,3 +53,18 @@ def test_colmap_log_is_shown_with_log_level_debug(five_frames: Path, tmp_path: P
     assert len(lines) > 10, text[-2000:]
     assert "feature_extraction" in text
     assert read_json(out / "sfm_report.json")["colmap_log"]["shown_not_counted"] is True
+
+
+def test_glog_text_is_counted_by_severity_with_distinct_examples():
+    from cadalign.sfm.colmap_log import ColmapLog, summed
+
+    said = ColmapLog()
+    said.add_text("I20261129 04:03:15.357067 1 sift.cc:764] Creating SIFT CPU feature extractor\n"
+                  "W20261129 04:03:15.356272 1 feature_extraction.cc:445] Your current options use the maximum\n"
+                  "W20261129 04:03:16.356272 1 feature_extraction.cc:445] Your current options use the maximum\n"
+                  "    Residuals : 2000\n"
+                  "E20261129 04:03:17.000000 1 incremental_pipeline.cc:1] No good initial image pair found.\n")
+    assert (said.warnings, said.errors) == (2, 1)
+    assert said.examples == ["Your current options use the maximum", "No good initial image pair found."]
+    total = summed([said.to_json(), said.to_json(), {}])
+    assert (total["warnings"], total["errors"], len(total["examples"])) == (4, 2, 2)
