@@ -242,8 +242,10 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
                   sfm_set: Mapping[str, Any] | None = None) -> Path:
     """Run frames -> SfM -> align -> render -> write; returns ``out``. See the module doc for the layout.
 
-    ``calib``: the camera's known intrinsics (a ``calibration.json`` ``{"K": [...]}`` as 'cadalign sim'
-    writes, or a cameras.json). SfM maps self-calibrated, then sets and holds this calibration while it
+    ``calib``: the camera's known intrinsics and lens distortion, any format of
+    :mod:`cadalign.formats.calibration` (``{"K": [...]}`` as 'cadalign sim' writes, a cameras.json, COLMAP
+    cameras.txt, OpenCV YAML/XML, ROS CameraInfo YAML); its image size must be the frames'. SfM undistorts the
+    frames once, maps self-calibrated, then sets and holds this calibration while it
     refines the model (``camera.known_intrinsics_from``), and the CAD-anchored camera refinement keeps it
     too. Without it the focal length is self-calibrated: on the default orbit it comes out ~0.8 % long,
     which moves every object ~4 cm in its camera frame; calibrate the ROV camera underwater and pass it.
@@ -263,6 +265,7 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     from cadalign.errors import ConfigError
     from cadalign.sfm import PRESETS as SFM_PRESETS
     from cadalign.sfm import run as sfm_run
+    from cadalign.sfm.colmap_log import colmap_log
 
     if preset not in SFM_PRESETS or preset not in ALIGN_PRESETS:
         raise ConfigError(f"unknown preset {preset!r}; allowed values: {', '.join(SFM_PRESETS)}")
@@ -271,11 +274,10 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     sfm_cfg = SFM_PRESETS[preset]
-    if calib is not None:
-        from cadalign.sfm.report import intrinsics_from_cameras_json
+    if calib is not None:  # any --calib format; frames are undistorted by its lens distortion at extraction
+        from cadalign.sfm.known_camera import with_calibration
 
-        sfm_cfg = dataclasses.replace(sfm_cfg, camera=dataclasses.replace(
-            sfm_cfg.camera, intrinsics=intrinsics_from_cameras_json(calib)))
+        sfm_cfg = with_calibration(sfm_cfg, Path(calib), Path(source))
     if sfm_set:
         from cadalign.config import from_dict
         from cadalign.sfm import SfMConfig
@@ -300,8 +302,9 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     prepare_stage_dir(ds, "build-dataset", config, overwrite=overwrite)
     t0 = time.perf_counter()
     cameras = read_json(sfm_dir / "cameras.json")["frames"]
-    frame_names, verified = render_frames(structure, cameras, cad_from_sfm, sfm_dir, ds / SCENE, progress,
-                                          refine=refine_cfg, executor=executor)
+    with colmap_log() as colmap_said:  # the CAD-anchored camera refinement is a COLMAP bundle adjustment
+        frame_names, verified = render_frames(structure, cameras, cad_from_sfm, sfm_dir, ds / SCENE, progress,
+                                              refine=refine_cfg, executor=executor)
     splits = write_dataset_extras(ds, structure, verified)
     write_record(ds, prep_of_frame_config(sfm_cfg.frames), source="sfm/images (the SfM stage's prepared frames)")
     seconds["render_and_write"] = time.perf_counter() - t0
@@ -311,6 +314,7 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
         "splits": {k: len(v) for k, v in splits.items()},
         "alignment": {k: v for k, v in read_json(align_json).items() if k in ("cad_from_sfm", "metrics", "gates")},
         "seconds": seconds, "sfm_report": read_json(sfm_dir / "sfm_report.json"),
+        "colmap_log": colmap_said.to_json(),
     }
     if (ds / "seabed.json").is_file():
         report["seabed"] = read_json(ds / "seabed.json")

@@ -23,8 +23,9 @@ def command(
     gt: Path | None = typer.Option(None, "--gt", help="Simulator output folder: report errors against truth."),
     cad_unit: str | None = typer.Option(None, "--cad-unit", help="Unit of a CAD mesh file: m, cm, mm or in."),
     calib: Path | None = typer.Option(
-        None, "--calib", help="Known intrinsics: a calibration.json {\"K\": [...]} (as sim writes) or a "
-        "cameras.json; held fixed after mapping and in the CAD-anchored refinement."),
+        None, "--calib", help="Known intrinsics and lens distortion: {\"K\": [...]} JSON (as sim writes), "
+        "cameras.json, COLMAP cameras.txt, OpenCV YAML/XML or ROS CameraInfo YAML; frames are undistorted once, "
+        "the K is held fixed after mapping and in the CAD-anchored refinement."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
     sfm_set: list[str] = typer.Option([], "--sfm-set", help="Override an SfM setting of the preset, e.g. "
                                       "--sfm-set matching.overlap=15 (keys as 'cadalign sfm --set')."),

@@ -26,6 +26,8 @@ def command(
     split: str | None = typer.Option(None, "--split", help="Only this split of a built dataset (train/val/test)."),
     max_frames: int | None = typer.Option(None, "--max-frames", min=1, help="Fuse only the first N frames."),
     ids: str | None = typer.Option(None, "--ids", help="Only image ids A <= id < B, written A:B (held-out frames)."),
+    classes: Path | None = typer.Option(None, "--classes", help="JSON {obj_id: class name} for a plain BOP scene "
+                                        "(default: its objects.json, else one class per object id)."),
     no_eval: bool = typer.Option(False, "--no-eval", help="Skip the metrics against the CAD truth."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
 ) -> None:
@@ -47,11 +49,12 @@ def command(
         cfg = resolve(FuseConfig, PRESETS, preset, config, overrides)
         path = run(cfg, source, out, depth=depth, labels=labels, seg_model=model_seg, depth_model=model_depth,
                    split=split, max_frames=max_frames, id_range=id_range, with_eval=not no_eval, overwrite=overwrite,
-                   progress=track)
+                   progress=track, classes=classes)
     report = read_json(path / REPORT)
     t = report["timing"]
     fps = f"{t['frames_per_second']:.2f} frames/s" if t["frames_per_second"] else "nothing new to fuse"
-    console.print(f"{report['method']}: {t['frames']} frames, {fps}; mesh {report['map']['mesh_vertices']} vertices")
+    console.print(f"{report['method']}: {t['frames']} frames, {fps}; mesh {report['map']['mesh_vertices']} vertices"
+                  + ("; no label truth in the scene: geometry only" if report["labels"] == "none" else ""))
     m = report.get("metrics")
     if m:
         console.print(f"visible CAD within 2 cm {100 * m['completeness_within_2cm']:.1f}% (5 cm "

@@ -24,7 +24,9 @@ def command(
         None, "--oracle-gt", help="TEST/DEMO ONLY, instead of --model: ground-truth detections of this simulation "
         "with noisy poses (exercises refinement and fusion without a trained network)."),
     gt: Path | None = typer.Option(None, "--gt", help="Simulation folder or BOP scene: evaluate against its truth."),
-    calib: Path | None = typer.Option(None, "--calib", help="cameras.json with intrinsics (and metric camera poses)."),
+    calib: Path | None = typer.Option(
+        None, "--calib", help="Camera intrinsics and lens distortion: {\"K\": [...]} JSON, COLMAP cameras.txt, OpenCV "
+        "YAML/XML, ROS CameraInfo YAML, or a cameras.json (which may add metric camera poses per frame)."),
     depth: Path | None = typer.Option(
         None, "--depth", help="Depth for ICP: a simulation folder or BOP scene with depth maps, or a 'cadalign "
         "train depth' run (its predicted depth)."),
@@ -86,7 +88,8 @@ def command(
         elif oracle_gt is not None or gt_scene is not None:
             cal = calibration_from_scene(det.resolve_scene_dir(oracle_gt) if oracle_gt is not None else gt_scene)
         else:
-            raise InputError("no camera intrinsics: pass --calib cameras.json (e.g. from 'cadalign sfm')")
+            raise InputError("no camera intrinsics: pass --calib with the camera's calibration (a {\"K\": [...]} JSON, "
+                             "OpenCV/ROS YAML, COLMAP cameras.txt, or a cameras.json from 'cadalign sfm')")
         path = run(cfg, source, detector, structure.models, class_names, out, calib=cal, detector_info=info,
                    depth_scene=depth_scene, gt_scene=gt_scene, max_frames=max_frames, overwrite=overwrite,
                    progress=track, device=device)

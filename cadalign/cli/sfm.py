@@ -30,11 +30,12 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
     return out
 
 
-def _calibration(path: Path) -> dict[str, Any]:
-    """``camera.intrinsics`` from a calibration file (a simulation's calibration.json, or a cameras.json)."""
-    from cadalign.sfm.report import intrinsics_from_cameras_json
+def _calibration(path: Path, source: Path) -> dict[str, Any]:
+    """``camera`` settings (intrinsics, lens distortion) of a calibration file in any ``--calib`` format, checked
+    against the size of the first frame of ``source``."""
+    from cadalign.sfm.known_camera import camera_settings, checked_calibration
 
-    return {"camera": {"intrinsics": list(intrinsics_from_cameras_json(path))}}
+    return camera_settings(checked_calibration(path, source))
 
 
 def command(
@@ -45,17 +46,19 @@ def command(
     config: Path | None = typer.Option(None, "--config", help="TOML/YAML/JSON file with SfMConfig keys."),
     overrides: list[str] = typer.Option([], "--set", help="Override a key, e.g. --set matching.overlap=15."),
     calib: Path | None = typer.Option(
-        None, "--calib", help="Known intrinsics: a calibration.json {\"K\": [...]} (as sim writes) or a "
-        "cameras.json; set after self-calibrated mapping and held fixed (camera.known_intrinsics_from)."),
+        None, "--calib", help="Known intrinsics and lens distortion: {\"K\": [...]} JSON (as sim writes), "
+        "cameras.json, COLMAP cameras.txt, OpenCV YAML/XML or ROS CameraInfo YAML; frames are undistorted once, "
+        "the K is set after self-calibrated mapping and held fixed (camera.known_intrinsics_from)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Delete SfM results of another config in --out."),
 ) -> None:
     """Structure from motion: frames -> SIFT -> matching -> mapping -> cameras.json, SfM depth, report."""
     from cadalign.config import merge_mappings, resolve
     from cadalign.sfm import PRESETS, SfMConfig, run
 
-    _colmap_log_level()
     with user_errors():
-        extra = merge_mappings(_calibration(calib), parse_overrides(overrides)) if calib else parse_overrides(overrides)
+        extra = parse_overrides(overrides)
+        if calib:
+            extra = merge_mappings(_calibration(calib, source), extra)
         cfg = resolve(SfMConfig, PRESETS, preset, config, extra)
         out_dir = run(cfg, source, out, overwrite=overwrite, progress=track)
         report = out_dir / "sfm_report.json"
@@ -67,15 +70,6 @@ def command(
     console.print(f"[green]SfM written to {out_dir}[/]")
 
 
-def _colmap_log_level() -> None:
-    """COLMAP's own (glog) messages only with --log-level debug; warnings and errors always."""
-    import logging
-
-    import pycolmap
-
-    pycolmap.logging.minloglevel = 0 if logging.getLogger().getEffectiveLevel() <= logging.DEBUG else 1
-
-
 def _summary(report_path: Path) -> None:
     from cadalign.io import read_json
 
@@ -85,6 +79,10 @@ def _summary(report_path: Path) -> None:
         f"reprojection {r['mean_reprojection_error_px'] or 0:.2f} px, track length {r['mean_track_length'] or 0:.2f}, "
         f"{r['seconds_total']:.0f} s"
     )
+    said = r.get("colmap_log") or {}
+    if said.get("warnings") or said.get("errors"):
+        console.print(f"COLMAP: {said['warnings']} warnings, {said['errors']} errors (colmap_log in {report_path}; "
+                      "--log-level debug shows COLMAP's log)")
     if r["unregistered"]:
         console.print(f"[yellow]{len(r['unregistered'])} frames not registered (see unregistered in the report)[/]")
     if "gt" in r:

@@ -3,7 +3,8 @@
 Items are dicts of tensors with documented keys (the one place dicts stand in for dataclasses):
 images are float32 (3, H, W) in [0, 1]; depth is metres with 0 = invalid; poses are object-in-camera
 in metres. The class map comes from the scene's ``objects.json`` (written by ``cadalign sim`` and
-``cadalign build-dataset``): class names, and each BOP ``obj_id``'s class index.
+``cadalign build-dataset``): class names, and each BOP ``obj_id``'s class index; a plain BOP scene (``rgb/``,
+``depth/``, ``scene_camera.json``, ``scene_gt.json``) gets one class per object id (:func:`load_class_map`).
 """
 
 from __future__ import annotations
@@ -29,13 +30,58 @@ class ClassMap:
     """BOP obj_id -> class index."""
 
 
-def load_class_map(scene_dir: Path) -> ClassMap:
-    """The class names and obj_id -> class map from ``scene_dir/objects.json``."""
-    path = Path(scene_dir) / "objects.json"
+def load_class_map(scene_dir: Path, classes: Path | None = None) -> ClassMap:
+    """The class names and obj_id -> class map of a BOP scene, from (first found):
+
+    - ``classes``: a JSON ``{obj_id: class name}`` (objects of one name share a class; "background" is 0);
+    - ``scene_dir/objects.json`` (written by ``cadalign sim`` and ``cadalign build-dataset``);
+    - a plain BOP scene: one class per object id of ``scene_gt.json``, named ``obj_000001`` ...
+
+    Raises:
+        InputError: an unreadable classes file, one that misses object ids of the scene, or a scene with neither
+            objects.json nor scene_gt.json.
+    """
+    scene_dir = Path(scene_dir)
+    if classes is not None:
+        return _class_map_file(Path(classes), _scene_obj_ids(scene_dir))
+    path = scene_dir / "objects.json"
+    if path.is_file():
+        data = read_json(path)
+        return ClassMap(tuple(data["classes"]), {int(o["obj_id"]): int(o["class_id"]) for o in data["objects"]})
+    ids = _scene_obj_ids(scene_dir)
+    if ids is None:
+        raise InputError(f"{scene_dir} has no class map: neither objects.json nor scene_gt.json; pass a classes "
+                         "file (JSON {obj_id: class name}) or re-run the stage that wrote the scene")
+    return ClassMap(("background", *(f"obj_{i:06d}" for i in ids)), {i: k + 1 for k, i in enumerate(ids)})
+
+
+def _scene_obj_ids(scene_dir: Path) -> list[int] | None:
+    """Sorted object ids of ``scene_gt.json``, or None without one."""
+    path = scene_dir / "scene_gt.json"
     if not path.is_file():
-        raise InputError(f"{path} is missing: the scene has no class map (re-run the stage that wrote it)")
+        return None
     data = read_json(path)
-    return ClassMap(tuple(data["classes"]), {int(o["obj_id"]): int(o["class_id"]) for o in data["objects"]})
+    return sorted({int(g["obj_id"]) for gts in data.values() for g in gts})
+
+
+def _class_map_file(path: Path, scene_ids: list[int] | None) -> ClassMap:
+    data = read_json(path)
+    if not isinstance(data, dict) or not all(isinstance(v, str) for v in data.values()):
+        raise InputError(f"{path}: a classes file is a JSON object {{obj_id: class name}}, e.g. "
+                         '{"1": "valve", "2": "structure"}; fix it')
+    try:
+        named = {int(k): v for k, v in data.items()}
+    except ValueError:
+        raise InputError(f"{path}: keys must be BOP object ids (integers), got {sorted(data)[:5]}; fix it") from None
+    missing = sorted(set(scene_ids or []) - set(named))
+    if missing:
+        raise InputError(f"{path} names no class for object ids {missing[:10]} of the scene; add them "
+                         '(e.g. "background" for objects to ignore)')
+    names = ["background"]
+    for oid in sorted(named):
+        if named[oid] not in names:
+            names.append(named[oid])
+    return ClassMap(tuple(names), {oid: names.index(c) for oid, c in named.items()})
 
 
 def _image(scene: BopScene, im_id: int) -> torch.Tensor:
@@ -50,6 +96,10 @@ def _label_map(scene: BopScene, im_id: int, classes: ClassMap) -> np.ndarray:
 
         return read_image(png, unchanged=True).astype(np.int64)
     frame = scene.frame(im_id)
+    if frame.instances and not (scene.dir / "mask_visib").is_dir():
+        raise InputError(f"{scene.dir} has no ground-truth labels (neither class/ nor mask_visib/, as in a plain BOP "
+                         "scene): segmentation needs them; add the BOP visible masks (mask_visib/) or use a dataset "
+                         "built by 'cadalign build-dataset'")
     label = np.zeros((frame.camera.height, frame.camera.width), dtype=np.int64)
     for g, inst in enumerate(frame.instances):
         label[scene.mask(im_id, g, visible=True)] = classes.class_of_obj[inst.obj_id]

@@ -91,7 +91,8 @@ def evaluate_seg(run: Path, ds: Path, out: Path, *, split: str = "test", device:
         "figures": "image | ground truth | prediction",
     }
     path = write_json(Path(out) / "seg_metrics.json", result)
-    log.info("seg %s: mIoU %.3f, IoU %s", split, m.miou, dict(zip(m.classes, np.round(m.iou, 3), strict=True)))
+    ious = ", ".join(f"{c} {float(v):.3f}" for c, v in zip(m.classes, m.iou, strict=True))
+    log.info("seg %s: mIoU %.3f, IoU %s", split, float(m.miou), ious)
     return EvalOutput(path, result, tuple(figs))
 
 

@@ -13,6 +13,11 @@ Metrics (all over the frames registered in both):
   *median scene distance*: the median of all valid ground-truth depth pixels (BOP depth PNGs times
   ``depth_scale`` of scene_camera.json) over all frames, i.e. the typical camera-to-surface distance.
 - registration rate: registered frames / ground-truth frames.
+- ATE / RPE as evo computes them (``evo_ape`` / ``evo_rpe`` with ``--align --correct_scale``, RPE over consecutive
+  evaluated frames, ``--delta 1`` frame): ``ate_m`` the RMSE of the centre errors after the Sim(3) fit (in the
+  ground truth's metres); ``rpe_m`` / ``rpe_deg`` the RMSE of the translation / rotation angle of
+  ``inv(Q_i^-1 Q_j) (P_i^-1 P_j)`` with ``Q`` true and ``P`` the fitted estimated poses (camera-in-world).
+  ``trajectory.tum`` (SfM) and the simulation's ``trajectory.tum`` feed evo directly; tests check the match.
 - SfM depth: coverage (fraction of pixels with a value) and AbsRel ``mean(|s d - d_gt| / d_gt)`` over
   pixels valid in both, with ``s`` the Sim(3) scale (also its median and the fraction within 5 %:
   points on thin structures land on background pixels of the GT map and dominate the mean).
@@ -27,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from cadalign.errors import InputError
+from cadalign.formats.tum import frame_stamps
 from cadalign.geometry import geodesic_angle, umeyama
 from cadalign.io import read_image, read_json, write_json
 from cadalign.sfm.report import camera_centres, plot_trajectory
@@ -46,6 +52,8 @@ class PoseErrors:
         rot_err_deg: (N,) rotation error per frame, degrees.
         centre_err_m: (N,) centre error per frame, metres.
         rel_rot_err_deg: (N-1,) relative rotation error of consecutive evaluated frames, degrees.
+        rpe_m: (N-1,) translation of evo's relative pose error of consecutive evaluated frames (after the fit's
+            scale), metres.
     """
 
     gt_from_sfm: Sim3
@@ -53,6 +61,7 @@ class PoseErrors:
     rot_err_deg: np.ndarray
     centre_err_m: np.ndarray
     rel_rot_err_deg: np.ndarray
+    rpe_m: np.ndarray
 
 
 def pose_errors(est: dict, gt: dict) -> PoseErrors:
@@ -64,6 +73,7 @@ def pose_errors(est: dict, gt: dict) -> PoseErrors:
     names_e, C_e, R_e = camera_centres(est)
     names_g, C_g, R_g = camera_centres(gt)
     common = sorted(set(names_e) & set(names_g))
+    common = [common[i] for i in np.argsort(frame_stamps(common), kind="stable")]  # evo's (timestamp) order
     if len(common) < 3:
         raise InputError(f"only {len(common)} registered frames have ground truth; need 3 to fit a Sim(3). "
                          "Check that --gt is the simulation the frames came from")
@@ -74,7 +84,19 @@ def pose_errors(est: dict, gt: dict) -> PoseErrors:
     centre = np.linalg.norm(S.apply(C_e[ie]) - C_g[ig], axis=1)
     Re, Rg = R_e[ie], R_g[ig]
     rel = np.degrees(geodesic_angle(Re[1:] @ np.swapaxes(Re[:-1], 1, 2), Rg[1:] @ np.swapaxes(Rg[:-1], 1, 2)))
-    return PoseErrors(S, common, rot, centre, rel)
+    return PoseErrors(S, common, rot, centre, rel, _rpe_translation(S, C_e[ie], Re, C_g[ig], Rg))
+
+
+def _rpe_translation(S: Sim3, C_e: np.ndarray, R_e: np.ndarray, C_g: np.ndarray, R_g: np.ndarray) -> np.ndarray:
+    """(N-1,) ``|t|`` of ``inv(Q_i^-1 Q_{i+1}) (P_i^-1 P_{i+1})`` (evo's RPE, translation part) for camera-in-world
+    poses ``P`` (estimate mapped by ``S``) and ``Q`` (truth), from centres (N, 3) and R_cam_from_world (N, 3, 3)."""
+    def rel(R_wc: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        R_i_T = R_wc[:-1].swapaxes(1, 2)
+        return R_i_T @ R_wc[1:], np.einsum("nij,nj->ni", R_i_T, C[1:] - C[:-1])
+
+    Rq, tq = rel(R_g.swapaxes(1, 2), C_g)
+    _, tp = rel(S.R @ R_e.swapaxes(1, 2), S.apply(C_e))  # the rotation part is rel_rot_err_deg
+    return np.linalg.norm(np.einsum("nji,nj->ni", Rq, tp - tq), axis=1)
 
 
 def _gt_depths(scene_dir: Path, names: list[str]) -> dict[str, np.ndarray]:
@@ -148,6 +170,10 @@ def evaluate(sfm_dir: Path, sim_dir: Path) -> dict:
         "rel_rot_err_deg_mean": float(pe.rel_rot_err_deg.mean()),
         "rel_rot_err_deg_max": float(pe.rel_rot_err_deg.max()),
         "centre_rmse_m": rmse,
+        "ate_m": rmse,
+        "rpe_m": float(np.sqrt(np.mean(pe.rpe_m**2))) if len(pe.rpe_m) else None,
+        "rpe_deg": float(np.sqrt(np.mean(pe.rel_rot_err_deg**2))) if len(pe.rel_rot_err_deg) else None,
+        "ate_rpe_def": "as evo_ape / evo_rpe --align --correct_scale (RPE: consecutive frames, delta 1), RMSE",
         "centre_err_m_max": float(pe.centre_err_m.max()),
         "median_scene_distance_m": dist,
         "median_scene_distance_def": "median of valid GT depth pixels over all frames",

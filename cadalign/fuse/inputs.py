@@ -5,15 +5,22 @@ Accepted sources (the BOP scene inside is found automatically):
 - ``SIM_DIR`` (``cadalign sim``): ``SIM_DIR/gt/sim/000000``
 - a build folder (``cadalign build-dataset --out OUT``): ``OUT/dataset/all/000000``
 - a dataset folder: ``DS/all/000000``
-- a BOP scene folder itself (holding ``scene_camera.json``)
+- a BOP scene folder itself (holding ``scene_camera.json``), also a plain one with only ``rgb/``, ``depth/``,
+  ``scene_camera.json`` and ``scene_gt.json``: its classes are one per object id, or a ``classes`` JSON
+  ``{obj_id: class name}`` (:func:`cadalign.data.torch_datasets.load_class_map`)
 
 Depth: ``gt`` (the scene's ``depth/``), ``sfm`` (``depth_sfm/`` of a built dataset: sparse, metres after
 alignment) or ``pred`` (a :data:`DepthPredictor`). Labels: ``gt`` (``class/``, or painted from the visible
 masks) or ``pred`` (a :data:`SegPredictor`). Poses and intrinsics always come from ``scene_camera.json``.
+
+A scene with neither ``class/`` nor ``mask_visib/`` has no ground-truth labels: ``labels="gt"`` then fuses
+geometry only (every frame votes uniformly over the classes, so the map's labels carry no information and the
+report says ``labels: none``); pass ``labels="pred"`` with a segmentation model for a labelled map.
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +36,7 @@ from cadalign.fuse.semantic import check_probs, probs_from_labels
 from cadalign.io import read_image, read_json
 from cadalign.types import Camera
 
+log = logging.getLogger(__name__)
 DepthSource = Literal["gt", "pred", "sfm"]
 LabelSource = Literal["gt", "pred"]
 DepthPredictor = Callable[[np.ndarray, Camera], np.ndarray]
@@ -63,6 +71,16 @@ class FrameSource:
     @property
     def n_classes(self) -> int:
         return len(self.classes.names)
+
+    @property
+    def has_label_truth(self) -> bool:
+        """Whether the scene has ground-truth labels (``class/`` or visible masks ``mask_visib/``)."""
+        return (self.scene.dir / "class").is_dir() or (self.scene.dir / "mask_visib").is_dir()
+
+    @property
+    def labels_used(self) -> str:
+        """What labels the map is fused from: 'gt', 'pred', or 'none' (geometry only: no label truth)."""
+        return "gt" if self.labels == "gt" and self.has_label_truth else "pred" if self.labels == "pred" else "none"
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -99,6 +117,8 @@ class FrameSource:
                 raise InputError("--labels pred needs a segmentation model: pass --model-seg RUN "
                                  "(a `cadalign train seg` run)")
             return check_probs(self.seg_predictor(rgb), self.n_classes, (h, w))
+        if not self.has_label_truth:  # geometry only: no evidence for any class
+            return np.full((self.n_classes, h, w), 1.0 / self.n_classes, dtype=np.float32)
         return probs_from_labels(self.label_map(im_id), self.n_classes, self.label_confidence)
 
     def label_map(self, im_id: int) -> np.ndarray:
@@ -135,7 +155,7 @@ def open_source(source: Path, *, depth: DepthSource = "gt", labels: LabelSource 
                 label_confidence: float = 0.95, split: str | None = None, max_frames: int | None = None,
                 id_range: tuple[int, int] | None = None,
                 depth_predictor: DepthPredictor | None = None,
-                seg_predictor: SegPredictor | None = None) -> FrameSource:
+                seg_predictor: SegPredictor | None = None, classes: Path | None = None) -> FrameSource:
     """A :class:`FrameSource` over the scene found in ``source`` (see the module docstring)."""
     if depth not in ("gt", "pred", "sfm"):
         raise InputError(f"unknown depth source {depth!r}; allowed: gt, pred, sfm")
@@ -150,5 +170,9 @@ def open_source(source: Path, *, depth: DepthSource = "gt", labels: LabelSource 
         ids = ids[:max_frames]
     if not ids:
         raise InputError(f"{scene_dir} has no frames to fuse")
-    return FrameSource(scene, load_class_map(scene_dir), tuple(ids), depth, labels, label_confidence,
-                       depth_predictor, seg_predictor)
+    src = FrameSource(scene, load_class_map(scene_dir, classes), tuple(ids), depth, labels, label_confidence,
+                      depth_predictor, seg_predictor)
+    if labels == "gt" and not src.has_label_truth:
+        log.warning("%s has no ground-truth labels (no class/ or mask_visib/): fusing geometry only; pass "
+                    "--labels pred --model-seg RUN for a labelled map", scene_dir)
+    return src

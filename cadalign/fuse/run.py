@@ -109,14 +109,16 @@ def _timing(m: SemanticMap, frames: int, seconds: float) -> dict:
 def run(cfg: FuseConfig, source: Path, out_dir: Path, *, depth: str = "gt", labels: str = "gt",
         seg_model: Path | None = None, depth_model: Path | None = None, split: str | None = None,
         max_frames: int | None = None, id_range: tuple[int, int] | None = None, with_eval: bool = True,
-        overwrite: bool = False, progress: Progress | None = None, checkpoint_every: int = 50) -> Path:
-    """Fuse ``source`` into ``out_dir`` (layout in the module docstring); returns ``out_dir``."""
+        overwrite: bool = False, progress: Progress | None = None, checkpoint_every: int = 50,
+        classes: Path | None = None) -> Path:
+    """Fuse ``source`` into ``out_dir`` (layout in the module docstring); returns ``out_dir``. ``classes``: a JSON
+    ``{obj_id: class name}`` for a plain BOP scene (default: objects.json, else one class per object id)."""
     out_dir = Path(out_dir)
-    src = _open(cfg, source, depth, labels, seg_model, depth_model, split, max_frames, id_range)
+    src = _open(cfg, source, depth, labels, seg_model, depth_model, split, max_frames, id_range, classes)
     config = {"fuse": to_dict(cfg), "source": str(src.scene.dir), "depth": depth, "labels": labels,
               "seg_model": str(seg_model) if seg_model else None,
               "depth_model": str(depth_model) if depth_model else None, "split": split, "max_frames": max_frames,
-              "id_range": list(id_range) if id_range else None}
+              "id_range": list(id_range) if id_range else None, "classes": list(src.classes.names)}
     if prepare_stage_dir(out_dir, "fuse", config, overwrite=overwrite) and (out_dir / REPORT).is_file():
         log.info("fusion already finished in %s; reusing it", out_dir)
         return out_dir
@@ -132,7 +134,7 @@ def run(cfg: FuseConfig, source: Path, out_dir: Path, *, depth: str = "gt", labe
     mesh, points = m.extract_mesh(), m.extract_points()
     write_ply(mesh, out_dir / "mesh.ply")
     write_ply(points, out_dir / "points.ply")
-    report = {"method": cfg.method, "source": str(src.scene.dir), "depth": depth, "labels": labels,
+    report = {"method": cfg.method, "source": str(src.scene.dir), "depth": depth, "labels": src.labels_used,
               "classes": list(src.classes.names), "timing": _timing(m, len(meta.frame_ids) - before, seconds),
               "map": {"mesh_vertices": len(mesh), "mesh_faces": int(len(mesh.faces)), "points": len(points),
                       "origin": [float(x) for x in m.origin],
@@ -150,9 +152,10 @@ def run(cfg: FuseConfig, source: Path, out_dir: Path, *, depth: str = "gt", labe
 
 def _open(cfg: FuseConfig, source: Path, depth: str, labels: str, seg_model: Path | None,
           depth_model: Path | None, split: str | None, max_frames: int | None,
-          id_range: tuple[int, int] | None) -> FrameSource:
+          id_range: tuple[int, int] | None, classes: Path | None = None) -> FrameSource:
+    # validates the choices and finds the classes
     src = open_source(source, depth=depth, labels=labels, label_confidence=cfg.label_confidence, split=split,
-                      max_frames=max_frames, id_range=id_range)  # validates the choices and finds the classes
+                      max_frames=max_frames, id_range=id_range, classes=classes)
     seg = dep = None
     prep = read_prep(src.scene.dir) if labels == "pred" or depth == "pred" else None  # raw frames get enhanced
     if labels == "pred" or (depth == "pred" and seg_model is not None):

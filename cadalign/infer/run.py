@@ -8,6 +8,8 @@ Outputs in ``out_dir``::
     overlay.mp4     the frames with each part's CAD wireframe drawn at its reported pose (after completion, drawn
                     again in a last pass)
     frames.json     the names of the frames processed (readable ones), in order
+    calibration.json  with ``--calib``: the camera read (file, format, K, size, distortion) and whether the frames
+                    were undistorted (once, to the same K) before detection
     timings.json    seconds per frame per stage (detector / pose / refinement / temporal / overlay; the completion
                     pass's share), frames/s
     eval.json, eval.md   with ground truth: detection P/R/F1, Table 4.5, BOP recalls, errors by distance,
@@ -21,7 +23,7 @@ import contextlib
 import json
 import logging
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -31,11 +33,12 @@ from cadalign.cad.model import CadModel
 from cadalign.data import image_prep
 from cadalign.errors import InputError
 from cadalign.eval.pose_eval import CroppedMask, PoseEvalConfig
+from cadalign.formats.calibration import CameraCalibration, Undistorter, read_calibration
 from cadalign.infer.complete import TrackCompleter
 from cadalign.infer.detect import Detector, frame_ids, models_dir_of
 from cadalign.infer.model_geom import draw_wireframe
 from cadalign.infer.pipeline import InferConfig, PosePipeline, PoseRecord
-from cadalign.infer.video import iter_frames
+from cadalign.infer.video import VideoFrame, iter_frames
 from cadalign.io import atomic_path, prepare_stage_dir, read_json, write_json, write_text
 from cadalign.types import Rigid3
 
@@ -46,11 +49,14 @@ COLORS = ((255, 80, 80), (80, 255, 80), (80, 160, 255), (255, 220, 60), (255, 80
 
 @dataclass(frozen=True)
 class Calibration:
-    """Intrinsics per frame name (with a default for unlisted frames) and, when metric, camera poses."""
+    """Intrinsics per frame name (with a default for unlisted frames), when metric camera poses, and the lens
+    (size, distortion) of a ``--calib`` file."""
 
     K_default: np.ndarray | None
     K_of: dict[str, np.ndarray]
     T_world_from_cam_of: dict[str, Rigid3]
+    lens: CameraCalibration | None = None
+    """The ``--calib`` file's camera: frames are checked against its size and undistorted by its distortion."""
 
     def K(self, name: str) -> np.ndarray:
         K = self.K_of.get(name, self.K_default)
@@ -58,15 +64,27 @@ class Calibration:
             raise InputError(f"no intrinsics for frame {name}: pass --calib cameras.json listing it")
         return K
 
+    def frames(self, source: Path, max_frames: int | None) -> Iterator[VideoFrame]:
+        """The frames of ``source`` as the pipeline sees them: undistorted once by the lens distortion (to the
+        same K), the first checked against the calibration's image size."""
+        undistort = Undistorter.of(self.lens) if self.lens is not None else None
+        for i, vf in enumerate(iter_frames(source, max_frames=max_frames)):
+            if i == 0 and self.lens is not None:
+                h, w = vf.image.shape[:2]
+                self.lens.check_size(w, h, f"frame {vf.name} of {source}")
+            yield replace(vf, image=undistort(vf.image)) if undistort is not None and undistort.active else vf
+
 
 def load_calibration(path: Path, *, use_poses: bool = True) -> Calibration:
-    """A ``cameras.json`` (``cadalign sim`` / ``sfm`` / dataset format). Poses are used only when metric."""
+    """A ``--calib`` file in any format of :mod:`cadalign.formats.calibration`. A ``cameras.json`` (``cadalign
+    sim`` / ``sfm`` / dataset format) also gives per-frame K and, when metric, camera poses."""
+    lens = read_calibration(path)
+    if lens.format != "cameras.json":
+        return Calibration(lens.K, {}, {}, lens)
     data = read_json(path)
     frames = data.get("frames") or {}
-    if not frames and "camera" not in data:
-        raise InputError(f"{path} has no 'frames' or 'camera'; pass a cameras.json like the one 'cadalign sim' writes")
     metric = data.get("units", "m") in ("m", "metres", "meters")
-    if use_poses and not metric:
+    if use_poses and not metric and frames:
         log.warning("%s is in %s units: its camera poses are not used (temporal fusion uses the filter)",
                     path, data.get("units"))
     K_of = {n: np.reshape(np.asarray(f["K"], float), (3, 3)) for n, f in frames.items()}
@@ -75,10 +93,7 @@ def load_calibration(path: Path, *, use_poses: bool = True) -> Calibration:
         for n, f in frames.items():
             if "R_cam_from_world" in f:
                 T_of[n] = Rigid3(np.reshape(f["R_cam_from_world"], (3, 3)), f["t_cam_from_world_m"]).inverse()
-    cam = data.get("camera")
-    K_def = np.reshape(np.asarray(cam["K"], float), (3, 3)) if cam and "K" in cam else \
-        (next(iter(K_of.values())) if K_of else None)
-    return Calibration(K_def, K_of, T_of)
+    return Calibration(lens.K, K_of, T_of, lens)
 
 
 def calibration_from_scene(scene_dir: Path, *, use_poses: bool = True) -> Calibration:
@@ -175,7 +190,7 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
         return poses_path
     pipeline = PosePipeline(detector, models, class_names, cfg)
     depth = _DepthSource(depth_scene, raw_frames=cfg.enhance == "auto", device=device)
-    frames = iter_frames(source, max_frames=max_frames)
+    frames = calib.frames(source, max_frames)
     all_records: list[PoseRecord] = []
     names: list[str] = []
     shapes: dict[str, tuple[int, int]] = {}
@@ -227,6 +242,8 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
                 if cfg.overlay and writer is not None:
                     _redraw_overlay(tmp_video, cfg, final, pipeline, source, calib, max_frames)
     write_json(out_dir / "frames.json", names)
+    if calib.lens is not None:
+        write_json(out_dir / "calibration.json", {**calib.lens.record(), "undistorted": calib.lens.distorted})
     write_json(out_dir / "timings.json", _timing_summary(times, len(names), len(final), detector_info))
     log.info("infer: %d frames, %d poses -> %s", len(names), len(final), poses_path)
     if gt_scene is not None:
@@ -242,7 +259,7 @@ def _redraw_overlay(path: Path, cfg: InferConfig, records: list[PoseRecord], pip
         by_frame.setdefault(r.frame_name, []).append(r)
     writer = _video_writer(path, cfg.overlay_fps)
     try:
-        for vf in iter_frames(source, max_frames=max_frames):
+        for vf in calib.frames(source, max_frames):
             writer.append_data(_draw(vf.image, by_frame.get(vf.name, []), pipeline, calib.K(vf.name)))
     finally:
         writer.close()
@@ -260,7 +277,7 @@ def _complete(cfg: InferConfig, pipeline: PosePipeline, records: list[PoseRecord
         return records, None
     completer = TrackCompleter(cfg.complete, pipeline.world_tracks(), records, pipeline.geometry)
     if completer.tracks:
-        frames = iter_frames(source, max_frames=max_frames)
+        frames = calib.frames(source, max_frames)
         for vf in progress(frames, "complete", max_frames) if progress else frames:
             if vf.index not in cameras:
                 continue

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from cadalign.data import bop
+from cadalign.formats.tum import TUM_NAME, write_cameras_tum
 from cadalign.io import atomic_path, link_or_copy, read_json, write_image, write_json
 from cadalign.render.raycast import RaycastFrame
 from cadalign.types import Camera, Rigid3
@@ -91,6 +92,7 @@ def merge_scene_files(scene_dir: Path, objects: Sequence[PosedObject], class_nam
             "t_cam_from_world_m": [t / bop.M_TO_MM for t in c["cam_t_w2c"]],
         }
     write_json(scene_dir / "cameras.json", {"frames": cams})
+    write_cameras_tum({"frames": cams}, scene_dir / TUM_NAME)  # the same poses for evo & co, metres
     objs = [
         {"index": i, "name": o.name, "obj_id": o.obj_id, "class_id": o.class_id,
          "class_name": class_names[o.class_id], "R_world_from_obj": o.T_world_from_obj.R.ravel().tolist(),

@@ -159,7 +159,10 @@ def _anchored_bundle_adjustment(model: Any, opts: Any) -> None:
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.UNSPECIFIED)
     if config.num_residuals(model) == 0:
         return
-    pycolmap.create_default_bundle_adjuster(opts, config, model).solve()
+    from cadalign.sfm.colmap_log import stderr_captured
+
+    with stderr_captured():  # the adjuster logs at INFO whatever glog's flags say
+        pycolmap.create_default_bundle_adjuster(opts, config, model).solve()
 
 
 def _drop_outliers(model: Any, max_px: float) -> None:

@@ -121,6 +121,12 @@ class CameraConfig:
     intrinsics: tuple[float, float, float, float] | None = None
     """Known calibration ``(fx, fy, cx, cy)`` in pixels (cadalign/COLMAP pixel-centre convention: pixel
     (0, 0) covers [0, 1)^2). Given, the camera is PINHOLE with these values."""
+    distortion_model: Literal["none", "opencv", "fisheye"] = "none"
+    """Lens distortion of the known calibration (:mod:`cadalign.formats.calibration`): frames are undistorted
+    once, when they are extracted, to the pinhole camera ``intrinsics`` (same K), so every later step and stage
+    sees pinhole images. 'opencv': k1, k2, p1, p2[, k3[, k4, k5, k6]]; 'fisheye': k1..k4."""
+    distortion: tuple[float, ...] = ()
+    """The distortion coefficients in OpenCV's order (empty for 'none')."""
     refine_intrinsics: bool = False
     """With known ``intrinsics``: let bundle adjustment refine the focal length anyway."""
     known_intrinsics_from: Literal["refinement", "mapping"] = "refinement"

@@ -256,13 +256,33 @@ def _load_mask(cfg: FrameConfig, name: str, shape: tuple[int, int]) -> np.ndarra
     return mask
 
 
+def first_frame_size(source: Path) -> tuple[int, int]:
+    """``(width, height)`` of the first frame of a video or image folder (to check a calibration against).
+
+    Raises:
+        InputError: the source is missing, unreadable or holds no frame.
+    """
+    source = Path(source)
+    if is_video(source):
+        candidates, _ = video_candidates(source, FrameConfig(sampling="all"))
+    elif source.is_dir():
+        candidates, _ = folder_candidates(source)
+    else:
+        raise InputError(f"input not found: {source}; pass a video ({', '.join(VIDEO_SUFFIXES)}) or a folder of frames")
+    for _, _, rgb in candidates:
+        return int(rgb.shape[1]), int(rgb.shape[0])
+    raise InputError(f"{source}: no frame could be decoded; check the input")
+
+
 def extract_frames(
-    source: Path, cfg: FrameConfig, images_dir: Path, masks_dir: Path, progress: Progress | None = None
+    source: Path, cfg: FrameConfig, images_dir: Path, masks_dir: Path, progress: Progress | None = None,
+    undistort: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> list[FrameDecision]:
     """Select frames of ``source`` (video or image folder) and write them to ``images_dir``.
 
-    Kept frames are written as PNG (enhanced per ``cfg.enhance``) under their decision name; masks,
-    when configured, go to ``masks_dir/<name>.png`` (COLMAP's layout: 255 = use, 0 = ignore).
+    Kept frames are written as PNG (undistorted by ``undistort`` when given, then enhanced per ``cfg.enhance``)
+    under their decision name; masks, when configured, go to ``masks_dir/<name>.png`` (COLMAP's layout:
+    255 = use, 0 = ignore). Frame selection looks at the frames as recorded.
 
     Raises:
         InputError: the source is missing, not a video or folder of images, or yields no usable frame.
@@ -283,10 +303,10 @@ def extract_frames(
         decisions.append(decision)
         if not decision.kept:
             continue
-        if cfg.enhance == "none" and not is_video(source):
+        if cfg.enhance == "none" and not is_video(source) and undistort is None:
             link_or_copy(Path(decision.source), images_dir / decision.name)  # lossless, keeps EXIF
         else:
-            write_image(images_dir / decision.name, enhance(rgb, cfg))
+            write_image(images_dir / decision.name, enhance(undistort(rgb) if undistort else rgb, cfg))
         mask = _load_mask(cfg, decision.name, rgb.shape[:2])
         if mask is not None:
             write_image(masks_dir / f"{decision.name}.png", mask.astype(np.uint8) * 255)

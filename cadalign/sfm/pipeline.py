@@ -4,13 +4,16 @@ Output layout (``OUT``)::
 
     OUT/images/<name>            the frames SfM used (pre-processed), names as in the input
     OUT/masks/<name>.png         COLMAP feature masks (only with frames.mask / frames.mask_rects)
-    OUT/frames.json              every candidate frame: kept or why not (blurred, near-duplicate)
+    OUT/frames.json              every candidate frame: kept or why not (blurred, near-duplicate); the lens
+                                 distortion undone (``undistorted``) when the calibration has one
     OUT/database.db              COLMAP database: features and verified matches
     OUT/sparse/0/                the largest model, COLMAP binary (cameras.bin, images.bin, points3D.bin …)
     OUT/cameras.json             per registered frame K, size, R/t_cam_from_world (SfM units)
+    OUT/trajectory.tum           the same poses in TUM format (camera-in-world, for evo; :mod:`cadalign.formats.tum`)
     OUT/depth/<stem>.npy         float32 semi-dense depth per registered frame, SfM units, 0 = invalid
     OUT/trajectory.png           top-down camera trajectory (plane of the cameras) with the sparse points
-    OUT/sfm_report.json          frames in / registered, points, errors, unregistered frames, seconds per step
+    OUT/sfm_report.json          frames in / registered, points, errors, unregistered frames, seconds per step,
+                                 COLMAP's warnings/errors counted (``colmap_log``; its log is shown only at debug)
     OUT/steps/<step>.json        marker of each finished step (frames, features, matches, mapping, refine, export)
     OUT/cadalign_stage.json      resolved config, input identity and version
 
@@ -30,9 +33,12 @@ from typing import Any
 
 import numpy as np
 
-from cadalign.errors import InputError
+from cadalign.errors import ConfigError, InputError
+from cadalign.formats.calibration import Undistorter
+from cadalign.formats.tum import TUM_NAME, write_cameras_tum
 from cadalign.io import MANIFEST_NAME, atomic_path, fingerprint, prepare_stage_dir, read_json, write_json
 from cadalign.sfm import colmap
+from cadalign.sfm.colmap_log import colmap_log, summed
 from cadalign.sfm.config import SfMConfig
 from cadalign.sfm.depth import sparse_depth
 from cadalign.sfm.frames import IMAGE_SUFFIXES, Progress, extract_frames, is_video
@@ -51,8 +57,8 @@ STEPS = ("frames", "features", "matches", "mapping", "refine", "export")
 REPORT_NAME = "sfm_report.json"
 _OUTPUTS = ("images", "masks", "frames.json", "database.db", "database.db-shm", "database.db-wal", "sparse",
             "database.pre_loop.db", "database.kept.db",
-            "mapping_tmp", "cameras.json", "depth", "trajectory.png", "trajectory_vs_gt.png", REPORT_NAME, "steps",
-            MANIFEST_NAME)
+            "mapping_tmp", "cameras.json", TUM_NAME, "depth", "trajectory.png", "trajectory_vs_gt.png", REPORT_NAME,
+            "steps", MANIFEST_NAME)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -149,10 +155,26 @@ def run(
             rerun = True
         log.info("sfm step '%s'", name)
         t0 = time.perf_counter()
-        info = steps[name]()
-        write_json(lay.marker(name), {"step": name, "seconds": time.perf_counter() - t0, **info})
+        with colmap_log() as colmap_said:
+            info = steps[name]()
+        write_json(lay.marker(name), {"step": name, "seconds": time.perf_counter() - t0, **info,
+                                      "colmap_log": colmap_said.to_json()})
     _finish_report(lay, keep_gt=not rerun)
     return out_dir
+
+
+def undistorter(cfg: SfMConfig) -> Undistorter:
+    """The undistortion of ``cfg.camera``'s known lens distortion (inactive without one).
+
+    Raises:
+        ConfigError: a distortion without known intrinsics (the pinhole camera it undistorts to).
+    """
+    cam = cfg.camera
+    if cam.distortion_model != "none" and any(cam.distortion) and cam.intrinsics is None:
+        raise ConfigError("camera.distortion is set but camera.intrinsics is not: undistortion keeps the calibrated "
+                          "K, so pass both (e.g. --calib with the lens calibration)")
+    fx, fy, cx, cy = cam.intrinsics or (1.0, 1.0, 0.0, 0.0)
+    return Undistorter(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), cam.distortion_model, cam.distortion)
 
 
 def _kept_names(lay: Layout) -> list[str]:
@@ -163,8 +185,11 @@ def _step_frames(cfg: SfMConfig, source: Path, lay: Layout, progress: Progress |
     for d in (lay.images, lay.masks):
         if d.exists():
             shutil.rmtree(d)
-    decisions = extract_frames(source, cfg.frames, lay.images, lay.masks, progress)
-    write_json(lay.root / "frames.json", {"source": str(source), "frames": [dataclasses.asdict(d) for d in decisions]})
+    undistort = undistorter(cfg)
+    decisions = extract_frames(source, cfg.frames, lay.images, lay.masks, progress,
+                               undistort=undistort if undistort.active else None)
+    write_json(lay.root / "frames.json", {"source": str(source), "frames": [dataclasses.asdict(d) for d in decisions],
+                                          "undistorted": undistort.record() if undistort.active else None})
     return {"candidates": len(decisions), "kept": sum(d.kept for d in decisions)}
 
 
@@ -204,6 +229,7 @@ def _step_export(cfg: SfMConfig, source: Path, lay: Layout, progress: Progress |
     rec = pycolmap.Reconstruction(str(lay.model))
     cams = cameras_json(rec)
     write_json(lay.root / "cameras.json", cams)
+    write_cameras_tum(cams, lay.root / TUM_NAME)
     coverage = []
     if cfg.depth.enabled:
         images = registered_images(rec)
@@ -276,6 +302,8 @@ def _finish_report(lay: Layout, keep_gt: bool) -> None:
         "depth": marks["export"]["depth"],
         "seconds": {s: marks[s]["seconds"] for s in STEPS},
         "seconds_total": float(sum(marks[s]["seconds"] for s in STEPS)),
+        "colmap_log": summed([marks[s].get("colmap_log", {}) for s in STEPS]),
+        "undistorted": frames.get("undistorted"),
     }
     if keep_gt and "gt" in old:
         report["gt"] = old["gt"]

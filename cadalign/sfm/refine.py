@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from cadalign.sfm.colmap_log import stderr_captured
 from cadalign.sfm.config import SfMConfig
 
 log = logging.getLogger(__name__)
@@ -100,7 +101,8 @@ def refine(rec: Any, cfg: SfMConfig) -> dict[str, Any]:
         opts.ceres.solver_options.max_num_iterations = mp.refine_max_num_iterations
         opts.ceres.solver_options.num_threads = cfg.num_threads
         opts.ceres.use_gpu = False
-        pycolmap.bundle_adjustment(rec, opts)
+        with stderr_captured():  # pycolmap's bundle_adjustment logs at INFO whatever glog's flags say
+            pycolmap.bundle_adjustment(rec, opts)
         n = pycolmap.ObservationManager(rec).filter_all_points3D(mp.refine_max_error_px, mp.refine_min_tri_angle_deg)
         dropped.append(int(n))
     after = {"points": rec.num_points3D(), "reprojection_px": rec.compute_mean_reprojection_error()}
@@ -127,5 +129,7 @@ def _set_known_intrinsics(rec: Any, cfg: SfMConfig) -> dict[str, Any] | None:
         rec.cameras[cid] = pycolmap.Camera(model="PINHOLE", width=cam.width, height=cam.height,
                                            params=list(cfg.camera.intrinsics), camera_id=cid)
     rec.update_point_3d_errors()
-    log.info("known calibration set after mapping: %s", changed)
+    log.info("known calibration set after mapping: %s", "; ".join(
+        f"camera {cid}: {c['model_before']} {', '.join(f'{v:.2f}' for v in c['params_before'])} -> PINHOLE "
+        f"{', '.join(f'{v:.2f}' for v in c['params_after'])}" for cid, c in changed.items()))
     return changed

@@ -22,6 +22,7 @@ import logging
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from cadalign.sfm.colmap_log import stderr_captured
 from cadalign.sfm.consistency import Consistency, pieces
 
 log = logging.getLogger(__name__)
@@ -74,7 +75,8 @@ def adopt_camera(win: Any, rec: Any, num_threads: int) -> None:
     opts.refine_focal_length = opts.refine_principal_point = opts.refine_extra_params = False
     opts.ceres.solver_options.num_threads = num_threads
     opts.ceres.use_gpu = False
-    pycolmap.bundle_adjustment(win, opts)
+    with stderr_captured():  # pycolmap's bundle_adjustment logs at INFO whatever glog's flags say
+        pycolmap.bundle_adjustment(win, opts)
 
 
 def repair_breaks(rec: Any, names: Sequence[str], cons: Consistency, frames: int,

@@ -80,27 +80,11 @@ def model_stats(rec: Any) -> dict[str, Any]:
 
 
 def intrinsics_from_cameras_json(path: Path) -> tuple[float, float, float, float]:
-    """``(fx, fy, cx, cy)`` from a calibration file: a ``{"K": [9 values, row-major], ...}`` JSON (the
-    ``calibration.json`` that 'cadalign sim' writes) or a cameras.json (its first frame's K)."""
-    from cadalign.errors import InputError
-    from cadalign.io import read_json
+    """``(fx, fy, cx, cy)`` (pixel centres at +0.5) of a calibration file in any ``--calib`` format
+    (:func:`cadalign.formats.calibration.read_calibration`)."""
+    from cadalign.formats.calibration import read_calibration
 
-    data = read_json(path)
-    K = data.get("K") if isinstance(data, dict) else None
-    if K is None:
-        frames = (data.get("frames") if isinstance(data, dict) else None) or {}
-        if not frames:
-            raise InputError(f"{path} has neither 'K' nor 'frames'; pass a calibration JSON "
-                             '{"K": [fx, 0, cx, 0, fy, cy, 0, 0, 1]} (pixel centres at +0.5) or a cameras.json')
-        K = next(iter(frames.values()))["K"]
-    try:
-        K = np.asarray(K, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        K = np.full(1, np.nan)
-    if K.size != 9 or not np.isfinite(K).all() or K[0] <= 0 or K[4] <= 0:
-        raise InputError(f"{path}: 'K' must be 9 finite numbers (3x3, row-major) with fx, fy > 0, "
-                         f"got {K.tolist()}; fix the calibration file")
-    return float(K[0]), float(K[4]), float(K[2]), float(K[5])
+    return read_calibration(path).intrinsics
 
 
 def camera_centres(cameras: dict[str, Any]) -> tuple[list[str], np.ndarray, np.ndarray]:

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from cadalign.errors import DegenerateGeometryError
+from cadalign.sfm.colmap_log import stderr_captured
 
 log = logging.getLogger(__name__)
 
@@ -117,9 +118,10 @@ def merge_models(models: list[Any], database: Path, images_dir: Path, work_dir: 
         name, pose = poses[image_id]
         merged.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=cam_id, image_id=image_id), pose)
     work_dir.mkdir(parents=True, exist_ok=True)
-    merged = pycolmap.triangulate_points(merged, database, images_dir, work_dir, clear_points=True,
-                                         options=options or pycolmap.IncrementalPipelineOptions(),
-                                         refine_intrinsics=True)
+    with stderr_captured():  # logs at INFO whatever glog's flags say
+        merged = pycolmap.triangulate_points(merged, database, images_dir, work_dir, clear_points=True,
+                                             options=options or pycolmap.IncrementalPipelineOptions(),
+                                             refine_intrinsics=True)
     log.info("merged %d SfM segments: %d frames, %d points; seams %s", len(models), merged.num_reg_images(),
              merged.num_points3D(), ", ".join(f"{s['centre_gap_steps_median']:.3f}" for s in seams))
     return merged, seams

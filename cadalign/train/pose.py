@@ -307,7 +307,8 @@ def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = Fa
         model.eval()
         report = evaluate(model, ds.scene_dir, held_out, ds.models_dir, cfg.eval_score_thresh)
         write_json(Path(out_dir) / "eval_heldout.json", report)
-        log.info("held-out frames: %s", report["summary"])
+        log.info("held-out frames: %s", ", ".join(f"{k} {v:.4g}" if isinstance(v, float | int) else f"{k} {v}"
+                                                   for k, v in report["summary"].items()))
         for name, st in report["stage_recall"].items():
             log.info("held-out %s (%d): found by an anchor %.2f, a proposal %.2f, the box head %.2f, a detection %.2f",
                      name, st["n"], st["anchor"], st["proposal"], st["head"], st["detection"])
