@@ -12,7 +12,8 @@ Neither depth architecture predicts a point map or rays, so the focal length is 
 
 Preprocessing is ours, not the checkpoint's processor class: the photo is resized so its long side is
 ``PretrainedConfig.long_side_px`` (rounded to the model's patch multiple) and normalised with the
-``image_mean``/``image_std`` of ``preprocessor_config.json`` (ImageNet's when absent); the output is resized
+``image_mean``/``image_std`` of ``preprocessor_config.json`` (ImageNet's when absent); a plain-ViT DPT gets a
+square input (its tokens are reshaped to a square grid), as its own processor does. The output is resized
 back to the photo with bilinear interpolation.
 """
 
@@ -160,14 +161,17 @@ def load_depth_model(path: Path, cfg: PretrainedConfig = PretrainedConfig()) -> 
         int(np.atleast_1d(getattr(mc, "patch_size", 16))[0])
     kind: Literal["metric", "disparity"] = (
         "metric" if getattr(mc, "depth_estimation_type", "relative") == "metric" else "disparity")
+    # a plain-ViT DPT (no backbone_config, e.g. dpt-large) reshapes its tokens to a square grid: square input
+    square = arch == "dpt" and getattr(mc, "backbone_config", None) is None
     mean, std = _norm_stats(path)
     log.info("depth checkpoint %s: %s, %s output, patch %d", path, arch, kind, patch)
 
     def predict(rgb: np.ndarray) -> DepthOutput:
         H, W = np.shape(rgb)[:2]
+        size = _forward_size(H, W, cfg.long_side_px, patch)
+        size = (max(size), max(size)) if square else size
         with torch.inference_mode():
-            out = model(pixel_values=_pixels(rgb, _forward_size(H, W, cfg.long_side_px, patch), mean, std,
-                                             cfg.device)).predicted_depth
+            out = model(pixel_values=_pixels(rgb, size, mean, std, cfg.device)).predicted_depth
         return DepthOutput(_to_photo(out, H, W), kind)
 
     return predict
