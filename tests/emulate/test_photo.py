@@ -232,6 +232,7 @@ class TestCli:
             assert (out / f).is_file(), f
         info = json.loads((out / "photo.json").read_text())
         assert info["metric"] and info["camera"] == "hfov" and info["hfov_deg"] == pytest.approx(60)
+        assert info["pane_pixels"] > 0  # from the classes named 'windowpane, window' / 'glass'
         z = np.load(out / "photo_input.npz")
         assert np.median(z["depth_m"][z["depth_m"] > 0]) == pytest.approx(3.0)
         assert tuple(z["class_names"]) == tuple(ADE_LIKE.values())
