@@ -1,7 +1,8 @@
 """GenLaM from any photograph: photo -> depth, camera, classes, panes -> layered mesh -> LiDAR scan + pictures.
 
 Depth comes from the user's pretrained checkpoint (:mod:`cadalign.emulate.pretrained`: metric depth, or
-relative disparity made depth by ``1 / disparity`` and scaled by ``--scale-from``) or from an ``.npz`` point
+relative disparity made depth by ``1 / disparity`` and scaled by ``--scale-from``; with a reference depth
+map, scale and shift of the disparity are fitted) or from an ``.npz`` point
 map (``rgb`` + ``points`` (H, W, 3) in camera axes, e.g. MoGe's output: its ``z + dz`` of eq. (1) is the
 depth). The camera: :mod:`cadalign.emulate.photo_camera`. Classes: a SegFormer checkpoint or a
 ``cadalign train seg`` run; panes: the classes named like glass/windows, or a user mask. Relative depth
@@ -29,8 +30,15 @@ import numpy as np
 
 from cadalign.emulate import figures, lidar, views
 from cadalign.emulate.layered_mesh import ImageInput, LayeredMeshConfig, mesh_from_image
-from cadalign.emulate.photo_camera import ScaleFrom, photo_camera, scale_factor
-from cadalign.emulate.pretrained import DepthOutput, PretrainedConfig, SegModel
+from cadalign.emulate.photo_camera import (
+    ScaleFrom,
+    fit_disparity,
+    parse_scale,
+    photo_camera,
+    reference_depth,
+    scale_factor,
+)
+from cadalign.emulate.pretrained import DepthOutput, PretrainedConfig, SegModel, load_depth_model, load_seg_model
 from cadalign.emulate.run import SENSOR_FROM_CAM, SUMMARY
 from cadalign.emulate.sources import write_ply
 from cadalign.errors import InputError
@@ -123,7 +131,8 @@ def lift_photo(photo: Path, cfg: PhotoConfig, *, depth_fn: Callable[[np.ndarray]
         raise InputError(f"{photo}: a photo has no depth; pass --depth-model DIR (a local transformers "
                          "checkpoint) or give an .npz point map")
     info["depth_s"] = time.perf_counter() - t0
-    depth, info["scale"], info["metric"] = _scaled(depth, info["depth_kind"], scale_from)
+    disparity = out.value if depth_fn is not None and out.kind == "disparity" else None
+    depth, info["scale"], info["metric"] = _scaled(depth, disparity, scale_from, cam.K)
     t1 = time.perf_counter()
     cls, names = None, ()
     if seg is not None or seg_fn is not None:
@@ -140,11 +149,18 @@ def lift_photo(photo: Path, cfg: PhotoConfig, *, depth_fn: Callable[[np.ndarray]
     return PhotoResult(ImageInput(rgb, depth, cam.K, class_id=cls, pane_mask=pane_mask, class_names=names), info)
 
 
-def _scaled(depth: np.ndarray, kind: str, spec: ScaleFrom | None) -> tuple[np.ndarray, float, bool]:
+def _scaled(depth: np.ndarray, disparity: np.ndarray | None, spec: ScaleFrom | None,
+            K: np.ndarray) -> tuple[np.ndarray, float | list[float], bool]:
+    """Metric depth, the scale (or disparity ``[a, b]``) applied, and whether the result is metric."""
+    if spec is not None and disparity is not None and spec.kind in ("depth", "cad"):
+        a, b = fit_disparity(disparity, reference_depth(spec, depth.shape, K))
+        inv = a * disparity + b
+        good = np.isfinite(inv) & (np.nan_to_num(inv) > 0)
+        return np.where(good, 1.0 / np.where(good, inv, 1.0), 0.0), [a, b], True
     if spec is not None:
-        s = scale_factor(depth, spec)
+        s = scale_factor(depth, spec, K)
         return depth * s, s, True
-    if kind == "disparity":
+    if disparity is not None:
         ok = depth > 0
         s = 1.0 / float(np.median(depth[ok])) if ok.any() else 1.0
         log.warning("relative depth and no --scale-from: the mesh has NO metric scale (median depth set to 1); "
@@ -172,9 +188,6 @@ def run(cfg: PhotoConfig, photo: Path, out_dir: Path, *, depth_model: Path | Non
         calib: Path | None = None, scale_from: str | None = None, pane_mask: Path | None = None,
         overwrite: bool = False) -> Path:
     """Photo -> layered mesh, scan and pictures in ``out_dir`` (see the module docstring); returns ``out_dir``."""
-    from cadalign.emulate.photo_camera import parse_scale
-    from cadalign.emulate.pretrained import load_depth_model, load_seg_model
-
     photo, out_dir = Path(photo), Path(out_dir)
     rgb_check, _ = read_photo(photo)
     spec = parse_scale(scale_from) if scale_from else None
@@ -243,7 +256,7 @@ def _read_mask(path: Path, shape: tuple[int, ...]) -> np.ndarray:
 
 
 def _trained_seg(run_dir: Path, device: str) -> Callable[[np.ndarray], np.ndarray]:
-    from cadalign.fuse.predictors import seg_predictor
+    from cadalign.fuse.predictors import seg_predictor  # torch and the project's networks: only when asked for
 
     return seg_predictor(run_dir, None, device, None)
 

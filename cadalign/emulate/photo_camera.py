@@ -14,7 +14,11 @@ indices differ by 0.5.
 Scale (``--scale-from``) of relative depth, or a check / override of metric depth:
 ``distance:D`` (the median depth of the photo is D metres, e.g. the ROV's stand-off), ``pixel:U,V:D``
 (the pixel at column U, row V is D metres away, z-depth), ``depth:PATH`` (a sparse depth map in metres,
-``.npz`` key ``depth_m`` or a uint16 PNG in millimetres, e.g. a sensor's ranges: scale = median ratio).
+``.npz`` key ``depth_m`` or a uint16 PNG in millimetres, e.g. a sensor's ranges) or ``cad:SCENE:POSE`` (the
+CAD scene spec rendered from the camera pose POSE, a JSON with ``T_world_from_cam`` or ``x,y,z,r,p,y``, e.g.
+from ``cadalign align``). A single distance fixes a scale only (the median ratio); a reference depth map
+(``depth``, ``cad``) with relative *disparity* fixes scale and shift: ``1 / ref = a * disparity + b`` by
+least squares (:func:`fit_disparity`), the affine ambiguity of Depth Anything / MiDaS outputs.
 """
 
 from __future__ import annotations
@@ -25,8 +29,15 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 
+from cadalign.emulate.run import parse_pose
+from cadalign.emulate.sources import scene_mesh
+from cadalign.emulate.views import render
 from cadalign.errors import DegenerateGeometryError, InputError
+from cadalign.geometry import recover_focal_shift
+from cadalign.io import read_image
+from cadalign.types import Camera
 
 log = logging.getLogger(__name__)
 FovSource = Literal["calib", "hfov", "exif", "point_map", "default"]
@@ -65,8 +76,6 @@ def K_from_hfov(width: int, height: int, hfov_deg: float) -> np.ndarray:
 def exif_focal_px(path: Path, width: int, height: int) -> float | None:
     """Focal length in pixels from the EXIF 35 mm-equivalent focal length (36 mm = the long side); None when the
     photo has no such tag (PNG, stripped EXIF)."""
-    from PIL import Image, UnidentifiedImageError
-
     try:
         with Image.open(path) as im:
             f35 = im.getexif().get_ifd(_EXIF_IFD).get(_FOCAL_35MM)
@@ -83,8 +92,6 @@ def fit_point_map(points: np.ndarray) -> tuple[float, float, float]:
     Raises:
         InputError: the point map does not determine the focal length (flat, too few points, not a pinhole).
     """
-    from cadalign.geometry import recover_focal_shift
-
     P = np.asarray(points, dtype=np.float64)
     try:
         f, dz = recover_focal_shift(P)
@@ -104,7 +111,7 @@ def photo_camera(width: int, height: int, *, calib: Path | None = None, hfov_deg
                  default_hfov_deg: float = 70.0) -> PhotoCamera:
     """The intrinsics of a photo, first found wins (see the module docstring)."""
     if calib is not None:
-        from cadalign.infer.run import load_calibration
+        from cadalign.infer.run import load_calibration  # the inference stage (torch): only with --calib
 
         K = load_calibration(Path(calib), use_poses=False).K_default
         if K is None:
@@ -129,10 +136,11 @@ def photo_camera(width: int, height: int, *, calib: Path | None = None, hfov_deg
 class ScaleFrom:
     """A metric scale constraint (see the module docstring for the text forms)."""
 
-    kind: Literal["distance", "pixel", "depth"]
+    kind: Literal["distance", "pixel", "depth", "cad"]
     value_m: float = 0.0
     pixel: tuple[int, int] = (0, 0)
     path: Path | None = None
+    pose: str = ""
 
 
 def parse_scale(text: str) -> ScaleFrom:
@@ -151,11 +159,14 @@ def parse_scale(text: str) -> ScaleFrom:
                 return ScaleFrom("pixel", d, (u, v))
         elif kind == "depth" and rest:
             return ScaleFrom("depth", path=Path(rest))
+        elif kind == "cad" and ":" in rest:
+            scene, _, pose = rest.rpartition(":")
+            return ScaleFrom("cad", path=Path(scene), pose=pose)
     except ValueError:
         pass
     raise InputError(f"--scale-from {text!r}: give 'distance:METRES' (median depth), 'pixel:U,V:METRES' or "
-                     "'depth:PATH' (sparse metric depth, .npz depth_m or uint16 PNG in mm); the CAD is not yet a "
-                     "scale source")
+                     "'depth:PATH' (sparse metric depth, .npz depth_m or uint16 PNG in mm) or 'cad:SCENE.toml:POSE' "
+                     "(the CAD seen from the camera pose POSE: a JSON or x,y,z,roll,pitch,yaw)")
 
 
 def _sparse_depth(path: Path, shape: tuple[int, int]) -> np.ndarray:
@@ -167,15 +178,13 @@ def _sparse_depth(path: Path, shape: tuple[int, int]) -> np.ndarray:
                 raise InputError(f"--scale-from depth: {path} has no 'depth_m' array")
             d = np.asarray(z["depth_m"], np.float64)
     else:
-        from cadalign.io import read_image
-
         d = read_image(Path(path), unchanged=True).astype(np.float64) / 1000.0
     if d.shape != shape:
         raise InputError(f"--scale-from depth: {path} is {d.shape}, the photo {shape}")
     return d
 
 
-def scale_factor(depth: np.ndarray, spec: ScaleFrom) -> float:
+def scale_factor(depth: np.ndarray, spec: ScaleFrom, K: np.ndarray | None = None) -> float:
     """The factor that makes ``depth`` (z-depth up to scale, <= 0 / NaN invalid) satisfy ``spec``.
 
     Raises:
@@ -192,9 +201,37 @@ def scale_factor(depth: np.ndarray, spec: ScaleFrom) -> float:
             raise InputError(f"--scale-from pixel:{u},{v}: outside the {depth.shape[1]}x{depth.shape[0]} photo or "
                              "without predicted depth there; pick another pixel")
         return spec.value_m / float(depth[v, u])
-    assert spec.path is not None
-    ref = _sparse_depth(spec.path, depth.shape)
+    ref = reference_depth(spec, depth.shape, K)
     both = ok & np.isfinite(ref) & (np.nan_to_num(ref) > 0)
     if both.sum() < 1:
-        raise InputError(f"--scale-from depth:{spec.path}: no pixel has both a reference and a predicted depth")
+        raise InputError(f"--scale-from {spec.kind}:{spec.path}: no pixel has both a reference and a predicted "
+                         "depth")
     return float(np.median(ref[both] / depth[both]))
+
+
+def reference_depth(spec: ScaleFrom, shape: tuple[int, ...], K: np.ndarray | None) -> np.ndarray:
+    """(H, W) metric reference z-depth of a ``depth`` or ``cad`` constraint (0 = none); ``K`` for ``cad``."""
+    assert spec.path is not None and spec.kind in ("depth", "cad")
+    if spec.kind == "depth":
+        return _sparse_depth(spec.path, tuple(shape))
+    if K is None:
+        raise InputError("--scale-from cad: the camera intrinsics are needed to render the CAD")
+    if not spec.path.is_file():
+        raise InputError(f"--scale-from cad: scene spec {spec.path} not found")
+    view = render(scene_mesh(spec.path), Camera(K, shape[1], shape[0]), parse_pose(spec.pose))
+    return np.asarray(view.depth_m, np.float64)
+
+
+def fit_disparity(disparity: np.ndarray, ref_depth_m: np.ndarray) -> tuple[float, float]:
+    """``(a, b)`` with ``1 / ref = a * disparity + b`` (least squares over pixels valid in both).
+
+    Raises:
+        InputError: fewer than 2 common pixels, or one disparity value only (then only a scale is defined).
+    """
+    ok = np.isfinite(disparity) & np.isfinite(ref_depth_m) & (np.nan_to_num(ref_depth_m) > 0)
+    x, y = disparity[ok], 1.0 / ref_depth_m[ok]
+    if len(x) < 2 or np.ptp(x) <= 1e-12 * max(float(np.abs(x).max()), 1e-300):
+        raise InputError("--scale-from: the reference depth overlaps the prediction on too few distinct pixels "
+                         "to fit scale and shift; give a denser reference or 'distance:METRES'")
+    a, b = np.polyfit(x, y, 1)
+    return float(a), float(b)
