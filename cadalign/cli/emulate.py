@@ -159,6 +159,8 @@ def mesh(
                                           "distance:M (median depth), pixel:U,V:M or depth:PATH (sparse metric "
                                           "depth)."),
     pane_mask: Path | None = typer.Option(None, "--pane-mask", help="Photos: a mask image of glass / panes."),
+    sr_model: Path | None = typer.Option(None, "--sr-model", help="Photos: a Real-ESRGAN (RRDBNet) .pth that "
+                                         "upscales the photo before depth (unmeasured; off by default)."),
     device: str = typer.Option("cpu", "--device", help="Torch device of the networks."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
 ) -> None:
@@ -169,9 +171,9 @@ def mesh(
     lidar_pose.json (for 'emulate lidar OUT/layered_mesh.ply --pose OUT/lidar_pose.json').
     """
     with user_errors():
-        if _is_photo(source, [depth_model, seg_model, hfov, calib, scale_from, pane_mask]):
+        if _is_photo(source, [depth_model, seg_model, hfov, calib, scale_from, pane_mask, sr_model]):
             path = _photo(source, out, preset, config, model_depth, model_seg, depth_model, seg_model, hfov, calib,
-                          scale_from, pane_mask, device, overwrite)
+                          scale_from, pane_mask, sr_model, device, overwrite)
         else:
             models = _predictors(model_depth, model_seg, device, source)
             path = _emulate("mesh", source, out, preset, config, None, None, None, overwrite, models)
@@ -180,7 +182,8 @@ def mesh(
 
 def _photo(source: Path, out: Path, preset: str, config: Path | None, model_depth: Path | None,
            model_seg: Path | None, depth_model: Path | None, seg_model: Path | None, hfov: float | None,
-           calib: Path | None, scale_from: str | None, pane_mask: Path | None, device: str, overwrite: bool) -> Path:
+           calib: Path | None, scale_from: str | None, pane_mask: Path | None, sr_model: Path | None, device: str,
+           overwrite: bool) -> Path:
     from cadalign.config import resolve
     from cadalign.emulate import photo
     from cadalign.emulate.layered_mesh import PRESETS, LayeredMeshConfig
@@ -195,4 +198,5 @@ def _photo(source: Path, out: Path, preset: str, config: Path | None, model_dept
     cfg = photo.PhotoConfig(mesh=resolve(LayeredMeshConfig, PRESETS, preset, config),
                             pretrained=PretrainedConfig(device=device))
     return photo.run(cfg, source, out, depth_model=depth_model, seg_model=seg_model, seg_run=model_seg,
-                     hfov_deg=hfov, calib=calib, scale_from=scale_from, pane_mask=pane_mask, overwrite=overwrite)
+                     sr_model=sr_model, hfov_deg=hfov, calib=calib, scale_from=scale_from, pane_mask=pane_mask,
+                     overwrite=overwrite)

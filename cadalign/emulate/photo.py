@@ -5,9 +5,10 @@ relative disparity made depth by ``1 / disparity`` and scaled by ``--scale-from`
 map, scale and shift of the disparity are fitted) or from an ``.npz`` point
 map (``rgb`` + ``points`` (H, W, 3) in camera axes, e.g. MoGe's output: its ``z + dz`` of eq. (1) is the
 depth). The camera: :mod:`cadalign.emulate.photo_camera`. Classes: a SegFormer checkpoint or a
-``cadalign train seg`` run; panes: the classes named like glass/windows, or a user mask. Relative depth
-without ``--scale-from`` is scaled to a median depth of 1 and the summary says ``"metric": false``: the mesh
-then has no metric scale (a shift of the disparity is not recoverable either).
+``cadalign train seg`` run. Optionally the photo is super-resolved (:mod:`cadalign.emulate.superres`) before
+depth and the depth averaged back to the photo's grid. Panes: the classes named like glass/windows, or a user
+mask. Relative depth without ``--scale-from`` is scaled to a median depth of 1 and the summary says
+``"metric": false``: the mesh then has no metric scale (nor is the disparity's shift known).
 
 :func:`run` writes into ``out_dir``: ``photo_input.npz`` (rgb, depth_m, K, class_id, pane_mask,
 class_names: an image source of :mod:`cadalign.emulate.sources`), ``layered_mesh.ply``, ``preview_rgb.png`` /
@@ -109,7 +110,8 @@ def depth_from_output(out: DepthOutput) -> np.ndarray:
 def lift_photo(photo: Path, cfg: PhotoConfig, *, depth_fn: Callable[[np.ndarray], DepthOutput] | None = None,
                seg: SegModel | None = None, seg_fn: Callable[[np.ndarray], np.ndarray] | None = None,
                hfov_deg: float | None = None, calib: Path | None = None, scale_from: ScaleFrom | None = None,
-               pane_mask: np.ndarray | None = None) -> PhotoResult:
+               pane_mask: np.ndarray | None = None,
+               upscale: Callable[[np.ndarray], np.ndarray] | None = None) -> PhotoResult:
     """Depth, camera, classes and panes of one photo (see the module docstring); seconds per stage in ``info``.
 
     Raises:
@@ -122,7 +124,7 @@ def lift_photo(photo: Path, cfg: PhotoConfig, *, depth_fn: Callable[[np.ndarray]
     cam = photo_camera(W, H, calib=calib, hfov_deg=hfov_deg, photo=Path(photo), points=points,
                        default_hfov_deg=cfg.default_hfov_deg)
     if depth_fn is not None:
-        out = depth_fn(rgb)
+        out = depth_fn(rgb) if upscale is None else _on_upscaled(depth_fn, upscale, rgb, info)
         depth, info["depth_kind"] = depth_from_output(out), out.kind
     elif points is not None:
         depth, info["depth_kind"] = points[..., 2] + cam.shift, "point_map"
@@ -147,6 +149,19 @@ def lift_photo(photo: Path, cfg: PhotoConfig, *, depth_fn: Callable[[np.ndarray]
     info |= {"camera": cam.source, "hfov_deg": cam.hfov_deg, "K": cam.K.tolist(),
              "eq1_residual_px": cam.residual_px, "pane_pixels": 0 if pane_mask is None else int(pane_mask.sum())}
     return PhotoResult(ImageInput(rgb, depth, cam.K, class_id=cls, pane_mask=pane_mask, class_names=names), info)
+
+
+def _on_upscaled(depth_fn: Callable[[np.ndarray], DepthOutput], upscale: Callable[[np.ndarray], np.ndarray],
+                 rgb: np.ndarray, info: dict) -> DepthOutput:
+    """Depth of the super-resolved photo, area-averaged back to the photo's grid (the mesh keeps its size)."""
+    import cv2
+
+    t = time.perf_counter()
+    big = upscale(rgb)
+    info["sr_s"], info["sr_scale"] = time.perf_counter() - t, big.shape[1] / rgb.shape[1]
+    out = depth_fn(big)
+    H, W = rgb.shape[:2]
+    return DepthOutput(cv2.resize(np.asarray(out.value, np.float64), (W, H), interpolation=cv2.INTER_AREA), out.kind)
 
 
 def _scaled(depth: np.ndarray, disparity: np.ndarray | None, spec: ScaleFrom | None,
@@ -184,7 +199,8 @@ def novel_pose(depth_m: np.ndarray, angle_deg: float = 25.0) -> Rigid3:
 
 
 def run(cfg: PhotoConfig, photo: Path, out_dir: Path, *, depth_model: Path | None = None,
-        seg_model: Path | None = None, seg_run: Path | None = None, hfov_deg: float | None = None,
+        seg_model: Path | None = None, seg_run: Path | None = None, sr_model: Path | None = None,
+        hfov_deg: float | None = None,
         calib: Path | None = None, scale_from: str | None = None, pane_mask: Path | None = None,
         overwrite: bool = False) -> Path:
     """Photo -> layered mesh, scan and pictures in ``out_dir`` (see the module docstring); returns ``out_dir``."""
@@ -194,7 +210,8 @@ def run(cfg: PhotoConfig, photo: Path, out_dir: Path, *, depth_model: Path | Non
     mask = _read_mask(pane_mask, rgb_check.shape[:2]) if pane_mask is not None else None
     stat = photo.stat()
     record = {"config": cfg, "photo": str(photo.resolve()), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns,
-              "models": {k: str(v) for k, v in (("depth", depth_model), ("seg", seg_model), ("seg_run", seg_run))
+              "models": {k: str(v) for k, v in (("depth", depth_model), ("seg", seg_model), ("seg_run", seg_run),
+                                                        ("sr", sr_model))
                          if v is not None},
               "hfov_deg": hfov_deg, "calib": None if calib is None else str(calib), "scale_from": scale_from,
               "pane_mask": None if pane_mask is None else str(pane_mask)}
@@ -205,9 +222,14 @@ def run(cfg: PhotoConfig, photo: Path, out_dir: Path, *, depth_model: Path | Non
     depth_fn = load_depth_model(depth_model, cfg.pretrained) if depth_model is not None else None
     seg = load_seg_model(seg_model, cfg.pretrained) if seg_model is not None else None
     seg_fn = _trained_seg(seg_run, cfg.pretrained.device) if seg_run is not None else None
+    upscale = None
+    if sr_model is not None:
+        from cadalign.emulate.superres import load_sr_model  # torch at import: only with --sr-model
+
+        upscale = load_sr_model(sr_model, cfg.pretrained.device)
     load_s = time.perf_counter() - t
     res = lift_photo(photo, cfg, depth_fn=depth_fn, seg=seg, seg_fn=seg_fn, hfov_deg=hfov_deg, calib=calib,
-                     scale_from=spec, pane_mask=mask)
+                     scale_from=spec, pane_mask=mask, upscale=upscale)
     info = res.info | {"load_models_s": load_s}
     info |= _write_outputs(cfg, res.image, out_dir, photo.stem, info)
     write_json(out_dir / "photo.json", info)

@@ -321,3 +321,44 @@ def test_bench_photo_on_the_tiny_scene(tiny_scene_path, tmp_path) -> None:
     (row,) = out["frames"]
     assert row["focal_err_exact"] < 1e-6 and row["focal_err_noisy"] < 0.03
     assert row["same_pose"]["class_agreement"] > 0.95 and (tmp_path / "bench_photo.json").is_file()
+
+
+class TestSuperResolution:
+    @pytest.mark.parametrize(("scale", "shape_out"), [(4, (20, 28, 3)), (2, (10, 14, 3)), (1, (5, 7, 3))])
+    def test_a_saved_rrdbnet_loads_and_upscales(self, tmp_path, scale, shape_out) -> None:
+        import torch
+
+        from cadalign.emulate.superres import RRDBNet, load_sr_model
+
+        torch.manual_seed(0)
+        torch.save({"params_ema": RRDBNet(scale, feat=8, blocks=2, grow=4).state_dict()}, tmp_path / "sr.pth")
+        up = load_sr_model(tmp_path / "sr.pth")(np.full((5, 7, 3), 128, np.uint8))
+        assert up.shape == shape_out and up.dtype == np.uint8
+
+    def test_foreign_or_missing_weights_are_refused(self, tmp_path) -> None:
+        import torch
+
+        from cadalign.emulate.superres import load_sr_model
+
+        torch.save({"params": {"conv.weight": torch.zeros(3, 3, 3, 3)}}, tmp_path / "x.pth")
+        with pytest.raises(InputError, match="only RRDBNet"):
+            load_sr_model(tmp_path / "x.pth")
+        with pytest.raises(InputError, match="not found"):
+            load_sr_model(tmp_path / "none.pth")
+
+    def test_photo_depth_on_the_upscaled_frame_comes_back_at_the_photo_size(self, ckpts, sim_frame,
+                                                                             tmp_path) -> None:
+        import torch
+
+        from cadalign.cli.main import app
+        from cadalign.emulate.superres import RRDBNet
+
+        torch.manual_seed(0)
+        torch.save(RRDBNet(4, feat=8, blocks=1, grow=4).state_dict(), tmp_path / "sr.pth")
+        v, _ = sim_frame
+        r = CliRunner().invoke(app, ["emulate", "mesh", str(_photo(tmp_path, v.rgb[:48, :64])), "--depth-model",
+                                     str(ckpts["da_metric"]), "--sr-model", str(tmp_path / "sr.pth"), "--hfov", "60",
+                                     "--out", str(tmp_path / "o")])
+        assert r.exit_code == 0, r.output
+        info = json.loads((tmp_path / "o" / "photo.json").read_text())
+        assert info["sr_scale"] == 4 and np.load(tmp_path / "o" / "photo_input.npz")["depth_m"].shape == (48, 64)
