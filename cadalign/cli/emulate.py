@@ -121,7 +121,7 @@ _register()
 
 PHOTO_HELP = ("An RGB frame of a BOP scene (SCENE/rgb/NNNNNN.png; depth, class and instance maps read beside it), "
               "an .npz with rgb, depth_m, K, or any photograph (.jpg/.png; with --depth-model) or a point-map .npz "
-              "(rgb, points).")
+              "(rgb + points, or rgb + depth_m + rays).")
 
 
 def _is_photo(source: Path, photo_options: list) -> bool:
@@ -136,7 +136,7 @@ def _is_photo(source: Path, photo_options: list) -> bool:
     suffix = source.suffix.lower()
     if suffix == ".npz" and source.is_file():
         with np.load(source) as z:
-            return "points" in z.files and "depth_m" not in z.files
+            return "points" in z.files or "rays" in z.files
     return suffix in PHOTO_SUFFIXES and not (source.parent.name == "rgb"
                                              and (source.parent.parent / "scene_camera.json").is_file())
 

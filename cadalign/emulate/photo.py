@@ -2,9 +2,9 @@
 
 Depth comes from the user's pretrained checkpoint (:mod:`cadalign.emulate.pretrained`: metric depth, or
 relative disparity made depth by ``1 / disparity`` and scaled by ``--scale-from``; with a reference depth
-map, scale and shift of the disparity are fitted) or from an ``.npz`` point
-map (``rgb`` + ``points`` (H, W, 3) in camera axes, e.g. MoGe's output: its ``z + dz`` of eq. (1) is the
-depth). The camera: :mod:`cadalign.emulate.photo_camera`. Classes: a SegFormer checkpoint or a
+map, scale and shift of the disparity are fitted) or from an ``.npz`` point map (``rgb`` + ``points``
+(H, W, 3) in camera axes, e.g. MoGe's output, or ``depth_m`` + per-pixel ``rays``: its ``z + dz`` of eq. (1)
+is the depth). The camera: :mod:`cadalign.emulate.photo_camera`. Classes: a SegFormer checkpoint or a
 ``cadalign train seg`` run. Optionally the photo is super-resolved (:mod:`cadalign.emulate.superres`) before
 depth and the depth averaged back to the photo's grid. Panes: the classes named like glass/windows, or a user
 mask. Relative depth without ``--scale-from`` is scaled to a median depth of 1 and the summary says
@@ -81,21 +81,35 @@ class PhotoResult:
 
 
 def read_photo(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """``(rgb (H, W, 3) uint8, point map (H, W, 3) or None)`` of a photo file or an ``.npz`` (rgb + points)."""
+    """``(rgb (H, W, 3) uint8, point map (H, W, 3) or None)`` of a photo file or an ``.npz``: ``rgb`` with
+    ``points`` (H, W, 3), or with ``depth_m`` (H, W) along ``rays`` (H, W, 3; camera-frame directions of the
+    pixels, any length: the point is the ray scaled to z = depth)."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"photo not found: {path}")
     if path.suffix.lower() == ".npz":
         with np.load(path) as z:
-            if "rgb" not in z.files or "points" not in z.files:
-                raise InputError(f"{path}: a point-map .npz needs 'rgb' (H, W, 3) and 'points' (H, W, 3)")
-            rgb, pts = np.asarray(z["rgb"]), np.asarray(z["points"], np.float64)
+            has = set(z.files)
+            if "rgb" not in has or not ("points" in has or {"depth_m", "rays"} <= has):
+                raise InputError(f"{path}: a point-map .npz needs 'rgb' (H, W, 3) and 'points' (H, W, 3), or "
+                                 "'depth_m' (H, W) and 'rays' (H, W, 3)")
+            rgb = np.asarray(z["rgb"])
+            pts = np.asarray(z["points"], np.float64) if "points" in has else _points_from_rays(
+                np.asarray(z["depth_m"], np.float64), np.asarray(z["rays"], np.float64))
         if pts.shape != rgb.shape[:2] + (3,):
             raise InputError(f"{path}: points {pts.shape} must be (H, W, 3) matching rgb {rgb.shape}")
         return rgb[..., :3].astype(np.uint8), pts
     if path.suffix.lower() not in PHOTO_SUFFIXES:
         raise InputError(f"{path}: a photo must be one of {', '.join(PHOTO_SUFFIXES)} or a point-map .npz")
     return read_image(path), None
+
+
+def _points_from_rays(depth_m: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    if rays.shape != depth_m.shape + (3,):
+        raise InputError(f"rays {rays.shape} must be (H, W, 3) matching depth_m {depth_m.shape}")
+    ok = np.isfinite(depth_m) & (np.nan_to_num(depth_m) > 0) & (np.nan_to_num(rays[..., 2]) > 0)
+    z = np.where(ok, rays[..., 2], 1.0)
+    return np.where(ok[..., None], rays / z[..., None] * np.where(ok, depth_m, 0.0)[..., None], np.nan)
 
 
 def depth_from_output(out: DepthOutput) -> np.ndarray:

@@ -4,7 +4,8 @@ Intrinsics, first found wins: ``--calib`` (a ``cameras.json``), ``--hfov``, the 
 focal length, a fit of GenLaM eq. (1) to a point map (:func:`cadalign.geometry.recover_focal_shift`: focal
 length and z-shift, with its RMS reprojection residual reported), else a stated default field of view with a
 warning. A depth-only network (Depth Anything, DPT) gives no point map or rays, so the focal length is not
-observable from its output: eq. (1) applies only where a point map is given.
+observable from its output: eq. (1) applies only where a point map is given. When ``--calib``, ``--hfov`` or
+EXIF gives the camera, a point map is taken as it is (z-shift 0).
 
 Convention: ours puts pixel centres at integer + 0.5, so the principal point of a W x H photo is
 ``(W/2, H/2)`` and ``f = (W/2) / tan(hfov/2)``. GenLaM's Algorithm 1 writes ``c = (W-1)/2`` with pixel

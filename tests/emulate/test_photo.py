@@ -362,3 +362,27 @@ class TestSuperResolution:
         assert r.exit_code == 0, r.output
         info = json.loads((tmp_path / "o" / "photo.json").read_text())
         assert info["sr_scale"] == 4 and np.load(tmp_path / "o" / "photo_input.npz")["depth_m"].shape == (48, 64)
+
+
+def test_depth_plus_rays_npz_and_calib_and_reuse(sim_frame, tmp_path) -> None:
+    from cadalign.cli.main import app
+    from cadalign.geometry import pixel_rays
+    from cadalign.io import write_json
+
+    v, cam = sim_frame
+    rays = pixel_rays(cam.K, cam.width, cam.height, normalize=True)  # unit rays: the fit rescales them to z = 1
+    np.savez(tmp_path / "dr.npz", rgb=v.rgb, depth_m=v.depth_m, rays=rays)
+    res = lift_photo(tmp_path / "dr.npz", PhotoConfig())
+    assert res.info["camera"] == "point_map" and res.image.K[0, 0] == pytest.approx(cam.fx, rel=1e-9)
+    np.testing.assert_allclose(res.image.depth_m, v.depth_m, atol=1e-9)
+    K2 = cam.K.copy()
+    K2[0, 0] = K2[1, 1] = 123.0
+    write_json(tmp_path / "cameras.json", {"camera": {"K": K2.tolist()}})
+    args = ["emulate", "mesh", str(tmp_path / "dr.npz"), "--calib", str(tmp_path / "cameras.json"), "--out",
+            str(tmp_path / "o")]
+    assert CliRunner().invoke(app, args).exit_code == 0
+    info = json.loads((tmp_path / "o" / "photo.json").read_text())
+    assert info["camera"] == "calib" and info["K"][0][0] == 123.0  # the calibration wins over eq. (1)
+    stamp = (tmp_path / "o" / "layered_mesh.ply").stat().st_mtime_ns
+    r = CliRunner().invoke(app, args)  # same config: finished work is reused, nothing rewritten
+    assert r.exit_code == 0 and (tmp_path / "o" / "layered_mesh.ply").stat().st_mtime_ns == stamp
