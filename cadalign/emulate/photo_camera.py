@@ -1,11 +1,12 @@
 """The camera and the metric scale of a single photograph (GenLaM from any photo).
 
-Intrinsics, first found wins: ``--calib`` (a ``cameras.json``), ``--hfov``, the photo's EXIF 35 mm-equivalent
-focal length, a fit of GenLaM eq. (1) to a point map (:func:`cadalign.geometry.recover_focal_shift`: focal
-length and z-shift, with its RMS reprojection residual reported), else a stated default field of view with a
-warning. A depth-only network (Depth Anything, DPT) gives no point map or rays, so the focal length is not
-observable from its output: eq. (1) applies only where a point map is given. When ``--calib``, ``--hfov`` or
-EXIF gives the camera, a point map is taken as it is (z-shift 0).
+Intrinsics, first found wins: ``--calib`` (a calibration JSON ``{"K": [...]}`` or a ``cameras.json``),
+``--hfov``, the photo's EXIF 35 mm-equivalent focal length, a fit of GenLaM eq. (1) to a point map
+(:func:`cadalign.geometry.recover_focal_shift`: focal length and z-shift, with its RMS reprojection residual
+reported), else a stated default field of view with a warning. A depth-only network (Depth Anything, DPT)
+gives no point map or rays, so the focal length is not observable from its output: eq. (1) applies only where
+a point map is given. When ``--calib``, ``--hfov`` or EXIF gives the camera, a point map is taken as it is
+(z-shift 0).
 
 Convention: ours puts pixel centres at integer + 0.5, so the principal point of a W x H photo is
 ``(W/2, H/2)`` and ``f = (W/2) / tan(hfov/2)``. GenLaM's Algorithm 1 writes ``c = (W-1)/2`` with pixel
@@ -37,7 +38,8 @@ from cadalign.emulate.sources import scene_mesh
 from cadalign.emulate.views import render
 from cadalign.errors import DegenerateGeometryError, InputError
 from cadalign.geometry import recover_focal_shift
-from cadalign.io import read_image
+from cadalign.io import read_image, read_json
+from cadalign.sfm.report import intrinsics_from_cameras_json
 from cadalign.types import Camera
 
 log = logging.getLogger(__name__)
@@ -107,17 +109,24 @@ def fit_point_map(points: np.ndarray) -> tuple[float, float, float]:
     return f, dz, res
 
 
+def calib_K(path: Path, width: int, height: int) -> np.ndarray:
+    """K of a calibration file (``{"K": [9 values], "width", "height"}`` as ``cadalign sim`` writes, or a
+    cameras.json), rescaled to the photo when the file names another image size (a resized photo)."""
+    fx, fy, cx, cy = intrinsics_from_cameras_json(path)
+    data = read_json(path)
+    cw, ch = (data.get("width"), data.get("height")) if isinstance(data, dict) else (None, None)
+    sx, sy = (width / cw, height / ch) if cw and ch else (1.0, 1.0)
+    if (sx, sy) != (1.0, 1.0):
+        log.warning("%s is for %sx%s px, the photo %dx%d: K rescaled", path, cw, ch, width, height)
+    return np.array([[fx * sx, 0, cx * sx], [0, fy * sy, cy * sy], [0, 0, 1.0]])
+
+
 def photo_camera(width: int, height: int, *, calib: Path | None = None, hfov_deg: float | None = None,
                  photo: Path | None = None, points: np.ndarray | None = None,
                  default_hfov_deg: float = 70.0) -> PhotoCamera:
     """The intrinsics of a photo, first found wins (see the module docstring)."""
     if calib is not None:
-        from cadalign.infer.run import load_calibration  # the inference stage (torch): only with --calib
-
-        K = load_calibration(Path(calib), use_poses=False).K_default
-        if K is None:
-            raise InputError(f"--calib {calib}: no camera K in it")
-        return PhotoCamera(np.asarray(K, np.float64), "calib")
+        return PhotoCamera(calib_K(Path(calib), width, height), "calib")
     if hfov_deg is not None:
         return PhotoCamera(K_from_hfov(width, height, hfov_deg), "hfov")
     f = exif_focal_px(photo, width, height) if photo is not None else None

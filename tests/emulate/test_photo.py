@@ -377,12 +377,12 @@ def test_depth_plus_rays_npz_and_calib_and_reuse(sim_frame, tmp_path) -> None:
     np.testing.assert_allclose(res.image.depth_m, v.depth_m, atol=1e-9)
     K2 = cam.K.copy()
     K2[0, 0] = K2[1, 1] = 123.0
-    write_json(tmp_path / "cameras.json", {"camera": {"K": K2.tolist()}})
+    write_json(tmp_path / "cameras.json", {"K": K2.ravel().tolist(), "width": 2 * cam.width, "height": 2 * cam.height})
     args = ["emulate", "mesh", str(tmp_path / "dr.npz"), "--calib", str(tmp_path / "cameras.json"), "--out",
             str(tmp_path / "o")]
     assert CliRunner().invoke(app, args).exit_code == 0
     info = json.loads((tmp_path / "o" / "photo.json").read_text())
-    assert info["camera"] == "calib" and info["K"][0][0] == 123.0  # the calibration wins over eq. (1)
+    assert info["camera"] == "calib" and info["K"][0][0] == 61.5  # wins over eq. (1); for a 2x larger image
     stamp = (tmp_path / "o" / "layered_mesh.ply").stat().st_mtime_ns
     r = CliRunner().invoke(app, args)  # same config: finished work is reused, nothing rewritten
     assert r.exit_code == 0 and (tmp_path / "o" / "layered_mesh.ply").stat().st_mtime_ns == stamp
