@@ -168,7 +168,8 @@ def mesh(
 
     From a photograph (GenLaM): depth from --depth-model, field of view from --calib / --hfov / EXIF / an
     eq. (1) fit to a point map, classes from --seg-model or --model-seg; writes also scan.npz, contact.png and
-    lidar_pose.json (for 'emulate lidar OUT/layered_mesh.ply --pose OUT/lidar_pose.json').
+    lidar_pose.json (for 'emulate lidar OUT/layered_mesh.ply --pose OUT/lidar_pose.json'; the mesh is in the
+    photo's camera frame, so 'emulate view OUT/layered_mesh.ply --pose 0,0,0' sees it as the photo did).
     """
     with user_errors():
         if _is_photo(source, [depth_model, seg_model, hfov, calib, scale_from, pane_mask, sr_model]):

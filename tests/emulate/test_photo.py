@@ -264,6 +264,11 @@ class TestCli:
         info = json.loads((tmp_path / "o" / "photo.json").read_text())
         assert info["camera"] == "point_map" and info["eq1_residual_px"] < 1e-6
         assert info["panes"] >= 1 and info["scan_pane_returns"] > 0
+        r = CliRunner().invoke(app, ["emulate", "view", str(tmp_path / "o" / "layered_mesh.ply"), "--pose", "0,0,0",
+                                     "--preset", "small", "--out", str(tmp_path / "v")])
+        assert r.exit_code == 0, r.output
+        seen = np.load(tmp_path / "v" / "view.npz")["face"] >= 0  # the photo's camera (60 deg) inside the 70 deg view
+        assert seen.mean() > 0.3 and seen[60, 80]
 
     def test_relative_depth_without_scale_says_no_metric_scale(self, ckpts, tmp_path) -> None:
         from cadalign.cli.main import app
