@@ -119,20 +119,85 @@ def _register() -> None:
 _register()
 
 
+PHOTO_HELP = ("An RGB frame of a BOP scene (SCENE/rgb/NNNNNN.png; depth, class and instance maps read beside it), "
+              "an .npz with rgb, depth_m, K, or any photograph (.jpg/.png; with --depth-model) or a point-map .npz "
+              "(rgb + points, or rgb + depth_m + rays).")
+
+
+def _is_photo(source: Path, photo_options: list) -> bool:
+    """Whether ``emulate mesh`` takes the photo path (:mod:`cadalign.emulate.photo`): a photo option is given, or
+    the source is an image outside a BOP scene folder, or an ``.npz`` point map."""
+    import numpy as np
+
+    from cadalign.emulate.photo import PHOTO_SUFFIXES
+
+    if any(o is not None for o in photo_options):
+        return True
+    suffix = source.suffix.lower()
+    if suffix == ".npz" and source.is_file():
+        with np.load(source) as z:
+            return "points" in z.files or "rays" in z.files
+    return suffix in PHOTO_SUFFIXES and not (source.parent.name == "rgb"
+                                             and (source.parent.parent / "scene_camera.json").is_file())
+
+
 @app.command("mesh")
 def mesh(
-    source: Path = typer.Argument(..., help="An RGB frame of a BOP scene (SCENE/rgb/NNNNNN.png; depth, class and "
-                                            "instance maps read beside it) or an .npz with rgb, depth_m, K."),
+    source: Path = typer.Argument(..., help=PHOTO_HELP),
     out: Path = typer.Option(..., "--out", help="Output folder (layered_mesh.ply, preview_rgb.png, ...)."),
     preset: str = typer.Option("default", "--preset", help="default | coarse | strict."),
     config: Path | None = typer.Option(None, "--config", help="TOML/YAML with overrides of the preset."),
     model_depth: Path | None = typer.Option(None, "--model-depth", help=MODEL_DEPTH_HELP),
     model_seg: Path | None = typer.Option(None, "--model-seg", help=MODEL_SEG_HELP),
+    depth_model: Path | None = typer.Option(None, "--depth-model", help="Photos: a local transformers depth "
+                                            "checkpoint folder (Depth Anything V1/V2 metric or relative, DPT)."),
+    seg_model: Path | None = typer.Option(None, "--seg-model", help="Photos: a local SegFormer checkpoint folder "
+                                          "(e.g. ADE20k; its glass / window classes become planar panes)."),
+    hfov: float | None = typer.Option(None, "--hfov", help="Photos: horizontal field of view, degrees."),
+    calib: Path | None = typer.Option(None, "--calib", help="Photos: a cameras.json whose K is used."),
+    scale_from: str | None = typer.Option(None, "--scale-from", help="Photos: metric scale of relative depth: "
+                                          "distance:M (median depth), pixel:U,V:M or depth:PATH (sparse metric "
+                                          "depth)."),
+    pane_mask: Path | None = typer.Option(None, "--pane-mask", help="Photos: a mask image of glass / panes."),
+    sr_model: Path | None = typer.Option(None, "--sr-model", help="Photos: a Real-ESRGAN (RRDBNet) .pth that "
+                                         "upscales the photo before depth (unmeasured; off by default)."),
     device: str = typer.Option("cpu", "--device", help="Torch device of the networks."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
 ) -> None:
-    """Layered mesh from one image: grid triangles cut at depth jumps, class/part/pane layers, planar panes."""
+    """Layered mesh from one image: grid triangles cut at depth jumps, class/part/pane layers, planar panes.
+
+    From a photograph (GenLaM): depth from --depth-model, field of view from --calib / --hfov / EXIF / an
+    eq. (1) fit to a point map, classes from --seg-model or --model-seg; writes also scan.npz, contact.png and
+    lidar_pose.json (for 'emulate lidar OUT/layered_mesh.ply --pose OUT/lidar_pose.json'; the mesh is in the
+    photo's camera frame, so 'emulate view OUT/layered_mesh.ply --pose 0,0,0' sees it as the photo did).
+    """
     with user_errors():
-        models = _predictors(model_depth, model_seg, device, source)
-        path = _emulate("mesh", source, out, preset, config, None, None, None, overwrite, models)
+        if _is_photo(source, [depth_model, seg_model, hfov, calib, scale_from, pane_mask, sr_model]):
+            path = _photo(source, out, preset, config, model_depth, model_seg, depth_model, seg_model, hfov, calib,
+                          scale_from, pane_mask, sr_model, device, overwrite)
+        else:
+            models = _predictors(model_depth, model_seg, device, source)
+            path = _emulate("mesh", source, out, preset, config, None, None, None, overwrite, models)
     console.print(f"[green]layered mesh written to {path}[/]")
+
+
+def _photo(source: Path, out: Path, preset: str, config: Path | None, model_depth: Path | None,
+           model_seg: Path | None, depth_model: Path | None, seg_model: Path | None, hfov: float | None,
+           calib: Path | None, scale_from: str | None, pane_mask: Path | None, sr_model: Path | None, device: str,
+           overwrite: bool) -> Path:
+    from cadalign.config import resolve
+    from cadalign.emulate import photo
+    from cadalign.emulate.layered_mesh import PRESETS, LayeredMeshConfig
+    from cadalign.emulate.pretrained import PretrainedConfig
+    from cadalign.errors import InputError
+
+    if model_depth is not None:
+        raise InputError("--model-depth (a network trained on the simulator) needs a BOP frame or an .npz with K; "
+                         "for a photograph pass --depth-model DIR (a local transformers checkpoint)")
+    if seg_model is not None and model_seg is not None:
+        raise InputError("give --seg-model (a SegFormer checkpoint) or --model-seg (a 'train seg' run), not both")
+    cfg = photo.PhotoConfig(mesh=resolve(LayeredMeshConfig, PRESETS, preset, config),
+                            pretrained=PretrainedConfig(device=device))
+    return photo.run(cfg, source, out, depth_model=depth_model, seg_model=seg_model, seg_run=model_seg,
+                     sr_model=sr_model, hfov_deg=hfov, calib=calib, scale_from=scale_from, pane_mask=pane_mask,
+                     overwrite=overwrite)

@@ -4,7 +4,9 @@ Everything ray casts one :class:`~cadalign.emulate.mesh.LayeredMesh` (triangles 
 part and pane layers) with one of two engines that agree (:mod:`cadalign.emulate.raycast_engines`): Open3D's
 BVH or exact Möller–Trumbore in torch. Sources (:mod:`cadalign.emulate.sources`): a CAD scene spec, a mesh
 PLY (e.g. a fused map) or one RGB-D image (:mod:`cadalign.emulate.layered_mesh`, with planar panes from
-:mod:`cadalign.emulate.panes`). The stage on disk is :func:`cadalign.emulate.run.run`; the CLI is
+:mod:`cadalign.emulate.panes`); a plain photograph goes through :mod:`cadalign.emulate.photo` (the user's
+pretrained depth / segmentation checkpoints, :mod:`cadalign.emulate.pretrained`). The stage on disk is
+:func:`cadalign.emulate.run.run`; the CLI is
 ``cadalign emulate (lidar|sonar|view|mesh) SOURCE --out DIR [--pose P] [--look-at X] [--preset P]``.
 Submodules are imported explicitly (torch and Open3D load lazily).
 

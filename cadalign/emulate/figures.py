@@ -138,3 +138,47 @@ def sonar_figure(img: SonarImage, path: Path, dynamic_range_db: float, class_nam
         ax.set_ylabel("forward range (m)")
     fig.tight_layout()
     return _save(fig, path)
+
+
+def contact_figure(rgb: np.ndarray, depth_m: np.ndarray, class_id: np.ndarray | None, mesh_view: np.ndarray,
+                   scan: LidarScan, path: Path, class_names: tuple[str, ...] = (), title: str = "") -> Path:
+    """GenLaM contact picture: photo, depth, classes, a novel view of the layered mesh and the scan from above.
+
+    The scan panel plots camera-frame x (right) against z (forward), the points coloured by class (by their
+    colour when there are no classes).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 5, figsize=(24, 4.8))
+    ax[0].imshow(rgb)
+    ax[0].set_title("photo")
+    d = np.where(depth_m > 0, depth_m, np.nan)
+    im = ax[1].imshow(d, cmap="turbo")
+    fig.colorbar(im, ax=ax[1], fraction=0.04, label="depth (m)")
+    ax[1].set_title("depth")
+    if class_id is not None:
+        ax[2].imshow(class_colours(class_id))
+        shown = np.unique(class_id)[:8]
+        ax[2].set_title("classes: " + ", ".join(_class_name(class_names, int(c)) for c in shown), fontsize=7)
+    else:
+        ax[2].set_title("classes: none (no segmentation model)")
+    ax[3].imshow(mesh_view)
+    ax[3].set_title("layered mesh, novel view")
+    colour = class_colours(scan.class_id) if class_id is not None else scan.rgb
+    ax[4].scatter(scan.xyz_world[:, 0], scan.xyz_world[:, 2], s=0.3, c=colour / 255.0)
+    panes = scan.pane_id > 0
+    if panes.any():
+        ax[4].scatter(scan.xyz_world[panes, 0], scan.xyz_world[panes, 2], s=0.3, c="red", label="pane")
+        ax[4].legend(loc="upper right", fontsize=7)
+    ax[4].set_aspect("equal")
+    ax[4].set_xlabel("x right (m)")
+    ax[4].set_ylabel("z forward (m)")
+    ax[4].set_title(f"LiDAR scan: {len(scan.range_m)} returns")
+    for a in ax[:4]:
+        a.axis("off")
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    return _save(fig, path)

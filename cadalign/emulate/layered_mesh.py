@@ -19,11 +19,35 @@ import numpy as np
 from cadalign.config import bounded
 from cadalign.emulate.mesh import LayeredMesh, concatenate
 from cadalign.emulate.panes import PaneConfig, PaneResult, extract_panes
-from cadalign.emulate.sources import ImageInput
 from cadalign.errors import InputError
 from cadalign.geometry import depth_to_points
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ImageInput:
+    """One RGB-D frame to lift into a layered mesh.
+
+    Attributes:
+        rgb: (H, W, 3) uint8.
+        depth_m: (H, W) z-depth in metres (<= 0 / non-finite = invalid).
+        K: (3, 3) intrinsics (pixel centres at integer + 0.5).
+        class_id: optional (H, W) class per pixel.
+        part_id: optional (H, W) part / instance id per pixel.
+        pane_mask: optional (H, W) bool mask of planar panes (windows, glass, flat panels).
+        T_world_from_cam: optional (4, 4) pose of the camera; the mesh stays in the camera frame when None.
+        class_names: names of the class ids.
+    """
+
+    rgb: np.ndarray
+    depth_m: np.ndarray
+    K: np.ndarray
+    class_id: np.ndarray | None = None
+    part_id: np.ndarray | None = None
+    pane_mask: np.ndarray | None = None
+    T_world_from_cam: np.ndarray | None = None
+    class_names: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

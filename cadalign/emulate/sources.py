@@ -17,11 +17,11 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from cadalign.emulate.layered_mesh import PRESETS, ImageInput, mesh_from_image
 from cadalign.emulate.mesh import LayeredMesh, concatenate
 from cadalign.errors import InputError
 from cadalign.io import atomic_path
@@ -33,31 +33,6 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".npz")
 _CLASS_KEYS = ("class", "class_id", "label")
 _PART_KEYS = ("part", "part_id", "instance")
 _PANE_KEYS = ("pane", "pane_id")
-
-
-@dataclass(frozen=True)
-class ImageInput:
-    """One RGB-D frame to lift into a layered mesh.
-
-    Attributes:
-        rgb: (H, W, 3) uint8.
-        depth_m: (H, W) z-depth in metres (<= 0 / non-finite = invalid).
-        K: (3, 3) intrinsics (pixel centres at integer + 0.5).
-        class_id: optional (H, W) class per pixel.
-        part_id: optional (H, W) part / instance id per pixel.
-        pane_mask: optional (H, W) bool mask of planar panes (windows, glass, flat panels).
-        T_world_from_cam: optional (4, 4) pose of the camera; the mesh stays in the camera frame when None.
-        class_names: names of the class ids.
-    """
-
-    rgb: np.ndarray
-    depth_m: np.ndarray
-    K: np.ndarray
-    class_id: np.ndarray | None = None
-    part_id: np.ndarray | None = None
-    pane_mask: np.ndarray | None = None
-    T_world_from_cam: np.ndarray | None = None
-    class_names: tuple[str, ...] = ()
 
 
 def scene_mesh(path: Path) -> LayeredMesh:
@@ -189,6 +164,8 @@ def read_image_input(path: Path) -> ImageInput:
             if missing:
                 raise InputError(f"{path} lacks {missing}; an image source .npz needs rgb, depth_m and K")
             opt = {k: z[k] for k in ("class_id", "part_id", "pane_mask", "T_world_from_cam") if k in z.files}
+            if "class_names" in z.files:
+                opt["class_names"] = tuple(str(n) for n in z["class_names"])
             return ImageInput(z["rgb"], z["depth_m"], z["K"], **opt)
     from cadalign.data.bop import BopScene
     from cadalign.io import read_image
@@ -261,8 +238,6 @@ def load_source(path: Path, *, image_config: object | None = None, depth_fn: Dep
     if suffix == ".ply":
         return ply_mesh(path)
     if suffix in IMAGE_SUFFIXES:
-        from cadalign.emulate.layered_mesh import PRESETS, mesh_from_image
-
         inp = with_predictions(read_image_input(path), depth_fn, seg_fn)
         return mesh_from_image(inp, image_config or PRESETS["default"])
     raise InputError(f"unsupported SOURCE {path}: use a scene spec ({', '.join(SCENE_SUFFIXES)}), a mesh .ply, "
