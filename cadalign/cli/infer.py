@@ -99,10 +99,7 @@ def command(
 
 def _has_metric_poses(calib: Path) -> bool:
     from cadalign.infer.run import load_calibration
-    from cadalign.io import read_json
 
-    if "K" in read_json(calib):  # a bare calibration: intrinsics only
-        return False
     return bool(load_calibration(calib).T_world_from_cam_of)
 
 
@@ -114,34 +111,44 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
     from cadalign.config import resolve
     from cadalign.errors import InputError
     from cadalign.infer import detect as det
-    from cadalign.infer.track.run import PRESETS, TrackRunConfig, camera_from_calibration, read_init_pose, track_video
+    from cadalign.infer.track.run import PRESETS, TrackRunConfig, read_init_pose, track_video
     from cadalign.infer.video import iter_frames
 
+    if model is None and init_pose is None:
+        raise InputError("the tracker needs a start: pass --init-pose FILE (a rough first-frame pose) and/or --model "
+                         "RUN (a trained detector); or give --oracle-gt SIM_DIR (tests and demos) or --depth for the "
+                         "detector pipeline")
     cfg = resolve(TrackRunConfig, PRESETS, preset if preset in PRESETS else "balanced", config, {})
+    restart = None
+    info: dict = {"kind": "none"}
     structure = load_structure(cad, cad_unit)
     gt_scene = det.resolve_scene_dir(gt) if gt is not None else None
     first = next(iter(iter_frames(source, max_frames=1)), None)
     if first is None:
         raise InputError(f"{source} holds no readable frame")
+    lens = None
+    h, w = first.image.shape[:2]
     if calib is not None:
-        camera = camera_from_calibration(calib, first.image.shape[:2])
+        from cadalign.formats.calibration import read_calibration
+        from cadalign.types import Camera
+
+        lens = read_calibration(calib)
+        lens.check_size(w, h, f"{source}'s first frame {first.name}")
+        camera = Camera(lens.K, w, h)
     elif gt_scene is not None:
         from cadalign.infer.run import calibration_from_scene
         from cadalign.types import Camera
 
-        h, w = first.image.shape[:2]
         camera = Camera(calibration_from_scene(gt_scene, use_poses=False).K_default, w, h)
     else:
         raise InputError("no camera intrinsics: pass --calib calibration.json (your camera's calibration)")
-    restart = None
-    info: dict = {"kind": "none"}
     if model is not None:
         from cadalign.infer.track.start import detector_restarts
 
         restart, info = detector_restarts(model, structure, camera, device)
     T0 = read_init_pose(init_pose) if init_pose is not None else None
     path = track_video(cfg, source, structure, camera, out, init_pose=T0, restart_source=restart, gt_scene=gt_scene,
-                       max_frames=max_frames, overwrite=overwrite, progress=track,
+                       max_frames=max_frames, overwrite=overwrite, progress=track, lens=lens,
                        record={"detector": info, "cad": str(cad)})
     console.print(f"[green]poses written to {path}[/]")
     _print_track_summary(out)

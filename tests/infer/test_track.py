@@ -57,6 +57,71 @@ def boxes():
     return meshes, cam, render
 
 
+TRACK_SCENE = """
+name = "tiny_structure"
+seed = 3
+classes = ["background", "structure", "valve", "hot_stab"]
+effects = []
+ambient = 0.6
+
+[camera]
+width = 320
+height = 240
+hfov_deg = 65.0
+
+[trajectory]
+kind = "orbit"
+center = [0.0, 0.0, 0.6]
+radius_m = 5.0
+height_m = 3.2
+speed_mps = 0.35
+fps = 1.0
+frames = 6
+jitter_m = 0.0
+shutter_s = 0.0
+
+[water]
+jerlov = "I"
+
+[seabed]
+size_m = 14.0
+relief_m = 0.0
+texture = "sediment"
+{objects}
+"""
+TRACK_PARTS = [("box_a", "box", "structure", (-1.2, -1.0, 0.0), 20, (0.8, 0.5, 0.6)),
+               ("box_b", "box", "structure", (1.1, -1.1, 0.0), 65, (0.5, 0.7, 1.0)),
+               ("box_c", "box", "structure", (0.0, 0.2, 0.0), 10, (1.0, 0.8, 1.2)),
+               ("box_d", "box", "structure", (-1.0, 1.2, 0.0), 40, (0.6, 0.6, 0.5)),
+               ("box_e", "box", "structure", (1.3, 1.0, 0.0), 75, (0.4, 0.9, 0.7)),
+               ("valve_1", "valve_a", "valve", (0.0, -1.6, 0.0), 0, None),
+               ("valve_2", "valve_b", "valve", (-1.8, 0.1, 0.0), 90, None),
+               ("hot_stab_1", "hot_stab", "hot_stab", (1.8, 0.0, 0.3), 30, None)]
+
+
+def write_track_scene(path: Path, without: tuple[str, ...] = ()) -> Path:
+    """A small structure (five boxes, two valves, a hot stab) filmed on a 6-frame orbit at 320x240, effect free:
+    enough contours to fix a camera pose, unlike the 160x120 tiny scene's three small parts."""
+    objs = []
+    for name, kind, cls, pos, yaw, size in TRACK_PARTS:
+        if name in without:
+            continue
+        size_line = "" if size is None else f"size_m = {list(size)}\n"
+        objs.append(f'[[objects]]\nname = "{name}"\nsource = "procedural:{kind}"\nclass_name = "{cls}"\n'
+                    f"position = {list(pos)}\nrpy_deg = [0.0, 0.0, {float(yaw)}]\n{size_line}"
+                    f'texture = "{"yellow_paint" if cls == "hot_stab" else "painted_steel"}"\n')
+    path.write_text(TRACK_SCENE.format(objects="\n".join(objs)))
+    return path
+
+
+@pytest.fixture(scope="module")
+def track_sim(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from cadalign.sim.run import simulate
+
+    root = tmp_path_factory.mktemp("track_sim")
+    return simulate(write_track_scene(root / "structure.toml"), root / "sim", video=False, contact_sheet=False)
+
+
 def _view(k: int) -> Rigid3:
     """``T_world_from_cam`` of the k-th view of the boxes: round them at 5.5 m, 3.5 m up."""
     from infer_testdata import look_at
@@ -194,26 +259,24 @@ class TestTrackBoxes:
 
 
 class TestTrackTiny:
-    def test_a_part_missing_from_the_video_is_not_reported(self, tmp_path: Path, tiny_sim: Path,
-                                                           tiny_structure) -> None:
+    def test_a_part_missing_from_the_video_is_not_reported(self, tmp_path: Path, track_sim: Path) -> None:
+        from cadalign.build_dataset import load_structure
         from cadalign.sim.run import simulate
 
-        text = (tiny_sim.parent / "tiny.toml").read_text()
-        blocks = text.split("[[objects]]")
-        without = "[[objects]]".join(b for b in blocks if 'name = "valve"' not in b)
-        scene = tmp_path / "tiny_without_valve.toml"
-        scene.write_text(without)
+        scene = write_track_scene(tmp_path / "without_valve_1.toml", without=("valve_1",))
         sim = simulate(scene, tmp_path / "sim", video=False, contact_sheet=False)
+        structure = load_structure(track_sim.parent / "structure.toml")  # the CAD still has valve_1
         cam, names, cams = _frames(sim)
         out = tmp_path / "out"
-        track_video(TrackRunConfig(TINY_TRACKER, overlay=False), sim / "frames", tiny_structure, cam, out,
-                    init_pose=_T_cw(cams[names[0]]))
+        track_video(TrackRunConfig(overlay=False), sim / "frames", structure, cam, out,
+                    init_pose=_perturbed(_T_cw(cams[names[0]]), 0.05, 2.0, 1))
         recs = [json.loads(line) for line in (out / "poses.jsonl").read_text().splitlines()]
         steps = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
         assert all(s["state"] == "ok" for s in steps)
-        assert not any(r["class"] == "valve" for r in recs)  # the CAD has it, the video does not
-        assert sum(r["class"] == "hot_stab" for r in recs) == len(names)
-        assert sum("valve" in s["missing_parts"] for s in steps) >= 0.95 * len(names)
+        valve_2 = sum(r["class"] == "valve" and r["track_id"] == 7 for r in recs)
+        valve_1 = sum(r["class"] == "valve" and r["track_id"] == 6 for r in recs)
+        assert valve_1 == 0 and valve_2 >= 0.95 * len(names)  # the CAD has valve_1, the video does not
+        assert sum("valve_1" in s["missing_parts"] for s in steps) >= 0.95 * len(names)
 
 
 def test_read_init_pose_errors_name_the_file_and_the_fix(tmp_path: Path) -> None:
@@ -228,26 +291,27 @@ def test_read_init_pose_errors_name_the_file_and_the_fix(tmp_path: Path) -> None
         read_init_pose(p)
 
 
-def test_infer_tracks_rgb_frames_from_an_init_pose(tmp_path: Path, tiny_sim: Path) -> None:
+def test_infer_tracks_rgb_frames_from_an_init_pose(tmp_path: Path, track_sim: Path) -> None:
     from typer.testing import CliRunner
 
     from cadalign.cli.main import app
 
-    cam, names, cams = _frames(tiny_sim)
+    cam, names, cams = _frames(track_sim)
     init = tmp_path / "init.json"
-    init.write_text(json.dumps({"T_cam_from_world": _perturbed(_T_cw(cams[names[0]]), 0.02, 1.0, 5).matrix().tolist()}))
-    cfg = tmp_path / "track.toml"
-    cfg.write_text("[tracker]\nmin_samples = 40\n")
+    start = _perturbed(_T_cw(cams[names[0]]), 0.1, 2.0, 5)
+    init.write_text(json.dumps({"T_cam_from_world": start.matrix().tolist()}))
     out = tmp_path / "out"
-    res = CliRunner().invoke(app, ["infer", str(tiny_sim / "frames"), "--cad", str(tiny_sim.parent / "tiny.toml"),
-                                   "--calib", str(tiny_sim / "calibration.json"), "--init-pose", str(init),
-                                   "--gt", str(tiny_sim), "--out", str(out), "--config", str(cfg)])
+    scene = track_sim.parent / "structure.toml"
+    res = CliRunner().invoke(app, ["infer", str(track_sim / "frames"), "--cad", str(scene),
+                                   "--calib", str(track_sim / "calibration.json"), "--init-pose", str(init),
+                                   "--gt", str(track_sim), "--out", str(out)])
     assert res.exit_code == 0, res.output
     steps = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
     assert len(steps) == len(names) and steps[0]["source"] == "init_pose"
+    assert all(s["state"] == "ok" for s in steps)
     recs = [json.loads(line) for line in (out / "poses.jsonl").read_text().splitlines()]
     assert recs and all(r["source"] == "tracked" for r in recs)
     ev = json.loads((out / "eval.json").read_text())["fused"]
     assert ev["detection"]["f1"] > 0.9
-    assert ev["overall"]["t_err_m"]["mean"] < 0.02
+    assert ev["overall"]["t_err_m"]["mean"] < 0.01 and ev["overall"]["r_err_deg"]["mean"] < 0.5
     assert (out / "overlay.mp4").is_file() and json.loads((out / "timings.json").read_text())["tracked"] == len(names)

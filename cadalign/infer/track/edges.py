@@ -87,8 +87,10 @@ class EdgeFit:
     """Share of those samples with an image edge of the right sign within ``support_px``; 0 without samples."""
     residual_px: float
     """Median |offset| of the supported samples, pixels; NaN without any."""
-    instance_support: dict[int, tuple[int, float]]
-    """Per ray-cast instance: (its contour samples, share supported)."""
+    instance_support: dict[int, tuple[int, float, float]]
+    """Per ray-cast instance: (its contour samples, share supported, concentration: the share of the edges
+    found within twice ``support_px`` that lie within ``support_px`` / 1.5 — about 1/3 for edges of texture
+    or clutter that only happen to be near, close to 1 for the part's own outline)."""
     instance: np.ndarray | None = None
     """(H, W) ray-cast instance map at the pose (0: background, water)."""
     uv: np.ndarray | None = None
@@ -153,13 +155,15 @@ class EdgeTracker:
             last = (r, X_w, n, f, g)
             if len(X_w) < self.cfg.min_edges:
                 continue
+            T_start, s_start = T, None
             for _ in range(lv.iterations):
-                Xc = T.inverse().apply(X_w)
-                uv = _pixels(r.camera.K, Xc) + 0.5 * n  # the contour: half a pixel past the near pixel
-                off = search_edges(g, uv, n, lcfg)
+                off = self._offsets(T, X_w, n, r, g, lcfg)
                 ok = np.isfinite(off)
+                if s_start is None:
+                    s_start = _share_within(off, lv.tukey_px / 2)
                 if ok.sum() < self.cfg.min_edges:
                     break
+                Xc = T.inverse().apply(X_w)
                 c = X_w[ok].mean(axis=0)
                 J = edge_jacobian(Xc[ok], T.R.T, X_w[ok] - c, r.camera.K, n[ok])
                 xi, w = fit_correction([(J, -off[ok])], lv.tukey_px)
@@ -167,7 +171,19 @@ class EdgeTracker:
                 moved = J[w > 0] @ xi if np.any(w > 0) else np.zeros(1)
                 if float(np.sqrt(np.mean(moved**2))) < self.cfg.converged_px:
                     break
+            # a level that leaves fewer contour samples on image edges than it found ran off (a coarse level's
+            # long search caught other parts' edges): keep the pose it started from
+            if s_start is not None and T is not T_start:
+                if _share_within(self._offsets(T, X_w, n, r, g, lcfg), lv.tukey_px / 2) < s_start:
+                    T = T_start
         return self.judge(gray, T) if last is None else self._judge_last(T, last)
+
+    @staticmethod
+    def _offsets(T: Rigid3, X_w: np.ndarray, n: np.ndarray, r: RaycastRenderer, g: np.ndarray,
+                 cfg: EdgeRefineConfig) -> np.ndarray:
+        """Image-edge offsets (pixels of the level, NaN: none) of contour points ``X_w`` seen from ``T``."""
+        uv = _pixels(r.camera.K, T.inverse().apply(X_w)) + 0.5 * n  # the contour: half a pixel past the near pixel
+        return search_edges(g, uv, n, cfg)
 
     def _judge_last(self, T: Rigid3, last: tuple) -> EdgeFit:
         """Judge at the last level's render, its contour points moved to the final pose (no render more)."""
@@ -197,12 +213,19 @@ class EdgeTracker:
         # the near pixel of each sample: half a pixel back along the normal from the contour
         near = np.floor(uv - 0.5 * n + 0.5).astype(int)
         inst = instance[np.clip(near[:, 1], 0, H - 1), np.clip(near[:, 0], 0, W - 1)]
-        per: dict[int, tuple[int, float]] = {}
+        found = np.isfinite(off)
+        near = found & (np.abs(np.nan_to_num(off, nan=np.inf)) <= tol_px / 1.5)
+        per: dict[int, tuple[int, float, float]] = {}
         for k in np.unique(inst):
             m = inst == k
-            per[int(k)] = (int(m.sum()), float(ok[m].mean()))
+            per[int(k)] = (int(m.sum()), float(ok[m].mean()), float(near[m].sum() / max(found[m].sum(), 1)))
         res = float(np.median(np.abs(off[ok]))) * to_full if ok.any() else float("nan")
         return EdgeFit(T, len(off), float(ok.mean()), res, per, instance, uv * to_full, ok, off * to_full)
+
+
+def _share_within(off: np.ndarray, tol_px: float) -> float:
+    """Share of samples whose image edge lies within ``tol_px`` (NaN: none found)."""
+    return float(np.mean(np.abs(np.nan_to_num(off, nan=np.inf)) <= tol_px)) if len(off) else 0.0
 
 
 def _pixels(K: np.ndarray, X_cam: np.ndarray) -> np.ndarray:

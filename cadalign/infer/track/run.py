@@ -27,6 +27,7 @@ import numpy as np
 
 from cadalign.build_dataset import Structure
 from cadalign.errors import InputError
+from cadalign.formats.calibration import CameraCalibration, Undistorter
 from cadalign.infer.pipeline import PoseRecord
 from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, as_gray, with_levels
 from cadalign.infer.track.tracker import StructureTracker, TrackerConfig, TrackStep
@@ -50,6 +51,10 @@ class TrackRunConfig:
     min_part_support: float = 0.2
     """A checked part whose contour samples find image edges less often than this is reported missing (not
     where the CAD puts it), not placed."""
+    min_part_concentration: float = 0.0
+    """A checked part whose found edges lie near its outline less often than this (see
+    :attr:`~cadalign.infer.track.edges.EdgeFit.instance_support`) is reported missing: near edges of texture or
+    clutter where the part should be do not make it present."""
     overlay: bool = True
     """Write overlay.mp4."""
     overlay_fps: float = 5.0
@@ -91,8 +96,8 @@ def part_records(step: TrackStep, frame_index: int, name: str, structure: Struct
         k = i + 1
         if counts[k] < cfg.min_visible_px:
             continue
-        n, share = step.fit.instance_support.get(k, (0, 0.0))
-        if n >= cfg.min_part_samples and share < cfg.min_part_support:
+        n, share, conc = step.fit.instance_support.get(k, (0, 0.0, 0.0))
+        if n >= cfg.min_part_samples and (share < cfg.min_part_support or conc < cfg.min_part_concentration):
             missing.append(o.name)
             continue
         ys, xs = np.nonzero(inst == k)
@@ -125,17 +130,21 @@ def _draw(image: np.ndarray, step: TrackStep) -> np.ndarray:
 def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera: Camera, out_dir: Path, *,
                 init_pose: Rigid3 | None = None, restart_source: Callable[[np.ndarray, str], list] | None = None,
                 gt_scene: Path | None = None, max_frames: int | None = None, overwrite: bool = False,
-                progress: Progress | None = None, record: dict | None = None) -> Path:
+                progress: Progress | None = None, record: dict | None = None,
+                lens: CameraCalibration | None = None) -> Path:
     """Track the structure through a video or frame folder; returns ``out_dir / "poses.jsonl"`` (module doc).
 
     ``init_pose``: ``T_cam_from_world`` of the first frame (rough). ``restart_source(image, name)``: restart
     hypotheses (name, ``T_cam_from_world``) for a frame without a track (e.g. from a detector); at least one of
-    the two is needed."""
+    the two is needed. ``lens``: the calibration read from the user's file; a lens distortion in it is undone
+    on every frame before tracking (``camera`` is then its pinhole part)."""
     if init_pose is None and restart_source is None:
         raise InputError("the tracker needs a start: pass --init-pose FILE (a rough first-frame pose) or --model RUN "
                          "(a trained detector)")
     out_dir = Path(out_dir)
+    undistort = Undistorter.of(lens) if lens is not None else None
     rec = {"track": cfg, "source": str(source), "max_frames": max_frames, "camera": camera.K.tolist(),
+           "calibration": None if lens is None else lens.record(),
            "init_pose": None if init_pose is None else init_pose.matrix().tolist(), **(record or {})}
     poses_path = out_dir / "poses.jsonl"
     if prepare_stage_dir(out_dir, "infer", rec, overwrite=overwrite) and (out_dir / "timings.json").is_file():
@@ -144,7 +153,7 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
     tracker = StructureTracker(structure.render_meshes(), camera, cfg.tracker)
     records: list[PoseRecord] = []
     names: list[str] = []
-    times: dict[str, list[float]] = {"track": [], "restart": [], "overlay": []}
+    times: dict[str, list[float]] = {"track": [], "restart": [], "detector": [], "overlay": []}
     states = {"ok": 0, "lost": 0}
     writer = None
     frames = iter_frames(source, max_frames=max_frames)
@@ -157,23 +166,26 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                     raise InputError(f"{source}: frame {vf.name} is {vf.image.shape[1]}x{vf.image.shape[0]} but the "
                                      f"calibration is {camera.width}x{camera.height}; pass the calibration of this "
                                      "video")
+                image = undistort(vf.image) if undistort is not None else vf.image
                 restarts = []
                 if init_pose is not None and tracker.last_pose is None:  # until the track first starts
                     restarts.append(("init_pose", init_pose))
+                t0 = time.perf_counter()
                 if restart_source is not None and tracker.lost:
-                    restarts += list(restart_source(vf.image, vf.name))
-                step = tracker.step(as_gray(vf.image), restarts)
+                    restarts += list(restart_source(image, vf.name))
+                    times["detector"].append(time.perf_counter() - t0)
+                step = tracker.step(as_gray(image), restarts)
                 (times["restart"] if step.source not in ("track",) else times["track"]).append(step.seconds)
                 states[step.state] += 1
                 recs, missing = part_records(step, vf.index, vf.name, structure, cfg)
                 for r in recs:
                     fh.write(json.dumps(r.to_json()) + "\n")
                 records.extend(recs)
-                th.write(json.dumps(_step_json(step, vf.name, missing)) + "\n")
+                th.write(json.dumps(_step_json(step, vf.name, missing, structure)) + "\n")
                 if cfg.overlay:
                     t0 = time.perf_counter()
                     writer = writer or _video_writer(tmp_video, cfg.overlay_fps)
-                    writer.append_data(_draw(vf.image, step))
+                    writer.append_data(_draw(image, step))
                     times["overlay"].append(time.perf_counter() - t0)
                 names.append(vf.name)
         if writer is not None:
@@ -189,13 +201,16 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
     return poses_path
 
 
-def _step_json(step: TrackStep, name: str, missing: list[str]) -> dict:
+def _step_json(step: TrackStep, name: str, missing: list[str], structure: Structure) -> dict:
     f = step.fit
+    parts = {} if f is None else {structure.objects[k - 1].name: [n, round(share, 4), round(conc, 4)]
+                                  for k, (n, share, conc) in sorted(f.instance_support.items()) if k > 0}
     return {"frame": step.index, "frame_name": name, "state": step.state, "source": step.source or None,
             "T_cam_from_world": None if step.T_cam_from_world is None else step.T_cam_from_world.matrix().tolist(),
             "support": None if f is None else round(float(f.support), 4),
             "residual_px": None if f is None or not np.isfinite(f.residual_px) else round(float(f.residual_px), 4),
             "contour_samples": None if f is None else int(f.samples), "missing_parts": missing,
+            "part_support": parts,
             "restarts_tried": int(step.restarts_tried), "ms": round(1e3 * step.seconds, 2)}
 
 
@@ -216,24 +231,3 @@ def _video_writer(path: Path, fps: float):  # -> imageio writer
     from cadalign.infer.run import _video_writer as writer
 
     return writer(path, fps)
-
-
-def camera_from_calibration(path: Path, frame_shape: tuple[int, int] | None = None) -> Camera:
-    """The pinhole camera of a calibration file: ``{"K": [...], "width", "height"}`` (``cadalign sim``'s
-    ``calibration.json``) or a ``cameras.json`` (first frame's intrinsics)."""
-    data = read_json(path)
-    if "K" in data:
-        K = np.reshape(np.asarray(data["K"], float), (3, 3))
-        w, h = data.get("width"), data.get("height")
-    else:
-        frames = data.get("frames") or {}
-        cam = data.get("camera") or (next(iter(frames.values())) if frames else None)
-        if not cam or "K" not in cam:
-            raise InputError(f"{path} holds no intrinsics ('K'); pass the calibration.json of your camera")
-        K = np.reshape(np.asarray(cam["K"], float), (3, 3))
-        w, h = cam.get("width"), cam.get("height")
-    if w is None or h is None:
-        if frame_shape is None:
-            raise InputError(f"{path} gives no image size ('width', 'height'); add them")
-        h, w = frame_shape
-    return Camera(K, int(w), int(h))
