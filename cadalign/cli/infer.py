@@ -10,7 +10,9 @@ from cadalign.cli.common import console, track, user_errors
 
 
 def command(
-    source: Path = typer.Argument(..., help="ROV video file or folder of frames."),
+    source: Path = typer.Argument(..., help="ROV video file, ROS bag (.bag or ROS 2 bag folder) or folder of frames."),
+    topic: str | None = typer.Option(None, "--topic", help="A ROS bag's image topic (default: its only one; "
+                                     "'cadalign bag topics BAG' lists them)."),
     cad: Path = typer.Option(..., "--cad", help="Scene spec (TOML/YAML: parts and classes) or one CAD mesh."),
     out: Path = typer.Option(..., "--out", help="Output folder (poses.jsonl, overlay.mp4, timings.json, eval)."),
     model: Path | None = typer.Option(None, "--model", help="'cadalign train pose' run folder (the detector)."),
@@ -77,7 +79,7 @@ def command(
             raise InputError("no camera intrinsics: pass --calib cameras.json (e.g. from 'cadalign sfm')")
         path = run(cfg, source, detector, structure.models, class_names, out, calib=cal, detector_info=info,
                    depth_scene=depth_scene, gt_scene=gt_scene, max_frames=max_frames, overwrite=overwrite,
-                   progress=track, device=device)
+                   progress=track, device=device, topic=topic)
     console.print(f"[green]poses written to {path}[/]")
     _print_summary(out)
 

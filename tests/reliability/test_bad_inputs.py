@@ -93,6 +93,44 @@ def test_video_with_intact_header_and_garbage_frames(tmp_path: Path) -> None:
     assert "no frame could be decoded" in msg or "could not open video" in msg
 
 
+def test_corrupt_bag(tmp_path: Path) -> None:
+    (tmp_path / "dive.bag").write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    expect_error("sfm frames", "corrupt ROS 1 bag (random bytes)", InputError,
+                 lambda: _extract(tmp_path / "dive.bag", tmp_path), "dive.bag", "corrupt", "rosbag reindex")
+
+
+def test_bag_truncated_mid_recording(tmp_path: Path) -> None:
+    """A recording cut off before it was closed (no index at the end): named, with the reindex fix."""
+    from bag_testdata import write_bag
+
+    path = write_bag([_texture(k) for k in range(6)], tmp_path / "dive.bag", ros=1)
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    expect_error("sfm frames", "ROS 1 bag truncated to half (no index)", InputError,
+                 lambda: _extract(path, tmp_path), "dive.bag", "reindex")
+
+
+def test_corrupt_ros2_bag_database(tmp_path: Path) -> None:
+    from bag_testdata import write_bag
+
+    bag = write_bag([_texture(k) for k in range(3)], tmp_path / "dive", ros=2)
+    for db in bag.glob("*.db3"):
+        db.write_bytes(b"not a database" * 100)
+    expect_error("sfm frames", "ROS 2 bag with a corrupt .db3", InputError, lambda: _extract(bag, tmp_path),
+                 "dive", "corrupt")
+
+
+def test_bag_topic_that_does_not_exist(tmp_path: Path) -> None:
+    from bag_testdata import write_bag
+
+    from cadalign.sfm.frames import frame_candidates
+
+    bag = write_bag([_texture(k) for k in range(3)], tmp_path / "dive.bag", ros=1, topic="/rov/cam0")
+    expect_error("sfm frames", "bag topic that does not exist", InputError,
+                 lambda: frame_candidates(bag, FrameConfig(), "/camera/image_raw"),
+                 "/camera/image_raw is not an image topic", "dive.bag", "/rov/cam0 (sensor_msgs/msg/Image, 3",
+                 "cadalign bag topics")
+
+
 def test_corrupt_image_in_folder(tmp_path: Path) -> None:
     for k in range(3):
         write_image(tmp_path / "in" / f"{k:06d}.png", _texture(k))

@@ -1,0 +1,1 @@
+"""Code that knows file formats: ROS bags, STEP/IGES, calibration files, ... (one module per format)."""
