@@ -127,9 +127,12 @@ def test_cad_in_the_wrong_unit_fails_the_gate(capture: tuple[Path, Path], built:
     assert not (out / "dataset").exists()
 
 
-def test_a_ros1_bag_builds_the_same_dataset_as_the_frames_folder(built: Path, capture: tuple[Path, Path],
-                                                                  tmp_path: Path) -> None:
-    """The capture's frames recorded as a ROS 1 bag (raw rgb8 on /camera/image_raw) give the folder's dataset:
+@pytest.mark.parametrize(("ros", "kw"), [(1, {}), (2, {"storage": "mcap", "compressed": True})],
+                         ids=["ros1-raw", "ros2-mcap-png"])
+def test_a_bag_builds_the_same_dataset_as_the_frames_folder(built: Path, capture: tuple[Path, Path],
+                                                             tmp_path: Path, ros: int, kw: dict) -> None:
+    """The capture's frames recorded as a ROS 1 bag (raw rgb8) or a ROS 2 bag (mcap, png CompressedImage) on
+    /camera/image_raw give the folder's dataset:
     the same frames, poses within 5 mm / 0.3 deg and depth within 5 mm (SfM runs multi-threaded: ~1 mm
     apart run to run)."""
     from bag_testdata import write_bag
@@ -138,7 +141,7 @@ def test_a_ros1_bag_builds_the_same_dataset_as_the_frames_folder(built: Path, ca
 
     spec, sim = capture
     frames = [read_image(p) for p in sorted((sim / "frames").glob("*.png"))]
-    bag = write_bag(frames, tmp_path / "dive.bag", ros=1)
+    bag = write_bag(frames, tmp_path / ("dive.bag" if ros == 1 else "dive"), ros=ros, **kw)
     out = build_dataset(bag, spec, tmp_path / "out", preset="fast", picks=built / "picks.json",
                         topic="/camera/image_raw")
     ref, got = built / "dataset" / "all" / "000000", out / "dataset" / "all" / "000000"
