@@ -8,6 +8,7 @@ Outputs in ``out_dir``::
     overlay.mp4     the frames with each part's CAD wireframe drawn at its reported pose (after completion, drawn
                     again in a last pass)
     frames.json     the names of the frames processed (readable ones), in order
+    frame_stamps.json  {name: header stamp, ns} of those frames, only for a ROS bag input (capture times)
     timings.json    seconds per frame per stage (detector / pose / refinement / temporal / overlay; the completion
                     pass's share), frames/s
     eval.json, eval.md   with ground truth: detection P/R/F1, Table 4.5, BOP recalls, errors by distance,
@@ -179,6 +180,7 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
     frames = iter_frames(source, max_frames=max_frames, topic=topic)
     all_records: list[PoseRecord] = []
     names: list[str] = []
+    stamps: dict[str, int] = {}
     shapes: dict[str, tuple[int, int]] = {}
     keep_masks = gt_scene is not None or cfg.complete.enabled
     times: dict[str, list[float]] = {}
@@ -212,6 +214,8 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
                 all_records.extend(replace(r, mask=CroppedMask.of(r.mask) if keep_masks and r.mask is not None
                                            else None) for r in records)
                 names.append(vf.name)
+                if vf.stamp_ns is not None:
+                    stamps[vf.name] = vf.stamp_ns
                 shapes[vf.name] = vf.image.shape[:2]
         if writer is not None:
             writer.close()
@@ -229,6 +233,8 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
                 if cfg.overlay and writer is not None:
                     _redraw_overlay(tmp_video, cfg, final, pipeline, source, calib, max_frames, topic)
     write_json(out_dir / "frames.json", names)
+    if stamps:
+        write_json(out_dir / "frame_stamps.json", stamps)
     write_json(out_dir / "timings.json", _timing_summary(times, len(names), len(final), detector_info))
     log.info("infer: %d frames, %d poses -> %s", len(names), len(final), poses_path)
     if gt_scene is not None:
