@@ -239,7 +239,7 @@ def write_dataset_extras(ds: Path, structure: Structure, verified: dict[int, boo
 def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced", picks: Path | None = None,
                   gt: Path | None = None, cad_unit: str | None = None, calib: Path | None = None,
                   overwrite: bool = False, progress: Progress | None = None, executor: RayExecutor | None = None,
-                  sfm_set: Mapping[str, Any] | None = None) -> Path:
+                  sfm_set: Mapping[str, Any] | None = None, topic: str | None = None) -> Path:
     """Run frames -> SfM -> align -> render -> write; returns ``out``. See the module doc for the layout.
 
     ``calib``: the camera's known intrinsics and lens distortion, any format of
@@ -253,6 +253,7 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     frames with Ray (:mod:`cadalign.scale`); None renders them here. The dataset files are the same.
     ``sfm_set``: SfM settings over the preset's (nested keys of :class:`cadalign.sfm.SfMConfig`, e.g.
     ``{"mapper": {"repair_frames": 20}}``), checked strictly.
+    ``topic``: the image topic when ``source`` is a ROS bag (None: the bag's only image topic).
 
     Raises:
         AlignmentError: the alignment failed its quality gate (no dataset is written).
@@ -283,7 +284,7 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
         from cadalign.sfm import SfMConfig
 
         sfm_cfg = from_dict(SfMConfig, sfm_set, source="the SfM settings (--sfm-set)", base=sfm_cfg)
-    sfm_dir = sfm_run(sfm_cfg, Path(source), out / "sfm", overwrite=overwrite, progress=progress)
+    sfm_dir = sfm_run(sfm_cfg, Path(source), out / "sfm", overwrite=overwrite, progress=progress, topic=topic)
     seconds["sfm"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     parts = [(structure.models[o.obj_id], o.T_world_from_obj) for o in structure.objects]

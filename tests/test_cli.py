@@ -9,7 +9,8 @@ from typer.testing import CliRunner
 from cadalign import __version__
 from cadalign.cli.main import app
 
-SUBCOMMANDS = ["sim", "sfm", "align", "build-dataset", "train", "eval", "infer", "fuse", "emulate", "bench", "demo"]
+SUBCOMMANDS = ["sim", "sfm", "align", "build-dataset", "train", "eval", "infer", "fuse", "emulate", "bench", "demo",
+               "bag"]
 runner = CliRunner()
 
 

@@ -1,9 +1,11 @@
-"""Load CAD files (OBJ, PLY, STL, GLB/GLTF, DAE, OFF) into a :class:`CadModel` in metres.
+"""Load CAD files (OBJ, PLY, STL, GLB/GLTF, DAE, OFF; STEP and IGES) into a :class:`CadModel` in metres.
 
 Multi-part files (scenes) are flattened with each node's transform applied;
 every scene node becomes one part, so ``part_labels`` keep the file's parts.
-The source unit is taken from ``unit=`` when given, else detected with a
-plausibility rule for subsea hardware (see :func:`~cadalign.cad.units.detect_unit`).
+STEP/IGES files are tessellated by OpenCASCADE (:mod:`cadalign.formats.step`): each named product of a
+STEP assembly becomes a part, and the unit the file declares is the model's unit. For mesh files the
+unit is taken from ``unit=`` when given, else detected with a plausibility rule for subsea hardware
+(see :func:`~cadalign.cad.units.detect_unit`).
 """
 
 from __future__ import annotations
@@ -20,12 +22,13 @@ from cadalign.cad.model import CadModel
 from cadalign.cad.symmetry import Symmetry
 from cadalign.cad.units import check_unit, detect_unit, unit_from_metres_per_unit, unit_scale
 from cadalign.errors import InputError
+from cadalign.formats.step import BREP_SUFFIXES, TessellationConfig, read_brep
 
 __all__ = ["SUPPORTED_EXTENSIONS", "check_unit", "load_cad", "read_cad_parts"]
 
 logger = logging.getLogger(__name__)
 
-SUPPORTED_EXTENSIONS = (".obj", ".ply", ".stl", ".glb", ".gltf", ".dae", ".off")
+SUPPORTED_EXTENSIONS = (".obj", ".ply", ".stl", ".glb", ".gltf", ".dae", ".off", *BREP_SUFFIXES)
 
 
 @dataclass(frozen=True, eq=False)
@@ -39,7 +42,9 @@ class CadParts:
         part_names: (P,) names of the scene nodes.
         vertex_colors: (V, 4) uint8 or ``None``.
         face_colors: (F, 4) uint8 or ``None``.
-        declared_unit: unit declared by the file's metadata (COLLADA ``<unit>``, glTF), or ``None``.
+        declared_unit: unit declared by the file's metadata (COLLADA ``<unit>``, glTF, STEP, IGES), or ``None``.
+        unit_is_declared: the declared unit is authoritative (STEP / IGES: B-rep files always carry one), so no
+            size rule overrides it.
     """
 
     vertices: np.ndarray
@@ -49,6 +54,7 @@ class CadParts:
     vertex_colors: np.ndarray | None
     face_colors: np.ndarray | None
     declared_unit: str | None
+    unit_is_declared: bool = False
 
 
 def _check_path(path: Path) -> Path:
@@ -60,7 +66,8 @@ def _check_path(path: Path) -> Path:
         raise InputError(f"CAD file '{path}' is empty (0 bytes); the export or copy did not finish - re-export it")
     if path.suffix.lower() not in SUPPORTED_EXTENSIONS:
         raise InputError(f"CAD file '{path}' has unsupported extension '{path.suffix}'; supported: "
-                         f"{', '.join(SUPPORTED_EXTENSIONS)}. Convert it (e.g. with MeshLab or Blender) to PLY or OBJ")
+                         f"{', '.join(SUPPORTED_EXTENSIONS)}. Export it from the CAD tool as STEP, or convert it "
+                         "(e.g. with MeshLab or Blender) to PLY or OBJ")
     return path
 
 
@@ -135,7 +142,21 @@ def _ordered_nodes(scene: trimesh.Scene) -> list[str]:
     return sorted(scene.graph.nodes_geometry, key=lambda n: (rank.get(scene.graph[n][1], len(rank)), str(n)))
 
 
-def read_cad_parts(path: str | Path) -> CadParts:
+def _read_brep_parts(path: Path, tessellation: TessellationConfig | None) -> CadParts:
+    """A STEP/IGES file's tessellation as :class:`CadParts` in its declared unit."""
+    brep = read_brep(path, tessellation)
+    unit = unit_from_metres_per_unit(brep.metres_per_unit)
+    if unit is None:  # e.g. feet: OpenCASCADE converted the coordinates already; keep them in metres
+        logger.warning("CAD '%s' declares a unit of %g m, which cadalign does not name; it is read as metres "
+                       "(converted by OpenCASCADE) and recorded as 'm'", path.name, brep.metres_per_unit)
+        unit, brep_scale = "m", 1.0
+    else:
+        brep_scale = brep.metres_per_unit
+    return CadParts(brep.vertices_m / brep_scale, brep.faces, brep.part_labels, brep.part_names, None, None, unit,
+                    unit_is_declared=True)
+
+
+def read_cad_parts(path: str | Path, tessellation: TessellationConfig | None = None) -> CadParts:
     """Read a CAD file and flatten its scene graph, in file units, without cleaning.
 
     Every scene node holding a triangle mesh becomes a part; its node
@@ -143,7 +164,8 @@ def read_cad_parts(path: str | Path) -> CadParts:
     holding points or lines are skipped.
 
     Args:
-        path: the mesh file.
+        path: the mesh file, or a STEP/IGES file (tessellated per ``tessellation``, default
+            :class:`~cadalign.formats.step.TessellationConfig`).
 
     Returns:
         the flattened :class:`CadParts`.
@@ -152,6 +174,8 @@ def read_cad_parts(path: str | Path) -> CadParts:
         InputError: missing file, unsupported extension, unreadable file, or no triangle at all.
     """
     path = _check_path(Path(path))
+    if path.suffix.lower() in BREP_SUFFIXES:
+        return _read_brep_parts(path, tessellation)
     scene = _read_scene(path)
     meshes, names, verts, faces, labels, colors = [], [], [], [], [], []
     offset = 0
@@ -192,10 +216,29 @@ def read_cad_parts(path: str | Path) -> CadParts:
                     _declared_unit(scene))
 
 
+def select_part(parts: CadParts, name: str, path: Path) -> CadParts:
+    """Only the faces of part ``name`` (vertices unchanged; unused ones are dropped by cleaning).
+
+    Raises:
+        InputError: no part of that name, naming the file's parts.
+    """
+    if name not in parts.part_names:
+        raise InputError(f"CAD file '{path}' has no part named {name!r}; its parts: {', '.join(parts.part_names)} "
+                         f"(refer to one as \"{path.name}#NAME\")")
+    keep = parts.part_labels == parts.part_names.index(name)
+    used, faces = np.unique(parts.faces[keep], return_inverse=True)
+    vc = parts.vertex_colors[used] if parts.vertex_colors is not None else None
+    fc = parts.face_colors[keep] if parts.face_colors is not None else None
+    return CadParts(parts.vertices[used], faces.reshape(-1, 3), np.zeros(int(keep.sum()), np.int32), (name,),
+                    vc, fc, parts.declared_unit, parts.unit_is_declared)
+
+
 def _resolve_unit(parts: CadParts, unit: str | None, source: str) -> str:
     if unit is not None:
         unit_scale(unit)  # validates the code
         return unit
+    if parts.unit_is_declared and parts.declared_unit is not None:
+        return parts.declared_unit
     used = parts.vertices[np.unique(parts.faces)]
     if not np.all(np.isfinite(used)):
         raise InputError(f"CAD file '{source}' has non-finite (NaN/inf) vertex coordinates; re-export it")
@@ -212,20 +255,26 @@ def load_cad(
     symmetry: Symmetry | str | None = None,
     clean: bool = True,
     merge_tol_m: float = 1e-6,
+    part: str | None = None,
+    tessellation: TessellationConfig | None = None,
 ) -> CadModel:
     """Load a CAD mesh file as a :class:`CadModel` in metres.
 
     Args:
-        path: OBJ, PLY, STL, GLB, GLTF, DAE or OFF file.
+        path: OBJ, PLY, STL, GLB, GLTF, DAE, OFF, STEP (.step/.stp) or IGES (.iges/.igs) file.
         unit: the file's unit (``m``, ``cm``, ``mm``, ``in``). ``None`` detects it:
-            the unit the file declares if plausible, else metres, or millimetres
-            when the object would be > 50 m across (logged as a WARNING).
+            STEP/IGES: the unit the file declares; meshes: the unit the file declares if
+            plausible, else metres, or millimetres when the object would be > 50 m across
+            (logged as a WARNING).
         name: model name; defaults to the file stem.
         class_name: semantic class; defaults to ``name``.
         symmetry: a :class:`Symmetry` or a name such as ``continuous_z``; default none.
         clean: merge duplicate vertices and drop degenerate/duplicate faces (see
             :func:`~cadalign.cad.clean.clean_mesh`); part labels follow.
         merge_tol_m: vertex merge distance in metres when cleaning.
+        part: keep only this named part of the file (a STEP product such as ``valve_1``, a scene node); its
+            vertices stay in the file's frame. ``None`` keeps every part.
+        tessellation: how finely STEP/IGES surfaces are triangulated (ignored for meshes).
 
     Returns:
         the model; ``model.unit`` records the source unit.
@@ -235,7 +284,9 @@ def load_cad(
         UnitError: unknown ``unit``, or a size implausible in every unit.
     """
     path = Path(path)
-    parts = read_cad_parts(path)
+    parts = read_cad_parts(path, tessellation)
+    if part is not None:
+        parts = select_part(parts, part, path)
     resolved = _resolve_unit(parts, unit, path.name)
     if isinstance(symmetry, str):
         symmetry = Symmetry.from_name(symmetry)

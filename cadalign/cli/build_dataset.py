@@ -14,7 +14,8 @@ if TYPE_CHECKING:
 
 
 def command(
-    source: Path = typer.Argument(..., help="ROV video file or a folder of frames; or a jobs file (TOML/YAML of "
+    source: Path = typer.Argument(..., help="ROV video file, ROS bag (.bag or ROS 2 bag folder) or a folder of "
+                                  "frames; or a jobs file (TOML/YAML of "
                                   "\\[\\[video]] entries, see docs/scaling.md) to build many videos into OUT/<name>/."),
     cad: Path = typer.Option(..., "--cad", help="Scene spec (TOML/YAML: parts, poses, classes) or one CAD mesh."),
     out: Path = typer.Option(..., "--out", help="Output folder (sfm/, align/, dataset/, build_report.*)."),
@@ -27,6 +28,8 @@ def command(
         "cameras.json, COLMAP cameras.txt, OpenCV YAML/XML or ROS CameraInfo YAML; frames are undistorted once, "
         "the K is held fixed after mapping and in the CAD-anchored refinement."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
+    topic: str | None = typer.Option(None, "--topic", help="A ROS bag's image topic (default: its only one; "
+                                     "'cadalign bag topics BAG' lists them)."),
     sfm_set: list[str] = typer.Option([], "--sfm-set", help="Override an SfM setting of the preset, e.g. "
                                       "--sfm-set matching.overlap=15 (keys as 'cadalign sfm --set')."),
     executor: str = typer.Option("local", "--executor",
@@ -56,7 +59,7 @@ def command(
         runner = make_executor(cfg)
         out_dir = build_dataset(source, cad, out, preset=preset, picks=init, gt=gt, cad_unit=cad_unit,
                                 calib=calib, overwrite=overwrite, progress=track, executor=runner,
-                                sfm_set=parse_overrides(sfm_set))
+                                sfm_set=parse_overrides(sfm_set), topic=topic)
     console.print(f"[green]dataset written to {out_dir / 'dataset'}; report {out_dir / 'build_report.html'}[/]")
 
 

@@ -10,7 +10,9 @@ from cadalign.cli.common import console, track, user_errors
 
 
 def command(
-    source: Path = typer.Argument(..., help="ROV video file or folder of frames."),
+    source: Path = typer.Argument(..., help="ROV video file, ROS bag (.bag or ROS 2 bag folder) or folder of frames."),
+    topic: str | None = typer.Option(None, "--topic", help="A ROS bag's image topic (default: its only one; "
+                                     "'cadalign bag topics BAG' lists them)."),
     cad: Path = typer.Option(..., "--cad", help="Scene spec (TOML/YAML: parts and classes) or one CAD mesh."),
     out: Path = typer.Option(..., "--out", help="Output folder (poses.jsonl, overlay.mp4, timings.json, eval)."),
     model: Path | None = typer.Option(None, "--model", help="'cadalign train pose' run folder (the detector)."),
@@ -54,7 +56,7 @@ def command(
             depth is None and oracle_gt is None and (calib is None or not _has_metric_poses(calib)))
         if use_tracker:
             _track(source, cad, out, model, init_pose, gt, calib, max_frames, cad_unit, device, preset, config,
-                   overwrite)
+                   overwrite, topic)
             return
         if (model is None) == (oracle_gt is None):
             raise InputError("pass exactly one detector: --model RUN (a trained network) or --oracle-gt SIM_DIR")
@@ -92,7 +94,7 @@ def command(
                              "OpenCV/ROS YAML, COLMAP cameras.txt, or a cameras.json from 'cadalign sfm')")
         path = run(cfg, source, detector, structure.models, class_names, out, calib=cal, detector_info=info,
                    depth_scene=depth_scene, gt_scene=gt_scene, max_frames=max_frames, overwrite=overwrite,
-                   progress=track, device=device)
+                   progress=track, device=device, topic=topic)
     console.print(f"[green]poses written to {path}[/]")
     _print_summary(out)
 
@@ -105,7 +107,7 @@ def _has_metric_poses(calib: Path) -> bool:
 
 def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Path | None, gt: Path | None,
            calib: Path | None, max_frames: int | None, cad_unit: str | None, device: str, preset: str,
-           config: Path | None, overwrite: bool) -> None:
+           config: Path | None, overwrite: bool, topic: str | None) -> None:
     """The tracker branch of ``infer`` (:mod:`cadalign.infer.track.run`)."""
     from cadalign.build_dataset import load_structure
     from cadalign.config import resolve
@@ -123,7 +125,7 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
     info: dict = {"kind": "none"}
     structure = load_structure(cad, cad_unit)
     gt_scene = det.resolve_scene_dir(gt) if gt is not None else None
-    first = next(iter(iter_frames(source, max_frames=1)), None)
+    first = next(iter(iter_frames(source, max_frames=1, topic=topic)), None)
     if first is None:
         raise InputError(f"{source} holds no readable frame")
     lens = None
@@ -148,7 +150,7 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
         restart, info = detector_restarts(model, structure, camera, device)
     T0 = read_init_pose(init_pose) if init_pose is not None else None
     path = track_video(cfg, source, structure, camera, out, init_pose=T0, restart_source=restart, gt_scene=gt_scene,
-                       max_frames=max_frames, overwrite=overwrite, progress=track, lens=lens,
+                       max_frames=max_frames, overwrite=overwrite, progress=track, lens=lens, topic=topic,
                        record={"detector": info, "cad": str(cad)})
     console.print(f"[green]poses written to {path}[/]")
     _print_track_summary(out)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import typer
 
 from cadalign import __version__
-from cadalign.cli import align, bench, build_dataset, common, demo, emulate, sfm, sim
+from cadalign.cli import align, bag, bench, build_dataset, common, demo, emulate, sfm, sim
 from cadalign.cli import eval as eval_cli
 from cadalign.cli import fuse as fuse_cli
 from cadalign.cli import infer as infer_cli
@@ -42,6 +42,7 @@ app.command("align")(align.command)
 app.command("build-dataset")(build_dataset.command)
 app.command("demo")(demo.command)
 app.add_typer(bench.app, name="bench")
+app.add_typer(bag.app, name="bag")
 app.add_typer(train_cli.app, name="train")
 app.add_typer(eval_cli.app, name="eval")
 app.add_typer(emulate.app, name="emulate")

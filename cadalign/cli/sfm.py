@@ -1,4 +1,5 @@
-"""``cadalign sfm (VIDEO|FRAMES_DIR) --out DIR``: camera poses, sparse model and SfM depth with pycolmap."""
+"""``cadalign sfm (VIDEO|FRAMES_DIR|BAG [--topic T]) --out DIR``: camera poses, sparse model and SfM depth
+with pycolmap."""
 
 from __future__ import annotations
 
@@ -39,7 +40,10 @@ def _calibration(path: Path, source: Path) -> dict[str, Any]:
 
 
 def command(
-    source: Path = typer.Argument(..., help="A video file or a folder of frames (sorted by name = capture order)."),
+    source: Path = typer.Argument(..., help="A video file, a ROS bag (.bag or ROS 2 bag folder) or a folder of "
+                                  "frames (sorted by name = capture order)."),
+    topic: str | None = typer.Option(None, "--topic", help="A ROS bag's image topic (default: its only one; "
+                                     "'cadalign bag topics BAG' lists them)."),
     out: Path = typer.Option(..., "--out", help="Output folder (model, cameras.json, depth/, report)."),
     preset: str = typer.Option("balanced", "--preset", help="fast, balanced or accurate."),
     gt: Path | None = typer.Option(None, "--gt", help="A 'cadalign sim' output folder to evaluate against."),
@@ -60,7 +64,7 @@ def command(
         if calib:
             extra = merge_mappings(_calibration(calib, source), extra)
         cfg = resolve(SfMConfig, PRESETS, preset, config, extra)
-        out_dir = run(cfg, source, out, overwrite=overwrite, progress=track)
+        out_dir = run(cfg, source, out, overwrite=overwrite, progress=track, topic=topic)
         report = out_dir / "sfm_report.json"
         if gt is not None:
             from cadalign.eval.sfm_metrics import run as evaluate

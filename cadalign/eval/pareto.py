@@ -95,16 +95,15 @@ def plot_pareto(path: Path, names: Sequence[str], costs: Sequence[float], accs: 
     """
     import textwrap
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # the object API draws without pyplot's backend: matplotlib.use("Agg") here turned a notebook's inline plots off
+    from matplotlib.figure import Figure
 
     c, a = np.asarray(costs, dtype=float), np.asarray(accs, dtype=float)
     ok = np.isfinite(c) & np.isfinite(a)
     front = pareto_front(list(c), list(a), higher_is_better=higher_is_better)
     rec = recommend(list(c), list(a), higher_is_better=higher_is_better, tol=tol)
-    fig, ax = plt.subplots(figsize=(8.0, 5.0))
+    fig = Figure(figsize=(8.0, 5.0))
+    ax = fig.subplots()
     ax.scatter(c[ok], a[ok], s=28, color="tab:blue", zorder=3, label="setting")
     if front:
         order = sorted(front, key=lambda i: c[i])
@@ -136,6 +135,5 @@ def plot_pareto(path: Path, names: Sequence[str], costs: Sequence[float], accs: 
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp.png")
     fig.savefig(tmp, dpi=110)
-    plt.close(fig)
     tmp.replace(path)
     return path

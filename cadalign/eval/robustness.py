@@ -229,10 +229,8 @@ def _save(path: Path, config: dict, rows: list[dict], out_dir: Path, plots: bool
 
 def plot_robustness(result: dict[str, Any], out_dir: Path) -> dict[str, str]:
     """One PNG per effect: each metric against severity (0 = the unchanged scene); returns effect -> file name."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # the object API draws without pyplot's backend: matplotlib.use("Agg") here turned a notebook's inline plots off
+    from matplotlib.figure import Figure
 
     rows = result["rows"]
     base = next((r for r in rows if r["effect"] == "baseline"), None)
@@ -244,7 +242,8 @@ def plot_robustness(result: dict[str, Any], out_dir: Path) -> dict[str, str]:
         sel = ([base] if base else []) + [r for r in rows if r["effect"] == effect]
         if len(sel) < 2:
             continue
-        fig, axes = plt.subplots(1, len(keys), figsize=(3.2 * len(keys), 3.0), squeeze=False)
+        fig = Figure(figsize=(3.2 * len(keys), 3.0))
+        axes = fig.subplots(1, len(keys), squeeze=False)
         x = [int(r["severity"]) for r in sel]
         labels = [str(BASELINE[effect]) if r["effect"] == "baseline" else str(r["value"]) for r in sel]
         for ax, k in zip(axes[0], keys, strict=True):
@@ -256,6 +255,5 @@ def plot_robustness(result: dict[str, Any], out_dir: Path) -> dict[str, str]:
         fig.tight_layout()
         name = f"robustness_{effect}.png"
         fig.savefig(Path(out_dir) / name, dpi=100)
-        plt.close(fig)
         files[effect] = name
     return files

@@ -1,1 +1,2 @@
-"""Code that knows file formats (lowest layer beside types/errors/io/config/geometry; never imports a stage)."""
+"""Code that knows file formats: ROS bags, STEP/IGES, calibration files, TUM trajectories (one module per
+format). The lowest layer beside types/errors/io/config/geometry: it never imports a stage."""

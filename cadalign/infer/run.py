@@ -10,6 +10,7 @@ Outputs in ``out_dir``::
     frames.json     the names of the frames processed (readable ones), in order
     calibration.json  with ``--calib``: the camera read (file, format, K, size, distortion) and whether the frames
                     were undistorted (once, to the same K) before detection
+    frame_stamps.json  {name: header stamp, ns} of those frames, only for a ROS bag input (capture times)
     timings.json    seconds per frame per stage (detector / pose / refinement / temporal / overlay; the completion
                     pass's share), frames/s
     eval.json, eval.md   with ground truth: detection P/R/F1, Table 4.5, BOP recalls, errors by distance,
@@ -64,11 +65,11 @@ class Calibration:
             raise InputError(f"no intrinsics for frame {name}: pass --calib cameras.json listing it")
         return K
 
-    def frames(self, source: Path, max_frames: int | None) -> Iterator[VideoFrame]:
+    def frames(self, source: Path, max_frames: int | None, topic: str | None = None) -> Iterator[VideoFrame]:
         """The frames of ``source`` as the pipeline sees them: undistorted once by the lens distortion (to the
         same K), the first checked against the calibration's image size."""
         undistort = Undistorter.of(self.lens) if self.lens is not None else None
-        for i, vf in enumerate(iter_frames(source, max_frames=max_frames)):
+        for i, vf in enumerate(iter_frames(source, max_frames=max_frames, topic=topic)):
             if i == 0 and self.lens is not None:
                 h, w = vf.image.shape[:2]
                 self.lens.check_size(w, h, f"frame {vf.name} of {source}")
@@ -173,7 +174,7 @@ def _draw(image: np.ndarray, records: list[PoseRecord], pipeline: PosePipeline, 
 def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, CadModel], class_names: tuple[str, ...],
         out_dir: Path, *, calib: Calibration, detector_info: dict, depth_scene: Path | None = None,
         gt_scene: Path | None = None, max_frames: int | None = None, overwrite: bool = False,
-        progress: Progress | None = None, device: str = "cpu") -> Path:
+        progress: Progress | None = None, device: str = "cpu", topic: str | None = None) -> Path:
     """Run the pose pipeline over a video or frame folder; returns ``out_dir / "poses.jsonl"`` (see module doc).
 
     ``depth_scene``: depth for ICP, a scene with depth maps or a ``cadalign train depth`` run (its predicted
@@ -181,7 +182,8 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
     out_dir = Path(out_dir)
     prep = resolve_prep(cfg.enhance, detector_info)
     detector_info = {**detector_info, "images": prep}
-    record = {"infer": cfg, "source": str(source), "detector": detector_info, "max_frames": max_frames,
+    record = {"infer": cfg, "source": str(source) if topic is None else f"{source} {topic}",
+              "detector": detector_info, "max_frames": max_frames,
               "depth": None if depth_scene is None else str(depth_scene),
               "gt": None if gt_scene is None else str(gt_scene)}
     poses_path = out_dir / "poses.jsonl"
@@ -190,9 +192,10 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
         return poses_path
     pipeline = PosePipeline(detector, models, class_names, cfg)
     depth = _DepthSource(depth_scene, raw_frames=cfg.enhance == "auto", device=device)
-    frames = calib.frames(source, max_frames)
+    frames = calib.frames(source, max_frames, topic)
     all_records: list[PoseRecord] = []
     names: list[str] = []
+    stamps: dict[str, int] = {}
     shapes: dict[str, tuple[int, int]] = {}
     keep_masks = gt_scene is not None or cfg.complete.enabled
     times: dict[str, list[float]] = {}
@@ -226,13 +229,16 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
                 all_records.extend(replace(r, mask=CroppedMask.of(r.mask) if keep_masks and r.mask is not None
                                            else None) for r in records)
                 names.append(vf.name)
+                if vf.stamp_ns is not None:
+                    stamps[vf.name] = vf.stamp_ns
                 shapes[vf.name] = vf.image.shape[:2]
         if writer is not None:
             writer.close()
         final = all_records
         if cfg.complete.enabled:
             t0 = time.perf_counter()
-            final, summary = _complete(cfg, pipeline, all_records, source, calib, depth, prep, max_frames, progress)
+            final, summary = _complete(cfg, pipeline, all_records, source, calib, depth, prep, max_frames, progress,
+                                       topic)
             times["complete"] = [time.perf_counter() - t0]
             if summary is not None:
                 with open(tmp_poses, "w", encoding="utf-8") as fh:
@@ -240,10 +246,12 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
                         mask = r.mask.full(shapes[r.frame_name]) if isinstance(r.mask, CroppedMask) else r.mask
                         fh.write(json.dumps(replace(r, mask=mask).to_json()) + "\n")
                 if cfg.overlay and writer is not None:
-                    _redraw_overlay(tmp_video, cfg, final, pipeline, source, calib, max_frames)
+                    _redraw_overlay(tmp_video, cfg, final, pipeline, source, calib, max_frames, topic)
     write_json(out_dir / "frames.json", names)
     if calib.lens is not None:
         write_json(out_dir / "calibration.json", {**calib.lens.record(), "undistorted": calib.lens.distorted})
+    if stamps:
+        write_json(out_dir / "frame_stamps.json", stamps)
     write_json(out_dir / "timings.json", _timing_summary(times, len(names), len(final), detector_info))
     log.info("infer: %d frames, %d poses -> %s", len(names), len(final), poses_path)
     if gt_scene is not None:
@@ -252,22 +260,22 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
 
 
 def _redraw_overlay(path: Path, cfg: InferConfig, records: list[PoseRecord], pipeline: PosePipeline, source: Path,
-                    calib: Calibration, max_frames: int | None) -> None:
+                    calib: Calibration, max_frames: int | None, topic: str | None) -> None:
     """The overlay video again, from the records after completion (a completed part's label says ``track``)."""
     by_frame: dict[str, list[PoseRecord]] = {}
     for r in records:
         by_frame.setdefault(r.frame_name, []).append(r)
     writer = _video_writer(path, cfg.overlay_fps)
     try:
-        for vf in calib.frames(source, max_frames):
+        for vf in calib.frames(source, max_frames, topic):
             writer.append_data(_draw(vf.image, by_frame.get(vf.name, []), pipeline, calib.K(vf.name)))
     finally:
         writer.close()
 
 
 def _complete(cfg: InferConfig, pipeline: PosePipeline, records: list[PoseRecord], source: Path, calib: Calibration,
-              depth: _DepthSource, prep: dict, max_frames: int | None, progress: Progress | None
-              ) -> tuple[list[PoseRecord], dict | None]:
+              depth: _DepthSource, prep: dict, max_frames: int | None, progress: Progress | None,
+              topic: str | None) -> tuple[list[PoseRecord], dict | None]:
     """The completion pass (:mod:`cadalign.infer.complete`) over the frames again: the records it reports and its
     summary; the records unchanged and None without depth."""
     cameras = pipeline.fuser.cameras  # frame -> (world, T_world_from_cam): given, or registered on the parts
@@ -277,7 +285,7 @@ def _complete(cfg: InferConfig, pipeline: PosePipeline, records: list[PoseRecord
         return records, None
     completer = TrackCompleter(cfg.complete, pipeline.world_tracks(), records, pipeline.geometry)
     if completer.tracks:
-        frames = calib.frames(source, max_frames)
+        frames = calib.frames(source, max_frames, topic)
         for vf in progress(frames, "complete", max_frames) if progress else frames:
             if vf.index not in cameras:
                 continue

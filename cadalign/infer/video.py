@@ -1,8 +1,10 @@
-"""Frames from a video file or a folder of images, skipping unreadable frames with a warning naming them.
+"""Frames from a video file, a folder of images or a ROS bag's image topic, skipping unreadable frames with a
+warning naming them.
 
 Frames are yielded as RGB uint8 arrays with a stable name: the file name for a folder, ``NNNNNN.png``
 (the 0-based frame index) for a video, so a video and the folder of its frames give the same names
-(``cadalign sim`` writes ``frames/NNNNNN.png`` beside ``video.mp4``).
+(``cadalign sim`` writes ``frames/NNNNNN.png`` beside ``video.mp4``); a bag's frames are named the same way
+by their position on the topic (:mod:`cadalign.formats.bag`).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from cadalign.errors import InputError
+from cadalign.formats.bag import is_bag, iter_bag_frames
 from cadalign.sfm.frames import IMAGE_SUFFIXES, VIDEO_SUFFIXES
 
 log = logging.getLogger(__name__)
@@ -31,6 +34,8 @@ class VideoFrame:
     """File name (folder) or ``NNNNNN.png`` (video)."""
     image: np.ndarray
     """(H, W, 3) RGB uint8."""
+    stamp_ns: int | None = None
+    """Capture time in nanoseconds since the epoch (a ROS bag message's header stamp); None for videos, folders."""
 
 
 def list_frames(source: Path) -> list[Path]:
@@ -41,8 +46,11 @@ def list_frames(source: Path) -> list[Path]:
     return files
 
 
-def iter_frames(source: Path, *, stride: int = 1, max_frames: int | None = None) -> Iterator[VideoFrame]:
-    """Yield every ``stride``-th frame of a video file or an image folder (RGB uint8).
+def iter_frames(source: Path, *, stride: int = 1, max_frames: int | None = None,
+                topic: str | None = None) -> Iterator[VideoFrame]:
+    """Yield every ``stride``-th frame of a video file, an image folder or a ROS bag's image ``topic`` (RGB uint8).
+
+    ``topic`` None reads a bag's only image topic; it must be None for videos and folders.
 
     A frame that cannot be decoded is skipped with a warning naming it; the index still advances.
 
@@ -51,10 +59,16 @@ def iter_frames(source: Path, *, stride: int = 1, max_frames: int | None = None)
     """
     source = Path(source)
     if not source.exists():
-        raise InputError(f"video or frame folder not found: {source}")
+        raise InputError(f"video, ROS bag or frame folder not found: {source}")
     if stride < 1:
         raise InputError(f"stride must be >= 1, got {stride}")
-    gen = _folder(source) if source.is_dir() else _video(source)
+    if is_bag(source):
+        gen: Iterator[VideoFrame] = (VideoFrame(f.index, f.name, f.image, f.stamp_ns)
+                                     for f in iter_bag_frames(source, topic))
+    elif topic is not None:
+        raise InputError(f"--topic {topic} is for ROS bags, but {source} is not one; drop --topic")
+    else:
+        gen = _folder(source) if source.is_dir() else _video(source)
     n = 0
     for frame in gen:
         if frame.index % stride:

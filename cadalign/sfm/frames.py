@@ -1,4 +1,5 @@
-"""Frames for SfM from a video or an image folder: sampling, blur / duplicate rejection, enhancement, masks.
+"""Frames for SfM from a video, an image folder or a ROS bag's image topic: sampling, blur / duplicate
+rejection, enhancement, masks.
 
 The core is :func:`select_frames`, a pure generator over ``(name, image)``
 candidates that keeps or rejects each one with a reason. Checks run on a grey
@@ -12,7 +13,8 @@ copy resized to ``analysis_width``:
   too few corners can be tracked, the mean absolute grey difference is used.
 
 :func:`extract_frames` (disk) writes the kept frames, optionally enhanced for
-murky water (CLAHE, grey-world white balance), and COLMAP masks.
+murky water (CLAHE, grey-world white balance), and COLMAP masks. :func:`frame_candidates` is the one
+place that turns an input path (video, folder, ROS 1 ``.bag`` or ROS 2 bag folder) into frames.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import cv2
 import numpy as np
 
 from cadalign.errors import InputError
+from cadalign.formats.bag import is_bag, iter_bag_frames
 from cadalign.io import link_or_copy, read_image, write_image
 from cadalign.sfm.config import FrameConfig
 
@@ -54,6 +57,8 @@ class FrameDecision:
             '' when kept.
         sharpness: variance of the Laplacian at analysis size.
         motion: median corner motion since the last kept frame (fraction of the diagonal); -1 for the first.
+        stamp_ns: the message's header stamp in nanoseconds since the epoch (ROS bags); None for videos and
+            folders, which carry no capture time.
     """
 
     name: str
@@ -62,6 +67,7 @@ class FrameDecision:
     reason: str
     sharpness: float
     motion: float
+    stamp_ns: int | None = None
 
 
 def sharpness(gray: np.ndarray) -> float:
@@ -143,13 +149,15 @@ def select_frames(
     first: tuple[str, tuple[int, ...]] | None = None
     n_kept = 0
     min_motion = cfg.keyframe_motion if cfg.sampling == "motion" else cfg.min_motion
-    for name, source, rgb in candidates:
+    for candidate in candidates:
+        name, source, rgb = candidate[:3]
+        stamp = candidate[3] if len(candidate) > 3 else None
         _check_frame(rgb, name, source, first)
         first = first or (name, rgb.shape[:2])
         gray = _analysis_gray(rgb, cfg.analysis_width)
         exposure = exposure_problem(gray)
         if exposure:
-            yield FrameDecision(name, source, False, exposure, sharpness(gray), -1.0), rgb
+            yield FrameDecision(name, source, False, exposure, sharpness(gray), -1.0, stamp), rgb
             continue
         sharp = sharpness(gray)
         reference = float(np.median(recent)) if recent else sharp
@@ -166,7 +174,7 @@ def select_frames(
         if not reason:
             last_kept = gray
             n_kept += 1
-        yield FrameDecision(name, source, not reason, reason, sharp, motion), rgb
+        yield FrameDecision(name, source, not reason, reason, sharp, motion, stamp), rgb
 
 
 def enhance(rgb: np.ndarray, cfg: FrameConfig) -> np.ndarray:
@@ -233,6 +241,43 @@ def folder_candidates(folder: Path) -> tuple[Iterator[tuple[str, str, np.ndarray
     return ((p.name, str(p), read_image(p)) for p in files), len(files)
 
 
+def bag_candidates(path: Path, topic: str | None) -> tuple[Iterator[tuple[str, str, np.ndarray, int]], int]:
+    """Candidate frames of a ROS bag's image topic ``(name, "topic#index", rgb, stamp_ns)`` and their count."""
+    from cadalign.formats.bag import resolve_topic
+
+    chosen = resolve_topic(path, topic)
+    frames = iter_bag_frames(path, chosen.name)
+    return ((f.name, f"{chosen.name}#{f.index}", f.image, f.stamp_ns) for f in frames), chosen.count
+
+
+def frame_candidates(source: Path, cfg: FrameConfig, topic: str | None = None
+                     ) -> tuple[Iterator[tuple[str, str, np.ndarray] | tuple[str, str, np.ndarray, int]], int]:
+    """Candidate frames ``(name, source, rgb[, stamp_ns])`` of any input and their expected count.
+
+    ``source`` is a video file, a folder of images, a ROS 1 ``.bag`` or a ROS 2 bag folder; ``topic`` picks
+    the bag's image topic (None: its only one) and must be None for other inputs.
+
+    Raises:
+        InputError: the input is missing or of no known kind, or a topic is given for a non-bag, or the
+            topic is missing from the bag (naming its image topics).
+    """
+    source = Path(source)
+    if is_bag(source):
+        return bag_candidates(source, topic)
+    if topic is not None and source.exists():
+        raise InputError(f"--topic {topic} is for ROS bags, but {source} is not one (a .bag file or a ROS 2 bag "
+                         "folder with metadata.yaml); drop --topic")
+    if is_video(source):
+        return video_candidates(source, cfg)
+    if source.is_dir():
+        return folder_candidates(source)
+    if source.exists():
+        raise InputError(f"{source} is neither a video ({', '.join(VIDEO_SUFFIXES)}), a ROS bag (.bag, or a ROS 2 "
+                         "bag folder) nor a folder of images")
+    raise InputError(f"input not found: {source}; pass an existing video ({', '.join(VIDEO_SUFFIXES)}), ROS bag "
+                     "or folder of frames")
+
+
 def _load_mask(cfg: FrameConfig, name: str, shape: tuple[int, int]) -> np.ndarray | None:
     """The (H, W) bool mask of frame ``name`` (True = use), or None when no mask is configured."""
     if cfg.mask is None and not cfg.mask_rects:
@@ -277,33 +322,27 @@ def first_frame_size(source: Path) -> tuple[int, int]:
 def extract_frames(
     source: Path, cfg: FrameConfig, images_dir: Path, masks_dir: Path, progress: Progress | None = None,
     undistort: Callable[[np.ndarray], np.ndarray] | None = None,
+    topic: str | None = None,
 ) -> list[FrameDecision]:
-    """Select frames of ``source`` (video or image folder) and write them to ``images_dir``.
+    """Select frames of ``source`` (see :func:`frame_candidates`) and write them to ``images_dir``.
 
     Kept frames are written as PNG (undistorted by ``undistort`` when given, then enhanced per ``cfg.enhance``)
     under their decision name; masks, when configured, go to ``masks_dir/<name>.png`` (COLMAP's layout:
     255 = use, 0 = ignore). Frame selection looks at the frames as recorded.
 
     Raises:
-        InputError: the source is missing, not a video or folder of images, or yields no usable frame.
+        InputError: the source is missing, not a video, bag or folder of images, or yields no usable frame.
     """
     source = Path(source)
-    if is_video(source):
-        candidates, total = video_candidates(source, cfg)
-    elif source.is_dir():
-        candidates, total = folder_candidates(source)
-    elif source.exists():
-        raise InputError(f"{source} is neither a video ({', '.join(VIDEO_SUFFIXES)}) nor a folder of images")
-    else:
-        raise InputError(f"input not found: {source}; pass an existing video ({', '.join(VIDEO_SUFFIXES)}) or a "
-                         "folder of frames")
+    candidates, total = frame_candidates(source, cfg, topic)
+    copy_files = source.is_dir() and not is_bag(source)
     decisions: list[FrameDecision] = []
     stream = select_frames(candidates, cfg)
     for decision, rgb in progress(stream, "frames", total) if progress else stream:
         decisions.append(decision)
         if not decision.kept:
             continue
-        if cfg.enhance == "none" and not is_video(source) and undistort is None:
+        if cfg.enhance == "none" and copy_files and undistort is None:
             link_or_copy(Path(decision.source), images_dir / decision.name)  # lossless, keeps EXIF
         else:
             write_image(images_dir / decision.name, enhance(undistort(rgb) if undistort else rgb, cfg))

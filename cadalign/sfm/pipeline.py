@@ -1,11 +1,12 @@
-"""``run``: video or frames folder -> COLMAP model, cameras.json, SfM depth and a report.
+"""``run``: video, frames folder or ROS bag image topic -> COLMAP model, cameras.json, SfM depth and a report.
 
 Output layout (``OUT``)::
 
     OUT/images/<name>            the frames SfM used (pre-processed), names as in the input
     OUT/masks/<name>.png         COLMAP feature masks (only with frames.mask / frames.mask_rects)
     OUT/frames.json              every candidate frame: kept or why not (blurred, near-duplicate); the lens
-                                 distortion undone (``undistorted``) when the calibration has one
+                                 distortion undone (``undistorted``) when the calibration has one; a bag's
+                                 frames carry their header stamp (stamp_ns), and "topic" names the topic
     OUT/database.db              COLMAP database: features and verified matches
     OUT/sparse/0/                the largest model, COLMAP binary (cameras.bin, images.bin, points3D.bin …)
     OUT/cameras.json             per registered frame K, size, R/t_cam_from_world (SfM units)
@@ -34,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from cadalign.errors import ConfigError, InputError
+from cadalign.formats.bag import bag_root, is_bag
 from cadalign.formats.calibration import Undistorter
 from cadalign.formats.tum import TUM_NAME, write_cameras_tum
 from cadalign.io import MANIFEST_NAME, atomic_path, fingerprint, prepare_stage_dir, read_json, write_json
@@ -95,9 +97,16 @@ class Layout:
         return self.root / "steps" / f"{step}.json"
 
 
-def source_identity(source: Path) -> dict[str, Any]:
-    """What identifies an input for resuming: the resolved path plus names and sizes of its files."""
+def source_identity(source: Path, topic: str | None = None) -> dict[str, Any]:
+    """What identifies an input for resuming: the resolved path plus names and sizes of its files (and a bag's
+    topic, only when one is named, so the identity of videos and folders is as before bags)."""
     source = Path(source)
+    root = bag_root(source)
+    if root is not None:
+        files = [root] if root.is_file() else sorted(p for p in root.iterdir() if p.is_file())
+        ident = {"path": str(root.resolve()), "files": fingerprint([[p.name, p.stat().st_size] for p in files]),
+                 "count": len(files)}
+        return {**ident, "topic": topic} if topic is not None else ident
     if source.is_dir():
         files = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
         listing = [[p.name, p.stat().st_size] for p in files]
@@ -117,9 +126,12 @@ def clear_outputs(out_dir: Path) -> None:
 
 
 def run(
-    cfg: SfMConfig, source: Path, out_dir: Path, *, overwrite: bool = False, progress: Progress | None = None
+    cfg: SfMConfig, source: Path, out_dir: Path, *, overwrite: bool = False, progress: Progress | None = None,
+    topic: str | None = None,
 ) -> Path:
-    """Structure from motion on a video or frames folder; returns ``out_dir`` (layout in the module doc).
+    """Structure from motion on a video, frames folder or ROS bag; returns ``out_dir`` (layout in the module doc).
+
+    ``topic`` is a ROS bag's image topic (None: the bag's only image topic; must be None for other inputs).
 
     Raises:
         InputError: missing/unreadable input, or too few usable frames or features (naming the frames).
@@ -128,16 +140,17 @@ def run(
     """
     source, out_dir = Path(source), Path(out_dir)
     if not source.exists():
-        raise InputError(f"input not found: {source}; pass a video file or a folder of frames")
-    if not (source.is_dir() or is_video(source)):
-        raise InputError(f"{source} is neither a video nor a folder of images")
+        raise InputError(f"input not found: {source}; pass a video file, a ROS bag or a folder of frames")
+    if not (source.is_dir() or is_video(source) or is_bag(source)):
+        raise InputError(f"{source} is neither a video, a ROS bag (.bag, or a ROS 2 bag folder) nor a folder of "
+                         "images")
     if overwrite and out_dir.exists():
         clear_outputs(out_dir)
-    config = {"sfm": cfg, "source": source_identity(source)}
+    config = {"sfm": cfg, "source": source_identity(source, topic)}
     prepare_stage_dir(out_dir, "sfm", config)
     lay = Layout(out_dir)
     steps: dict[str, Callable[[], dict[str, Any]]] = {
-        "frames": lambda: _step_frames(cfg, source, lay, progress),
+        "frames": lambda: _step_frames(cfg, source, lay, progress, topic),
         "features": lambda: _step_features(cfg, lay, progress),
         "matches": lambda: _step_matches(cfg, lay),
         "mapping": lambda: _step_mapping(cfg, lay, progress),
@@ -181,14 +194,18 @@ def _kept_names(lay: Layout) -> list[str]:
     return [f["name"] for f in read_json(lay.root / "frames.json")["frames"] if f["kept"]]
 
 
-def _step_frames(cfg: SfMConfig, source: Path, lay: Layout, progress: Progress | None) -> dict[str, Any]:
+def _step_frames(cfg: SfMConfig, source: Path, lay: Layout, progress: Progress | None,
+                 topic: str | None) -> dict[str, Any]:
     for d in (lay.images, lay.masks):
         if d.exists():
             shutil.rmtree(d)
     undistort = undistorter(cfg)
     decisions = extract_frames(source, cfg.frames, lay.images, lay.masks, progress,
-                               undistort=undistort if undistort.active else None)
-    write_json(lay.root / "frames.json", {"source": str(source), "frames": [dataclasses.asdict(d) for d in decisions],
+                               undistort=undistort if undistort.active else None, topic=topic)
+    record: dict[str, Any] = {"source": str(source)}
+    if is_bag(source):
+        record["topic"] = decisions[0].source.rpartition("#")[0]
+    write_json(lay.root / "frames.json", {**record, "frames": [dataclasses.asdict(d) for d in decisions],
                                           "undistorted": undistort.record() if undistort.active else None})
     return {"candidates": len(decisions), "kept": sum(d.kept for d in decisions)}
 

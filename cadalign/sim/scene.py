@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from cadalign.cad.procedural import DEFAULT_SIZES_M, make_part, seabed
 from cadalign.errors import InputError
-from cadalign.sim.spec import ObjectSpec, SceneSpec, check_mesh_clearance, resolve_source
+from cadalign.sim.spec import ObjectSpec, SceneSpec, check_mesh_clearance, resolve_source, split_part
 from cadalign.types import Camera, Rigid3
 
 log = logging.getLogger(__name__)
@@ -78,7 +78,8 @@ def _load_mesh(o: ObjectSpec, scene_path: Path | None) -> trimesh.Trimesh:
     else:
         from cadalign.cad import load_cad
 
-        model = load_cad(resolve_source(o.source, scene_path), unit=o.unit, name=o.name)
+        model = load_cad(resolve_source(o.source, scene_path), unit=o.unit, name=o.name,
+                         part=split_part(o.source)[1])
         mesh = trimesh.Trimesh(model.vertices_m, model.faces, process=False)
     if o.scale != 1.0:
         mesh.apply_scale(o.scale)

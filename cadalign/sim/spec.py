@@ -117,7 +117,9 @@ class ObjectSpec:
     """Instance name (unique in the scene)."""
     source: str
     """'procedural:KIND' (frame, valve_a..valve_d, hot_stab, box, cylinder), 'data:REL/PATH' (under
-    the shared data folder, $CADALIGN_DATA_DIR), or a mesh path relative to the scene file."""
+    the shared data folder, $CADALIGN_DATA_DIR), or a mesh/STEP/IGES path relative to the scene file.
+    ``FILE#PART`` keeps one named part of the file, e.g. ``"panel.step#valve_1"`` (a STEP assembly's product);
+    the part keeps its place in the file's frame."""
     class_name: str = "structure"
     """One of the scene's `classes`."""
     position: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -321,8 +323,17 @@ def data_dir() -> Path:
     return Path(__file__).resolve().parents[3] / "shared" / "data"
 
 
+def split_part(source: str) -> tuple[str, str | None]:
+    """``"panel.step#valve_1"`` -> ``("panel.step", "valve_1")``: a mesh source and the named part of the file it
+    selects (a STEP product, a scene node of a mesh file); ``(source, None)`` without ``#``."""
+    file, sep, part = source.partition("#")
+    return (file, part) if sep and part else (file, None)
+
+
 def resolve_source(source: str, scene_path: Path | None) -> Path:
-    """Resolve an object's mesh `source` to a file path (procedural sources are not files)."""
+    """Resolve an object's mesh `source` to a file path (procedural sources are not files; a ``#part`` suffix is
+    dropped, see :func:`split_part`)."""
+    source = split_part(source)[0]
     if source.startswith("data:"):
         p = data_dir() / source[len("data:") :]
         hint = "set CADALIGN_DATA_DIR to the folder holding uuv_subsea_cad/"

@@ -9,9 +9,8 @@ from cadalign.io import atomic_path
 
 def plot_metrics(rows: list[dict[str, float]], path: Path) -> Path:
     """Plot ``loss``/``loss_avg`` and every ``val_*`` column of the metrics rows against the step into a PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
+    # the object API draws without pyplot, so no backend is set: matplotlib.use("Agg") here switched a notebook's
+    # inline backend off for every later plot
     from matplotlib.figure import Figure
 
     val_keys = sorted({k for r in rows for k in r if k.startswith("val_")})

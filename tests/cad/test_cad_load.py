@@ -194,9 +194,9 @@ def test_directory_raises_input_error(tmp_path: Path) -> None:
 
 
 def test_bad_extension_raises_input_error(tmp_path: Path) -> None:
-    path = tmp_path / "part.step"
-    path.write_text("ISO-10303-21;")
-    with pytest.raises(InputError, match=r"part\.step' has unsupported extension '\.step'.*PLY or OBJ"):
+    path = tmp_path / "part.sldprt"  # a native SolidWorks part (STEP and IGES are read, see test_cad_step.py)
+    path.write_text("not a mesh")
+    with pytest.raises(InputError, match=r"part\.sldprt' has unsupported extension '\.sldprt'.*PLY or OBJ"):
         load_cad(path)
 
 

@@ -111,6 +111,27 @@ def test_video_file_input(tiny_sim: Path, tmp_path: Path) -> None:
     assert read_json(tmp_path / "out" / "frames.json") == ["000000.png", "000001.png"]
 
 
+def test_ros_bag_input_with_topic_gives_the_folders_poses_and_stamps(tiny_sim: Path, oracle_run: Path,
+                                                                     tmp_path: Path) -> None:
+    """`infer BAG --topic T` (a ROS 1 bag of the frames, beside a second camera topic): the frames folder's
+    poses, and each frame's header stamp in frame_stamps.json."""
+    from bag_testdata import DT_NS, T0_NS, write_bag
+
+    from cadalign.io import read_image
+
+    frames = [read_image(p) for p in sorted((tiny_sim / "frames").glob("*.png"))]
+    bag = write_bag(frames, tmp_path / "dive.bag", ros=1, other_topics=("/camera2/image_raw",))
+    res = _infer(tiny_sim, tmp_path / "out", "--topic", "/camera/image_raw", "--gt", str(tiny_sim), "--depth",
+                 str(tiny_sim), source=bag)  # as oracle_run was made from the folder
+    assert res.exit_code == 0, res.output
+    names = read_json(oracle_run / "frames.json")
+    assert read_json(tmp_path / "out" / "frames.json") == names
+    assert read_json(tmp_path / "out" / "frame_stamps.json") == {n: T0_NS + k * DT_NS for k, n in enumerate(names)}
+    assert (tmp_path / "out" / "poses.jsonl").read_text() == (oracle_run / "poses.jsonl").read_text()
+    res = _infer(tiny_sim, tmp_path / "out2", source=bag)  # two image topics and none named
+    assert res.exit_code == 1 and "--topic" in res.output and "/camera2/image_raw" in res.output
+
+
 def test_detector_choice_errors(tiny_sim: Path, tmp_path: Path) -> None:
     res = runner.invoke(app, ["infer", str(tiny_sim / "frames"), "--cad", str(tiny_sim.parent / "tiny.toml"),
                               "--out", str(tmp_path / "o")])

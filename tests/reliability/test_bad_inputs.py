@@ -93,6 +93,44 @@ def test_video_with_intact_header_and_garbage_frames(tmp_path: Path) -> None:
     assert "no frame could be decoded" in msg or "could not open video" in msg
 
 
+def test_corrupt_bag(tmp_path: Path) -> None:
+    (tmp_path / "dive.bag").write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    expect_error("sfm frames", "corrupt ROS 1 bag (random bytes)", InputError,
+                 lambda: _extract(tmp_path / "dive.bag", tmp_path), "dive.bag", "corrupt", "rosbag reindex")
+
+
+def test_bag_truncated_mid_recording(tmp_path: Path) -> None:
+    """A recording cut off before it was closed (no index at the end): named, with the reindex fix."""
+    from bag_testdata import write_bag
+
+    path = write_bag([_texture(k) for k in range(6)], tmp_path / "dive.bag", ros=1)
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    expect_error("sfm frames", "ROS 1 bag truncated to half (no index)", InputError,
+                 lambda: _extract(path, tmp_path), "dive.bag", "reindex")
+
+
+def test_corrupt_ros2_bag_database(tmp_path: Path) -> None:
+    from bag_testdata import write_bag
+
+    bag = write_bag([_texture(k) for k in range(3)], tmp_path / "dive", ros=2)
+    for db in bag.glob("*.db3"):
+        db.write_bytes(b"not a database" * 100)
+    expect_error("sfm frames", "ROS 2 bag with a corrupt .db3", InputError, lambda: _extract(bag, tmp_path),
+                 "dive", "corrupt")
+
+
+def test_bag_topic_that_does_not_exist(tmp_path: Path) -> None:
+    from bag_testdata import write_bag
+
+    from cadalign.sfm.frames import frame_candidates
+
+    bag = write_bag([_texture(k) for k in range(3)], tmp_path / "dive.bag", ros=1, topic="/rov/cam0")
+    expect_error("sfm frames", "bag topic that does not exist", InputError,
+                 lambda: frame_candidates(bag, FrameConfig(), "/camera/image_raw"),
+                 "/camera/image_raw is not an image topic", "dive.bag", "/rov/cam0 (sensor_msgs/msg/Image, 3",
+                 "cadalign bag topics")
+
+
 def test_corrupt_image_in_folder(tmp_path: Path) -> None:
     for k in range(3):
         write_image(tmp_path / "in" / f"{k:06d}.png", _texture(k))
@@ -154,6 +192,35 @@ def test_cad_missing_and_empty(tmp_path: Path) -> None:
                  "valve.ply", "is empty (0 bytes)", "re-export")
 
 
+def test_step_without_solids(tmp_path: Path) -> None:
+    """A STEP holding only a wire (curves, no surface): named, with the fix."""
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeEdge
+    from OCP.gp import gp_Pnt
+    from step_testdata import write_step
+
+    edge = BRepBuilderAPI_MakeEdge(gp_Pnt(0, 0, 0), gp_Pnt(100, 0, 0)).Edge()
+    path = write_step(tmp_path / "sketch.step", {"centreline": edge}, "mm")
+    expect_error("cad", "STEP with no solids (only a curve)", InputError, lambda: load_cad(path),
+                 "sketch.step", "holds no solid or surface", "export the bodies as solids")
+
+
+def test_step_garbage_text(tmp_path: Path) -> None:
+    path = tmp_path / "panel.step"
+    path.write_text("ISO-10303-21;\nHEADER;\nthis is not STEP\n")
+    expect_error("cad", "STEP file that does not parse", InputError, lambda: load_cad(path), "panel.step",
+                 "re-export")
+
+
+def test_step_in_inches_loads_in_metres_and_records_inch(tmp_path: Path) -> None:
+    """Not an error: a STEP declaring inches is scaled to metres and its model says 'in'."""
+    from step_testdata import box, write_step
+
+    path = write_step(tmp_path / "plate.step", {"plate": box((1.0, 0.5, 0.1))}, "in")
+    assert "CONVERSION_BASED_UNIT('INCH'" in path.read_text()
+    model = load_cad(path)
+    assert model.unit == "in" and np.allclose(model.extent, [1.0, 0.5, 0.1], atol=1e-5)
+
+
 @pytest.mark.parametrize("ext", ["ply", "dae", "glb", "obj"])
 def test_cad_garbage_bytes(tmp_path: Path, ext: str) -> None:
     path = tmp_path / f"valve.{ext}"
@@ -163,9 +230,9 @@ def test_cad_garbage_bytes(tmp_path: Path, ext: str) -> None:
 
 
 def test_cad_unsupported_extension(tmp_path: Path) -> None:
-    (tmp_path / "valve.step").write_text("ISO-10303-21;")
-    expect_error("cad", "unsupported format (.step)", InputError, lambda: load_cad(tmp_path / "valve.step"),
-                 "unsupported extension '.step'", "Convert it")
+    (tmp_path / "valve.sldprt").write_text("native CAD")
+    expect_error("cad", "unsupported format (.sldprt)", InputError, lambda: load_cad(tmp_path / "valve.sldprt"),
+                 "unsupported extension '.sldprt'", "as STEP", "convert it")
 
 
 def test_cad_in_millimetres_is_detected_and_a_wrong_unit_refused(tmp_path: Path, caplog) -> None:

@@ -131,7 +131,7 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                 init_pose: Rigid3 | None = None, restart_source: Callable[[np.ndarray, str], list] | None = None,
                 gt_scene: Path | None = None, max_frames: int | None = None, overwrite: bool = False,
                 progress: Progress | None = None, record: dict | None = None,
-                lens: CameraCalibration | None = None) -> Path:
+                lens: CameraCalibration | None = None, topic: str | None = None) -> Path:
     """Track the structure through a video or frame folder; returns ``out_dir / "poses.jsonl"`` (module doc).
 
     ``init_pose``: ``T_cam_from_world`` of the first frame (rough). ``restart_source(image, name)``: restart
@@ -143,7 +143,7 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                          "(a trained detector)")
     out_dir = Path(out_dir)
     undistort = Undistorter.of(lens) if lens is not None else None
-    rec = {"track": cfg, "source": str(source), "max_frames": max_frames, "camera": camera.K.tolist(),
+    rec = {"track": cfg, "source": str(source), "topic": topic, "max_frames": max_frames, "camera": camera.K.tolist(),
            "calibration": None if lens is None else lens.record(),
            "init_pose": None if init_pose is None else init_pose.matrix().tolist(), **(record or {})}
     poses_path = out_dir / "poses.jsonl"
@@ -156,7 +156,7 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
     times: dict[str, list[float]] = {"track": [], "restart": [], "detector": [], "overlay": []}
     states = {"ok": 0, "lost": 0}
     writer = None
-    frames = iter_frames(source, max_frames=max_frames)
+    frames = iter_frames(source, max_frames=max_frames, topic=topic)
     video_ctx = atomic_path(out_dir / "overlay.mp4") if cfg.overlay else contextlib.nullcontext(None)
     with atomic_path(poses_path) as tmp_poses, atomic_path(out_dir / "track.jsonl") as tmp_track, \
             video_ctx as tmp_video:
