@@ -162,7 +162,7 @@ def test_frames_json_records_the_undistortion(small_sim: Path, tmp_path: Path) -
     path = write_all(tmp_path / "c", np.reshape(read_json(small_sim / "calibration.json")["K"], (3, 3)), 320, 240,
                      (-0.2, 0.05))["ros"]
     cfg = with_calibration(PRESETS["fast"], path, small_sim / "frames")
-    _step_frames(cfg, small_sim / "frames", Layout(tmp_path / "sfm"), None)
+    _step_frames(cfg, small_sim / "frames", Layout(tmp_path / "sfm"), None, None)
     rec = read_json(tmp_path / "sfm" / "frames.json")["undistorted"]
     assert rec["model"] == "opencv" and rec["coeffs"] == [-0.2, 0.05, 0.0, 0.0]
 

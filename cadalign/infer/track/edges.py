@@ -67,6 +67,9 @@ class EdgeTrackConfig:
     """Fewer matched contour samples than this at a level: the level is skipped (too little to fit 6 DoF)."""
     converged_px: float = 0.05
     """A round whose fitted motion moves the contours less than this (pixels of the level, RMS) ends the level."""
+    min_extent_searches: float = 6.0
+    """A level is skipped when the typical part under its contour samples spans fewer than this many search
+    ranges (its long search would reach across the part to other edges and run off: small objects, clutter)."""
     min_level_width: int = 64
     """A level whose image would be narrower than this (pixels) is skipped: too few pixels to fit a pose."""
     support_px: float = 1.5
@@ -152,9 +155,10 @@ class EdgeTracker:
             f = r.render(T, with_full_masks=False)
             X_cam, _, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, lcfg, f.instance)
             X_w = T.apply(X_cam)
+            if len(X_w) < self.cfg.min_edges or _part_extent_px(f.instance, X_cam, r.camera.K) < \
+                    self.cfg.min_extent_searches * lv.search_px:
+                continue  # too few contours, or parts too small for this level's search: it would run off
             last = (r, X_w, n, f, g)
-            if len(X_w) < self.cfg.min_edges:
-                continue
             T_start, s_start = T, None
             for _ in range(lv.iterations):
                 off = self._offsets(T, X_w, n, r, g, lcfg)
@@ -221,6 +225,23 @@ class EdgeTracker:
             per[int(k)] = (int(m.sum()), float(ok[m].mean()), float(near[m].sum() / max(found[m].sum(), 1)))
         res = float(np.median(np.abs(off[ok]))) * to_full if ok.any() else float("nan")
         return EdgeFit(T, len(off), float(ok.mean()), res, per, instance, uv * to_full, ok, off * to_full)
+
+
+def _part_extent_px(instance: np.ndarray, X_cam: np.ndarray, K: np.ndarray) -> float:
+    """The typical contour sample's part size in the image, pixels: the smaller side of the bounding box of
+    the sample's instance, the median over samples (a structure's large frame counts by its many samples)."""
+    ids, counts = np.unique(instance[instance > 0], return_counts=True)
+    if len(ids) == 0:
+        return 0.0
+    uv = _pixels(K, X_cam)
+    H, W = instance.shape
+    inst = instance[np.clip(uv[:, 1].astype(int), 0, H - 1), np.clip(uv[:, 0].astype(int), 0, W - 1)]
+    side = {}
+    for k in ids:
+        ys, xs = np.nonzero(instance == k)
+        side[int(k)] = min(xs.max() - xs.min() + 1, ys.max() - ys.min() + 1)
+    per = np.array([side.get(int(k), 0) for k in inst], dtype=float)
+    return float(np.median(per)) if len(per) else 0.0
 
 
 def _share_within(off: np.ndarray, tol_px: float) -> float:
