@@ -16,6 +16,9 @@ def command(
     cad: Path = typer.Option(..., "--cad", help="Scene spec (TOML/YAML: parts and classes) or one CAD mesh."),
     out: Path = typer.Option(..., "--out", help="Output folder (poses.jsonl, overlay.mp4, timings.json, eval)."),
     model: Path | None = typer.Option(None, "--model", help="'cadalign train pose' run folder (the detector)."),
+    gt_poses: Path | None = typer.Option(
+        None, "--gt-poses", help="Tracker: reference camera poses of a real capture, JSON {\"frames\": {name: "
+        "T_cam_from_world 4x4}}: per-frame errors and their plot (truth_errors.json/.png)."),
     init_pose: Path | None = typer.Option(
         None, "--init-pose", help="Tracker start: JSON {\"T_cam_from_world\": 4x4, metres} of the first frame, "
         "rough (a navigation pose, ~0.5 m / 10 deg)."),
@@ -56,7 +59,7 @@ def command(
             depth is None and oracle_gt is None and (calib is None or not _has_metric_poses(calib)))
         if use_tracker:
             _track(source, cad, out, model, init_pose, gt, calib, max_frames, cad_unit, device, preset, config,
-                   overwrite, topic)
+                   overwrite, topic, gt_poses)
             return
         if (model is None) == (oracle_gt is None):
             raise InputError("pass exactly one detector: --model RUN (a trained network) or --oracle-gt SIM_DIR")
@@ -107,7 +110,7 @@ def _has_metric_poses(calib: Path) -> bool:
 
 def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Path | None, gt: Path | None,
            calib: Path | None, max_frames: int | None, cad_unit: str | None, device: str, preset: str,
-           config: Path | None, overwrite: bool, topic: str | None) -> None:
+           config: Path | None, overwrite: bool, topic: str | None, gt_poses: Path | None) -> None:
     """The tracker branch of ``infer`` (:mod:`cadalign.infer.track.run`)."""
     from cadalign.build_dataset import load_structure
     from cadalign.config import resolve
@@ -153,6 +156,14 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
                        max_frames=max_frames, overwrite=overwrite, progress=track, lens=lens, topic=topic,
                        record={"detector": info, "cad": str(cad)})
     console.print(f"[green]poses written to {path}[/]")
+    if gt_poses is not None:
+        from cadalign.infer.track.run import read_truth_poses, truth_report
+
+        summary = truth_report(out, structure, read_truth_poses(gt_poses))
+        for name, v in summary["parts"].items():
+            if v["median_mm"] is not None:
+                console.print(f"{name}: median {v['median_mm']:.1f} mm / {v['median_deg']:.2f} deg against "
+                              f"{gt_poses.name} ({summary['tracked']}/{summary['frames']} frames tracked)")
     _print_track_summary(out)
 
 

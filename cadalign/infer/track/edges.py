@@ -67,7 +67,7 @@ class EdgeTrackConfig:
     """Fewer matched contour samples than this at a level: the level is skipped (too little to fit 6 DoF)."""
     converged_px: float = 0.05
     """A round whose fitted motion moves the contours less than this (pixels of the level, RMS) ends the level."""
-    min_extent_searches: float = 6.0
+    min_extent_searches: float = 0.0
     """A level is skipped when the typical part under its contour samples spans fewer than this many search
     ranges (its long search would reach across the part to other edges and run off: small objects, clutter)."""
     min_level_width: int = 64

@@ -231,3 +231,72 @@ def _video_writer(path: Path, fps: float):  # -> imageio writer
     from cadalign.infer.run import _video_writer as writer
 
     return writer(path, fps)
+
+
+def read_truth_poses(path: Path) -> dict[str, Rigid3]:
+    """Reference camera poses of a real capture: JSON ``{"frames": {frame name: T_cam_from_world 4x4}}``
+    (metres, the scene file's world frame), e.g. from a fiducial board."""
+    data = read_json(path)
+    try:
+        return {str(k): Rigid3.from_matrix(np.asarray(v, dtype=np.float64)) for k, v in data["frames"].items()}
+    except (KeyError, ValueError, TypeError, AttributeError) as exc:
+        raise InputError(f"{path}: not reference poses ({exc}); write {{\"frames\": {{\"<frame name>\": 4x4 "
+                         "T_cam_from_world, metres}}}}") from exc
+
+
+def truth_report(out_dir: Path, structure: Structure, truth: dict[str, Rigid3]) -> dict:
+    """Per-frame errors of each part's tracked pose against reference camera poses (``truth_errors.json``) and
+    their plot (``truth_errors.png``): the part's centre in the camera (mm) and its rotation (deg); a lost
+    frame has none."""
+    from cadalign.geometry.rotations import geodesic_angle
+
+    rows = []
+    for line in (Path(out_dir) / "track.jsonl").read_text(encoding="utf-8").splitlines():
+        d = json.loads(line)
+        T_ref = truth.get(d["frame_name"])
+        if T_ref is None:
+            continue
+        row: dict = {"frame": d["frame"], "frame_name": d["frame_name"], "state": d["state"], "parts": {}}
+        if d["T_cam_from_world"] is not None:
+            T = Rigid3.from_matrix(np.asarray(d["T_cam_from_world"]))
+            for o in structure.objects:
+                c = structure.models[o.obj_id].vertices_m.mean(axis=0)
+                A, B = T @ o.T_world_from_obj, T_ref @ o.T_world_from_obj
+                row["parts"][o.name] = {
+                    "centre_err_mm": 1e3 * float(np.linalg.norm(A.apply(c[None]) - B.apply(c[None]))),
+                    "rot_err_deg": float(np.degrees(geodesic_angle(A.R, B.R)))}
+        rows.append(row)
+    summary: dict = {"frames": len(rows), "tracked": sum(r["state"] == "ok" for r in rows), "parts": {}}
+    for o in structure.objects:
+        t = [r["parts"][o.name]["centre_err_mm"] for r in rows if o.name in r["parts"]]
+        a = [r["parts"][o.name]["rot_err_deg"] for r in rows if o.name in r["parts"]]
+        summary["parts"][o.name] = {"median_mm": float(np.median(t)) if t else None,
+                                    "median_deg": float(np.median(a)) if a else None,
+                                    "mean_mm": float(np.mean(t)) if t else None,
+                                    "mean_deg": float(np.mean(a)) if a else None}
+    write_json(Path(out_dir) / "truth_errors.json", {"summary": summary, "frames": rows})
+    _plot_truth(Path(out_dir) / "truth_errors.png", rows, [o.name for o in structure.objects])
+    return summary
+
+
+def _plot_truth(path: Path, rows: list[dict], names: list[str]) -> None:
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9, 5), dpi=100)
+    ax1, ax2 = fig.subplots(2, 1, sharex=True)
+    for name in names:
+        f = [r["frame"] for r in rows if name in r["parts"]]
+        ax1.plot(f, [r["parts"][name]["centre_err_mm"] for r in rows if name in r["parts"]], ".-", label=name)
+        ax2.plot(f, [r["parts"][name]["rot_err_deg"] for r in rows if name in r["parts"]], ".-", label=name)
+    lost = [r["frame"] for r in rows if r["state"] != "ok"]
+    for ax in (ax1, ax2):
+        for k in lost:
+            ax.axvspan(k - 0.5, k + 0.5, color="0.85", lw=0)
+        ax.grid(alpha=0.3)
+    ax1.set_ylabel("centre error, mm")
+    ax2.set_ylabel("rotation error, deg")
+    ax2.set_xlabel("frame (grey: lost, no pose reported)")
+    ax1.legend()
+    ax1.set_title("tracked part poses against the reference poses")
+    fig.tight_layout()
+    fig.savefig(path)

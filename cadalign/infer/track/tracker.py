@@ -139,12 +139,9 @@ class StructureTracker:
         if not restarts and self._last is not None:  # lost: search round the last good pose
             restarts = [("last_pose", self._last.inverse())]
         for name, T_cw in restarts:
-            fit = self.edges.fit(gray, T_cw.inverse(), self.cfg.restart_levels)
-            tried += 1
-            if not self.good(fit, start=True):  # the hypothesis itself fails: search round it
-                fit, n = self._search(gray, fit)
-                tried += n
-            if fit is not None and self.good(fit, start=True) and (best is None or fit.support > best[0].support):
+            fit, n = self._search(gray, T_cw.inverse())
+            tried += n
+            if fit is not None and (best is None or fit.support > best[0].support):
                 best = (fit, name)
         if best is not None:
             self._prev = None  # a restart has no velocity
@@ -154,22 +151,24 @@ class StructureTracker:
         self.lost = True
         return TrackStep(k, "lost", None, None, "", time.perf_counter() - t0, tried)
 
-    def _search(self, gray: np.ndarray, first: EdgeFit) -> tuple[EdgeFit | None, int]:
-        """The best-supported passing fit of the pan/tilt/roll search round a failed start (``first``), in up
-        to ``acquire_rounds`` searches, each round the best fit of the one before; (None, tries) when none
-        passes."""
-        top, tried = first, 0
+    def _search(self, gray: np.ndarray, T_world_from_cam: Rigid3) -> tuple[EdgeFit | None, int]:
+        """The best-supported passing fit from a rough pose: the pose itself and the candidates of the
+        pan/tilt/roll search round it, in up to ``acquire_rounds`` searches (each round the best fit of the
+        one before when none passed); (None, tries) when none passes."""
+        start, tried = T_world_from_cam, 0
         for _ in range(max(self.cfg.acquire_rounds, 1)):
             best: EdgeFit | None = None
-            for _, T_wc in candidates(self.edges, gray, top.T_world_from_cam, self.cfg.acquire):
+            top: EdgeFit | None = None
+            for T_wc in [start] + [T for _, T in candidates(self.edges, gray, start, self.cfg.acquire)]:
                 tried += 1
                 fit = self.edges.fit(gray, T_wc, self.cfg.restart_levels)
                 if self.good(fit, start=True) and (best is None or fit.support > best.support):
                     best = fit
-                if fit.support > top.support:
+                if top is None or fit.support > top.support:
                     top = fit
-            if best is not None:
+            if best is not None or top is None:
                 return best, tried
+            start = top.T_world_from_cam
         return None, tried
 
     def _accept(self, k: int, fit: EdgeFit, source: str, t0: float, tried: int) -> TrackStep:
