@@ -129,6 +129,41 @@ def _print_infer(out: Path) -> None:
                       f"ADD(-S) recall {m['add_s_01d']:.3f}, F1 {m['f1']:.3f}")
 
 
+@app.command("track")
+def track_speed(
+    frames: Path = typer.Option(..., "--frames", help="Video or folder of frames."),
+    cad: Path = typer.Option(..., "--cad", help="Scene spec of the structure."),
+    calib: Path = typer.Option(..., "--calib", help="The camera's calibration (any --calib format)."),
+    init_pose: Path = typer.Option(..., "--init-pose", help="Rough first-frame pose (as for 'infer')."),
+    model: Path | None = typer.Option(None, "--model", help="Trained 'cadalign train pose' run for the detector "
+                                      "baseline (default: the recipe's architecture with random weights)."),
+    recipe: Path | None = typer.Option(None, "--recipe", help="Training recipe whose architecture the default "
+                                       "baseline takes (e.g. training/pose_fast_zoom_improved.toml)."),
+    max_frames: int = typer.Option(30, "--max-frames", min=2, help="Frames to time."),
+    out: Path = OUT,
+) -> None:
+    """The structure tracker's frames/s and restart time against the detector alone, same frames, same run."""
+    from cadalign.build_dataset import load_structure
+    from cadalign.formats.calibration import read_calibration
+    from cadalign.infer.track.bench import bench_track
+    from cadalign.infer.track.run import read_init_pose
+    from cadalign.infer.video import iter_frames
+    from cadalign.io import write_json
+    from cadalign.types import Camera
+
+    with user_errors():
+        first = next(iter(iter_frames(frames, max_frames=1)))
+        h, w = first.image.shape[:2]
+        lens = read_calibration(calib)
+        lens.check_size(w, h, f"{frames}'s first frame")
+        res = bench_track(frames, load_structure(cad), Camera(lens.K, w, h), read_init_pose(init_pose), model=model,
+                          recipe=recipe, max_frames=max_frames)
+        write_json(out / "bench_track.json", res.record())
+    console.print(f"tracker {1e3 / res.track_ms:.1f} frames/s (CPU), detector alone {1e3 / res.detector_ms:.1f} "
+                  f"frames/s: {res.ratio:.2f}x; restart {res.restart_ms:.0f} ms; {res.tracked}/{res.frames} tracked "
+                  f"-> {out / 'bench_track.json'}")
+
+
 @app.command("all")
 def all_stages(
     out: Path = OUT, size: str = SIZE, repeats: int | None = REPEATS, seed: int = SEED, overwrite: bool = OVERWRITE,

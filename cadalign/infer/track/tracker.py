@@ -48,7 +48,7 @@ class TrackerConfig:
     min_support: float = 0.35
     """Lost below this share of contour samples with an image edge (see ``EdgeTrackConfig.support_px``), in any
     water: right poses measured 0.45-0.75 (turbid to clear simulated water), wrong ones 0.27-0.51."""
-    min_start_support: float = 0.4
+    min_start_support: float = 0.45
     """A restart hypothesis is taken only with at least this support (and the best-supported one wins)."""
     relative_support: float = 0.7
     """Lost below this share of the track's recent median support (a drop, where the absolute level depends on
@@ -57,7 +57,7 @@ class TrackerConfig:
     """Tracked frames whose median support ``relative_support`` refers to."""
     min_samples: int = 150
     """Lost when the CAD shows fewer contour samples at the pose (the structure left the view)."""
-    max_residual_px: float = 1.5
+    max_residual_px: float = 0.7
     """Lost when the supported samples' median offset exceeds this, pixels (a pose near but off the edges)."""
 
 

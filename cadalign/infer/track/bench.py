@@ -1,0 +1,110 @@
+"""Speed of the structure tracker against the detector alone, on the same frames in the same process.
+
+``cadalign bench track`` runs, over one video's frames:
+- the tracker (RGB only) started from a rough first-frame pose; frames/s of tracked frames (CPU time of this
+  process, which a busy shared machine inflates less than wall time), and the time of one restart (a start
+  from the rough pose: the pan/tilt/roll search and its contour fits);
+- the detector alone (the Mask R-CNN + pose network) on the same frames: a trained run (``--model``), or a
+  network of the recipe's architecture with random weights (compute does not depend on the weights; the report
+  says which).
+The ratio of the two is the result; absolute times on a shared machine are noise.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cadalign.build_dataset import Structure
+from cadalign.infer.track.edges import as_gray
+from cadalign.infer.track.tracker import StructureTracker, TrackerConfig
+from cadalign.infer.video import iter_frames
+from cadalign.types import Camera, Rigid3
+
+
+@dataclass(frozen=True)
+class TrackSpeed:
+    frames: int
+    tracked: int
+    track_ms: float
+    """Mean CPU ms of a tracked (continued) frame."""
+    restart_ms: float
+    """CPU ms of the start from the rough pose."""
+    detector_ms: float
+    """Mean CPU ms of the detector alone on the same frames."""
+    detector: str
+
+    @property
+    def ratio(self) -> float:
+        """Tracker frames/s over the detector's."""
+        return self.detector_ms / self.track_ms if self.track_ms > 0 else float("nan")
+
+    def record(self) -> dict:
+        return {"frames": self.frames, "tracked": self.tracked, "track_ms_cpu": self.track_ms,
+                "track_frames_per_s_cpu": 1e3 / self.track_ms if self.track_ms else None,
+                "restart_ms_cpu": self.restart_ms, "detector_ms_cpu": self.detector_ms,
+                "detector_frames_per_s_cpu": 1e3 / self.detector_ms if self.detector_ms else None,
+                "tracker_over_detector": self.ratio, "detector": self.detector,
+                "note": "CPU time of this process per frame (torch and Open3D use its threads); same frames, same run"}
+
+
+def time_tracker(frames: list[np.ndarray], structure: Structure, camera: Camera, init_pose: Rigid3,
+                 cfg: TrackerConfig | None = None) -> tuple[float, list[float], int]:
+    """(CPU s of the start, CPU s of each continued frame, frames tracked)."""
+    tr = StructureTracker(structure.render_meshes(), camera, cfg)
+    start, per, ok = 0.0, [], 0
+    for k, img in enumerate(frames):
+        g = as_gray(img)
+        c0 = time.process_time()
+        s = tr.step(g, [("init_pose", init_pose)] if tr.last_pose is None else [])
+        dt = time.process_time() - c0
+        ok += s.state == "ok"
+        if k == 0:
+            start = dt
+        elif s.source == "track":
+            per.append(dt)
+    return start, per, ok
+
+
+def time_detector(frames: list[np.ndarray], camera: Camera, model: Path | None, classes: tuple[str, ...],
+                  recipe: Path | None = None) -> tuple[list[float], str]:
+    """CPU s per frame of the detector alone, and what it was."""
+    import torch
+
+    from cadalign.infer.detect import TorchDetector
+
+    if model is not None:
+        from cadalign.models.maskrcnn.detector import load_pose_model
+
+        net, _ = load_pose_model(model)
+        what = f"trained network {model}"
+    else:
+        from cadalign.config import resolve
+        from cadalign.models.maskrcnn.detector import MaskRCNNPose
+        from cadalign.train.pose import PRESETS, PoseTrainConfig
+
+        cfg = resolve(PoseTrainConfig, PRESETS, "fast", recipe)
+        torch.manual_seed(0)
+        net = MaskRCNNPose(cfg.model, list(classes)).eval()
+        what = (f"the architecture of {recipe or 'the fast preset'} with random weights, no detection kept (score "
+                "threshold above 1): backbone, RPN and box head only, a lower bound of a trained network's time")
+    det = TorchDetector(net, 0.5 if model is not None else 1.01, "cpu")
+    per = []
+    for img in frames:
+        c0 = time.process_time()
+        det.detect(img, camera.K)
+        per.append(time.process_time() - c0)
+    return per, what
+
+
+def bench_track(source: Path, structure: Structure, camera: Camera, init_pose: Rigid3, *, model: Path | None = None,
+                recipe: Path | None = None, max_frames: int = 30, cfg: TrackerConfig | None = None) -> TrackSpeed:
+    """The tracker and the detector alone on the first ``max_frames`` frames of ``source`` (module doc)."""
+    frames = [vf.image for vf in iter_frames(source, max_frames=max_frames)]
+    start, per, ok = time_tracker(frames, structure, camera, init_pose, cfg)
+    det, what = time_detector(frames, camera, model, structure.class_names, recipe)
+    return TrackSpeed(len(frames), ok, 1e3 * float(np.mean(per)) if per else float("nan"), 1e3 * start,
+                      1e3 * float(np.mean(det)), what)
