@@ -67,6 +67,9 @@ class EdgeTrackConfig:
     """Fewer matched contour samples than this at a level: the level is skipped (too little to fit 6 DoF)."""
     converged_px: float = 0.05
     """A round whose fitted motion moves the contours less than this (pixels of the level, RMS) ends the level."""
+    reuse_px: float = 0.25
+    """The quality is read at the last full-resolution level's render when that level moved the contours by less
+    than this (pixels, summed RMS over its rounds); otherwise the CAD is rendered once more at the final pose."""
     min_extent_searches: float = 0.0
     """A level is skipped when the typical part under its contour samples spans fewer than this many search
     ranges (its long search would reach across the part to other edges and run off: small objects, clutter)."""
@@ -155,11 +158,11 @@ class EdgeTracker:
             f = r.render(T, with_full_masks=False)
             X_cam, _, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, lcfg, f.instance)
             X_w = T.apply(X_cam)
-            if len(X_w) < self.cfg.min_edges or _part_extent_px(f.instance, X_cam, r.camera.K) < \
-                    self.cfg.min_extent_searches * lv.search_px:
+            if len(X_w) < self.cfg.min_edges or (self.cfg.min_extent_searches > 0 and _part_extent_px(
+                    f.instance, X_cam, r.camera.K) < self.cfg.min_extent_searches * lv.search_px):
                 continue  # too few contours, or parts too small for this level's search: it would run off
             last = (r, X_w, n, f, g)
-            T_start, s_start = T, None
+            T_start, s_start, moved_px = T, None, 0.0
             for _ in range(lv.iterations):
                 off = self._offsets(T, X_w, n, r, g, lcfg)
                 ok = np.isfinite(off)
@@ -173,14 +176,19 @@ class EdgeTracker:
                 xi, w = fit_correction([(J, -off[ok])], lv.tukey_px)
                 T = moved_camera(motion(xi, c), T)
                 moved = J[w > 0] @ xi if np.any(w > 0) else np.zeros(1)
+                moved_px += float(np.sqrt(np.mean(moved**2)))
                 if float(np.sqrt(np.mean(moved**2))) < self.cfg.converged_px:
                     break
             # a level that leaves fewer contour samples on image edges than it found ran off (a coarse level's
             # long search caught other parts' edges): keep the pose it started from
             if s_start is not None and T is not T_start:
                 if _share_within(self._offsets(T, X_w, n, r, g, lcfg), lv.tukey_px / 2) < s_start:
-                    T = T_start
-        return self.judge(gray, T) if last is None else self._judge_last(T, last)
+                    T, moved_px = T_start, 0.0
+        # judged at the final pose (its instance map gives the parts' masks): the last full-resolution level's
+        # render serves when that level moved the contours by less than reuse_px, else one more render
+        if last is not None and last[0] is self.renderer(1.0) and moved_px < self.cfg.reuse_px:
+            return self._judge_last(T, last)
+        return self.judge(gray, T)
 
     @staticmethod
     def _offsets(T: Rigid3, X_w: np.ndarray, n: np.ndarray, r: RaycastRenderer, g: np.ndarray,

@@ -48,7 +48,7 @@ class TrackRunConfig:
     """A part is reported in a tracked frame when at least this many of its pixels are visible at the pose."""
     min_part_samples: int = 30
     """A part with at least this many contour samples is checked for support (fewer: too little to judge)."""
-    min_part_support: float = 0.2
+    min_part_support: float = 0.05
     """A checked part whose contour samples find image edges less often than this is reported missing (not
     where the CAD puts it), not placed."""
     min_part_concentration: float = 0.0

@@ -39,6 +39,11 @@ class TrackerConfig:
         EdgeLevel(1.0, 3, 2.5, 1.5),
     )
     """The contour fit of a restart hypothesis: a wider basin than a tracked frame's (a 1/8 level, more rounds)."""
+    orbit_step_deg: float = 30.0
+    """While lost, with nothing else to restart from, the last view is also tried turned round the structure's
+    vertical axis (world z) in steps of this many degrees (a cut to another side of the structure); 0: off."""
+    orbit_fits: int = 3
+    """Of those turned views, the best this many by the search's score are fitted."""
     acquire_rounds: int = 2
     """Searches per hypothesis: when none of a search's candidates passes, the next searches round the best of
     them (a rough pose whose error is partly translation needs two)."""
@@ -53,6 +58,9 @@ class TrackerConfig:
     relative_support: float = 0.7
     """Lost below this share of the track's recent median support (a drop, where the absolute level depends on
     the water and the structure)."""
+    doubt_support: float = 0.9
+    """A tracked frame whose support is below this share of the track's recent median is checked against the
+    pan/tilt/roll search round its prediction, and the better-supported pose is kept."""
     history: int = 10
     """Tracked frames whose median support ``relative_support`` refers to."""
     min_samples: int = 150
@@ -93,6 +101,11 @@ class StructureTracker:
         self.lost = True
         """Whether the last frame was lost (or none was tracked yet)."""
         self._supports: list[float] = []
+        self._velocity: Rigid3 | None = None  # the last frame-to-frame motion, in the camera frame
+        self._lost_frames = 0
+        lo = np.min([m.vertices_m.min(axis=0) for m in meshes], axis=0)
+        hi = np.max([m.vertices_m.max(axis=0) for m in meshes], axis=0)
+        self._centre = (lo + hi) / 2  # the structure's centre, world frame
 
     @property
     def last_pose(self) -> Rigid3 | None:
@@ -114,9 +127,41 @@ class StructureTracker:
             return None
         if self._prev is None or self.cfg.velocity <= 0:
             return self._last
-        d = self._prev.inverse() @ self._last  # motion in the last camera's frame
-        d = Rigid3(axis_angle_to_matrix(self.cfg.velocity * matrix_to_axis_angle(d.R)), self.cfg.velocity * d.t)
-        return self._last @ d
+        return self._last @ self._motion_over(1)
+
+    def _motion_over(self, frames: int) -> Rigid3:
+        """The last frame-to-frame motion (scaled by ``velocity``) carried on over ``frames`` frames."""
+        d = self._velocity if self._velocity is not None else Rigid3.identity()
+        w, t = self.cfg.velocity * matrix_to_axis_angle(d.R), self.cfg.velocity * d.t
+        out = Rigid3.identity()
+        for _ in range(frames):
+            out = out @ Rigid3(axis_angle_to_matrix(w), t)
+        return out
+
+    def _lost_hypotheses(self) -> list[tuple[str, Rigid3]]:
+        """Restart hypotheses while lost with no other: the last motion carried on over the frames lost, the last
+        pose, and the last view turned round the structure's vertical axis (``orbit_step_deg``), the latter
+        ranked by the pan/tilt/roll search's score and only the best ``orbit_fits`` kept."""
+        assert self._last is not None
+        out = [("last_pose", self._last.inverse())]
+        if self._velocity is not None:
+            out.insert(0, ("motion", (self._last @ self._motion_over(self._lost_frames + 1)).inverse()))
+        return out
+
+    def _orbit_hypotheses(self, gray: np.ndarray) -> list[tuple[str, Rigid3]]:
+        if self._last is None or self.cfg.orbit_step_deg <= 0:
+            return []
+        c = self._centre
+        scored = []
+        for a in np.arange(self.cfg.orbit_step_deg, 360.0 - 1e-6, self.cfg.orbit_step_deg):
+            R = axis_angle_to_matrix(np.array([0.0, 0.0, np.radians(a)]))
+            turn = Rigid3(R, c - R @ c)  # the world turned about the vertical through the centre
+            T_wc = turn @ self._last
+            cands = candidates(self.edges, gray, T_wc, self.cfg.acquire)
+            if cands:
+                scored.append((cands[0][0], f"orbit_{a:.0f}", T_wc))
+        scored.sort(key=lambda x: -x[0])
+        return [(name, T.inverse()) for _, name, T in scored[:self.cfg.orbit_fits]]
 
     def step(self, gray: np.ndarray, restarts: Sequence[tuple[str, Rigid3]] = ()) -> TrackStep:
         """Track one frame (``gray``: (H, W) float32 0-255). ``restarts``: (name, ``T_cam_from_world``)
@@ -128,6 +173,13 @@ class StructureTracker:
         pred = self._prediction()
         if pred is not None:
             fit = self.edges.fit(gray, pred)
+            if self.good(fit) and fit.support < self.cfg.doubt_support * self._typical_support():
+                # passes, but well below the track's usual support: a wrong nearby pose fits that way too, so
+                # the search round the prediction decides (the better-supported wins)
+                other, n = self._search(gray, pred)
+                tried += n
+                if other is not None and other.support > fit.support:
+                    fit = other
             if self.good(fit):
                 return self._accept(k, fit, "track", t0, tried)
             if self._prev is not None:  # the motion changed: from the last pose itself
@@ -136,18 +188,28 @@ class StructureTracker:
                 if self.good(fit):
                     return self._accept(k, fit, "track", t0, tried)
         best: tuple[EdgeFit, str] | None = None
-        if not restarts and self._last is not None:  # lost: search round the last good pose
-            restarts = [("last_pose", self._last.inverse())]
+        own = not restarts and self._last is not None
+        if own:  # lost with nothing to restart from: the tracker's own hypotheses
+            restarts = self._lost_hypotheses()
         for name, T_cw in restarts:
             fit, n = self._search(gray, T_cw.inverse())
             tried += n
             if fit is not None and (best is None or fit.support > best[0].support):
                 best = (fit, name)
+        if best is None and own:  # then round the whole structure
+            for name, T_cw in self._orbit_hypotheses(gray):
+                fit, n = self._search(gray, T_cw.inverse())
+                tried += n
+                if fit is not None and (best is None or fit.support > best[0].support):
+                    best = (fit, name)
         if best is not None:
             self._prev = None  # a restart has no velocity
             self._supports = []  # nor a history of support
             return self._accept(k, best[0], best[1], t0, tried)
+        if self._prev is not None:
+            self._velocity = self._prev.inverse() @ self._last  # kept for the restarts while lost
         self._prev = None  # the last good pose stays the next frame's prediction
+        self._lost_frames += 1
         self.lost = True
         return TrackStep(k, "lost", None, None, "", time.perf_counter() - t0, tried)
 
@@ -174,6 +236,9 @@ class StructureTracker:
     def _accept(self, k: int, fit: EdgeFit, source: str, t0: float, tried: int) -> TrackStep:
         self._prev = self._last if source == "track" else None
         self._last = fit.T_world_from_cam
+        if self._prev is not None:
+            self._velocity = self._prev.inverse() @ self._last
+        self._lost_frames = 0
         self.lost = False
         self._supports = (self._supports + [fit.support])[-self.cfg.history:]
         return TrackStep(k, "ok", fit.T_world_from_cam.inverse(), fit, source, time.perf_counter() - t0, tried)
