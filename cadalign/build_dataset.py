@@ -39,6 +39,7 @@ from cadalign.io import fingerprint, prepare_stage_dir, read_json, write_json
 from cadalign.render.bop_writer import PosedObject, frame_done, merge_scene_files
 from cadalign.render.camera_refine import CameraRefineConfig, RefinedCamera, rays_of, refine_cameras
 from cadalign.render.raycast import RaycastRenderer, RenderMesh
+from cadalign.render.verify import VerifyConfig
 from cadalign.scale.frames import CameraModel, FrameJob, FrameShared, write_frame
 from cadalign.types import Camera, Rigid3, Sim3
 
@@ -52,6 +53,7 @@ DEPTH_SCALE = 1.0
 SPEC_SUFFIXES = (".toml", ".yaml", ".yml")
 DEFAULT_REFINE = CameraRefineConfig()
 DEFAULT_SEABED = SeabedConfig()
+DEFAULT_VERIFY = VerifyConfig()
 
 
 @dataclass(frozen=True)
@@ -215,6 +217,32 @@ def _edge_align(meshes: list[RenderMesh], rec: Any, refined: dict[str, RefinedCa
     return _edge_align(meshes, rec, refined, sfm_dir, ds, refine, progress)
 
 
+def hypotheses_of(align_json: Path) -> tuple[list[Sim3], list[float]]:
+    """The alignment's refined hypotheses and their cloud scores (an older align.json: its result only)."""
+    from cadalign.geometry import sim3_from_matrix
+
+    rec = read_json(align_json)
+    hyps = rec.get("hypotheses") or [{"matrix": rec["cad_from_sfm"]["matrix"], "score": float("nan")}]
+    return ([sim3_from_matrix(np.asarray(h["matrix"], dtype=np.float64)) for h in hyps],
+            [float(h["score"]) for h in hyps])
+
+
+def _verify(cfg: VerifyConfig, structure: Structure, align_json: Path, sfm_dir: Path, out: Path,
+            hypothesis: int | None) -> Any:  # -> Verification
+    """The image verification of the alignment's hypotheses (raises ``VerificationError`` unless ok)."""
+    import pycolmap
+
+    from cadalign.render.verify_run import verify_alignment
+
+    hyps, scores = hypotheses_of(align_json)
+    gates = read_json(align_json)["config"]["gates"]
+    verts = np.concatenate([m.vertices_m for m in structure.render_meshes()])
+    inlier_m = min(gates["inlier_dist_m"], gates["inlier_dist_rel"] * float(np.linalg.norm(np.ptp(verts, axis=0))))
+    rec = pycolmap.Reconstruction(str(sfm_dir / "sparse" / "0"))
+    return verify_alignment(cfg, rec, sfm_dir / "images", structure.render_meshes(), hyps, scores, inlier_m, out,
+                            hypothesis)
+
+
 def write_dataset_extras(ds: Path, structure: Structure, verified: dict[int, bool] | None = None, block: int = 10,
                          gap: int = 1) -> dict[str, list[int]]:
     """models/ + models_info.json, splits.json and per-split COCO annotations (verified frames only)."""
@@ -239,7 +267,8 @@ def write_dataset_extras(ds: Path, structure: Structure, verified: dict[int, boo
 def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced", picks: Path | None = None,
                   gt: Path | None = None, cad_unit: str | None = None, calib: Path | None = None,
                   overwrite: bool = False, progress: Progress | None = None, executor: RayExecutor | None = None,
-                  sfm_set: Mapping[str, Any] | None = None) -> Path:
+                  sfm_set: Mapping[str, Any] | None = None, hypothesis: int | None = None,
+                  verify: VerifyConfig | None = DEFAULT_VERIFY) -> Path:
     """Run frames -> SfM -> align -> render -> write; returns ``out``. See the module doc for the layout.
 
     ``calib``: the camera's known intrinsics (a ``calibration.json`` ``{"K": [...]}`` as 'cadalign sim'
@@ -251,9 +280,13 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     frames with Ray (:mod:`cadalign.scale`); None renders them here. The dataset files are the same.
     ``sfm_set``: SfM settings over the preset's (nested keys of :class:`cadalign.sfm.SfMConfig`, e.g.
     ``{"mapper": {"repair_frames": 20}}``), checked strictly.
+    ``verify``: judge the alignment's hypotheses by the images (:mod:`cadalign.render.verify`) and refuse unless
+    the outcome is ``ok``; None trusts the cloud gates alone. ``hypothesis``: the hypothesis a person chose from
+    ``OUT/verify/hypotheses.png`` (the margin to the runner-up is then not required; the evidence still is).
 
     Raises:
-        AlignmentError: the alignment failed its quality gate (no dataset is written).
+        AlignmentError: the alignment failed its quality gate, or (``VerificationError``) the images do not
+            confirm it (no dataset is written; ``OUT/verify/`` holds the evidence and the picture).
         InputError, ConfigError: unusable inputs, or ``out`` holds results of another config.
     """
     from cadalign.align import PRESETS as ALIGN_PRESETS
@@ -289,13 +322,21 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
                            overwrite=overwrite)
     seconds["align"] = time.perf_counter() - t0
     cad_from_sfm = read_sim3(align_json)
+    verification = None
+    if verify is not None and verify.enabled:
+        t0 = time.perf_counter()
+        verification = _verify(verify, structure, align_json, sfm_dir, out / "verify", hypothesis)
+        cad_from_sfm = verification.cad_from_sfm
+        seconds["verify"] = time.perf_counter() - t0
     ds = out / "dataset"
     if overwrite and ds.exists():
         import shutil
 
         shutil.rmtree(ds)
     refine_cfg = DEFAULT_REFINE if calib is None else dataclasses.replace(DEFAULT_REFINE, intrinsics=False)
-    config = {"align": fingerprint(read_json(align_json)["cad_from_sfm"]), "cad": str(Path(cad).resolve()),
+    config = {"align": fingerprint(read_json(align_json)["cad_from_sfm"] if verification is None or
+                                   verification.chosen == 0 else cad_from_sfm.matrix().tolist()),
+              "cad": str(Path(cad).resolve()),
               "depth_scale": DEPTH_SCALE, "camera_refine": refine_cfg, "seabed": DEFAULT_SEABED}
     prepare_stage_dir(ds, "build-dataset", config, overwrite=overwrite)
     t0 = time.perf_counter()
@@ -312,6 +353,8 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
         "alignment": {k: v for k, v in read_json(align_json).items() if k in ("cad_from_sfm", "metrics", "gates")},
         "seconds": seconds, "sfm_report": read_json(sfm_dir / "sfm_report.json"),
     }
+    if verification is not None:
+        report["verification"] = verification.summary()
     if (ds / "seabed.json").is_file():
         report["seabed"] = read_json(ds / "seabed.json")
     if (ds / "edge_align.json").is_file():

@@ -176,4 +176,5 @@ def align(
     seconds["gates"] = time.perf_counter() - t4
     raise_if_failed(checks, metrics, T, context)
     log.info("%s", format_report(checks, metrics, T, context))
-    return AlignResult(T, method, coarse, metrics, checks, seconds, tuple(history), scores)
+    hypotheses = tuple((f[1], f[0]) for f in finals)
+    return AlignResult(T, method, coarse, metrics, checks, seconds, tuple(history), scores, hypotheses)

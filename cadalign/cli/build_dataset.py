@@ -20,6 +20,11 @@ def command(
     out: Path = typer.Option(..., "--out", help="Output folder (sfm/, align/, dataset/, build_report.*)."),
     preset: str = typer.Option("balanced", "--preset", help="fast | balanced | accurate (SfM and alignment)."),
     init: Path | None = typer.Option(None, "--init", help="Picked point pairs (JSON) for the coarse alignment."),
+    hypothesis: int | None = typer.Option(
+        None, "--hypothesis", help="Use alignment hypothesis N (numbered in OUT/verify/hypotheses.png and "
+        "verify.json) after a refusal; the images must still confirm it, but not beat the others by a margin."),
+    no_verify: bool = typer.Option(False, "--no-verify", help="Skip the image verification of the alignment "
+                                   "(trust the point-cloud gates alone; a wrong placement may then go unnoticed)."),
     gt: Path | None = typer.Option(None, "--gt", help="Simulator output folder: report errors against truth."),
     cad_unit: str | None = typer.Option(None, "--cad-unit", help="Unit of a CAD mesh file: m, cm, mm or in."),
     calib: Path | None = typer.Option(
@@ -38,7 +43,7 @@ def command(
                                        "many CPUs); default: all CPUs (local), 2 tasks per CPU in flight."),
 ) -> None:
     """Frames -> SfM -> CAD alignment (Sim3) -> per-frame CAD depth, normals, masks, poses -> BOP dataset."""
-    from cadalign.build_dataset import build_dataset
+    from cadalign.build_dataset import DEFAULT_VERIFY, build_dataset
     from cadalign.cli.sfm import parse_overrides
     from cadalign.errors import ConfigError
     from cadalign.scale import executor_config, make_executor
@@ -55,7 +60,8 @@ def command(
         runner = make_executor(cfg)
         out_dir = build_dataset(source, cad, out, preset=preset, picks=init, gt=gt, cad_unit=cad_unit,
                                 calib=calib, overwrite=overwrite, progress=track, executor=runner,
-                                sfm_set=parse_overrides(sfm_set))
+                                sfm_set=parse_overrides(sfm_set), hypothesis=hypothesis,
+                                verify=None if no_verify else DEFAULT_VERIFY)
     console.print(f"[green]dataset written to {out_dir / 'dataset'}; report {out_dir / 'build_report.html'}[/]")
 
 

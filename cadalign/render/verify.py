@@ -1,0 +1,353 @@
+"""Image verification of a CAD alignment: judge each placement by the images, not by the sparse cloud alone.
+
+Near a small CAD the sparse SfM cloud also holds the table, the seabed and clutter, so a wrong placement can fit
+the cloud as well as the right one (fitness, RMSE and the symmetry margin all pass). The images cannot be fooled
+the same way. For every hypothesis (the refined global candidates, see :class:`~cadalign.align.AlignResult`):
+
+(a) Edges, as a contrast. The CAD is rendered from a few registered cameras; its occluding contours
+    (:func:`~cadalign.render.edge_refine.contour_samples`) are searched for an image edge of the right sign within
+    ``near_px`` (:func:`~cadalign.render.edge_refine.search_edges`). The same search is repeated with every
+    contour displaced along its normal by ``shifts_px`` (a slightly wrong pose, without a render). Clutter raises
+    both hit rates alike, so the score is the lift ``(h0 - h_shifted) / (1 - h_shifted)``: near 0 for a CAD
+    drawn over texture where it is not, clearly positive where the images have its outline.
+(b) Free space. An SfM point is seen by its track's cameras; if the ray from such a camera to the point meets the
+    placed CAD well before the point, the point was seen *through* the CAD: a violation. The share of violating
+    rays among those meeting the CAD is near 0 at the right pose.
+
+The hypotheses are ranked by ``edge * (1 - free_violation)``; look-alikes (hypotheses placing the CAD on the same
+points, e.g. the turns of a symmetric structure) count once. The chosen one gets an outcome: ``ok``,
+``uncertain`` (weak evidence, or a runner-up within the margin) or ``wrong`` (the images contradict it).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from cadalign.render.edge_refine import EdgeRefineConfig, contour_samples, search_edges
+from cadalign.render.raycast import RaycastRenderer, RenderMesh
+from cadalign.types import Camera, Rigid3, Sim3
+
+log = logging.getLogger(__name__)
+
+OUTCOMES = ("ok", "uncertain", "wrong")
+
+
+@dataclass(frozen=True)
+class VerifyConfig:
+    """Knobs of the image verification (thresholds chosen on the simulated scenes, see docs/tuning/verify.md)."""
+
+    enabled: bool = True
+    """Verify the alignment against the images before writing a dataset (off: trust the cloud gates alone)."""
+    frames: int = 12
+    """Registered frames used for the edge evidence, evenly spaced over the capture."""
+    near_px: float = 1.5
+    """An image edge within this distance of the predicted contour (pixels, each way) is a hit; the alignment
+    before camera refinement is good to about a pixel."""
+    shifts_px: tuple[float, ...] = (4.0, 8.0)
+    """The contour displaced by these distances (pixels, both ways) along its normals gives the chance hit rate
+    that clutter and texture alone produce."""
+    min_contrast: float = 6.0
+    """Weakest edge counted as a hit, grey levels (0-255) across one pixel."""
+    min_samples: int = 300
+    """Fewer contour samples than this over all frames is too little edge evidence to accept a pose."""
+    ok_edge: float = 0.12
+    """Smallest edge lift (see the module doc) of an accepted pose."""
+    wrong_edge: float = 0.04
+    """Below this edge lift the images contradict the pose (its outline is no likelier than a displaced one)."""
+    ok_free: float = 0.15
+    """Largest share of free-space violations (rays meeting the CAD before their point) of an accepted pose."""
+    wrong_free: float = 0.35
+    """Above this share the pose is wrong: the cameras saw points through the placed CAD."""
+    min_free_rays: int = 50
+    """Fewer rays meeting the CAD than this gives no free-space evidence (the share is not used)."""
+    free_points: int = 4000
+    """SfM points whose rays are cast (a seeded subset), each through at most ``free_obs`` of its cameras."""
+    free_obs: int = 3
+    """Observations per point cast for the free-space check."""
+    free_margin_rel: float = 0.03
+    """A ray meeting the CAD closer than its point by more than this fraction of the range (or the alignment's
+    inlier distance, whichever is larger) is a violation; less is noise of a point on the surface."""
+    min_margin: float = 0.25
+    """The chosen hypothesis's score must beat the best distinct runner-up by this fraction of its own score."""
+    same_rel: float = 0.02
+    """Two hypotheses whose placed CAD samples lie within this fraction of the CAD diameter of each other
+    (mean, both ways) are look-alikes (a symmetric structure's turns): the images cannot and need not tell them
+    apart."""
+    picture_frames: int = 3
+    """Frames drawn in the picture of the best two hypotheses."""
+    seed: int = 0
+    """Seed of the free-space subset."""
+
+
+@dataclass(frozen=True)
+class HypothesisEvidence:
+    """The image evidence of one hypothesis ``cad_from_sfm``.
+
+    Attributes:
+        index: its position in the alignment's hypothesis list (``--hypothesis N``).
+        cloud_score: the alignment's final fit F-score (the cloud's verdict).
+        edge: edge lift ``(h0 - h_shifted) / (1 - h_shifted)``, 0 without enough samples.
+        hit_rate: ``h0``, share of contour samples with an image edge where the CAD predicts one.
+        hit_rate_shifted: the same with the contour displaced (chance level in this clutter).
+        samples: contour samples over all frames.
+        free_violation: share of rays meeting the CAD that meet it before their point (0 without evidence).
+        free_rays: rays meeting the CAD.
+        score: ``edge * (1 - free_violation)``, the ranking score.
+        same_as: index of a better-ranked look-alike hypothesis, or -1.
+    """
+
+    index: int
+    cloud_score: float
+    edge: float
+    hit_rate: float
+    hit_rate_shifted: float
+    samples: int
+    free_violation: float
+    free_rays: int
+    score: float
+    same_as: int = -1
+
+
+@dataclass(frozen=True)
+class Verification:
+    """The verdict on an alignment: the chosen hypothesis, the outcome with its reasons, and all evidence."""
+
+    outcome: str
+    chosen: int
+    cad_from_sfm: Sim3
+    margin: float | None
+    """(chosen score - best distinct runner-up's) / chosen score; None with a single hypothesis."""
+    runner_up: int | None
+    evidence: tuple[HypothesisEvidence, ...]
+    reasons: tuple[str, ...]
+    fix: str
+    frames: tuple[str, ...]
+    user_choice: bool = False
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    def summary(self) -> dict[str, Any]:
+        from cadalign.config import to_dict
+
+        return {"outcome": self.outcome, "chosen": self.chosen, "user_choice": self.user_choice,
+                "margin": self.margin, "runner_up": self.runner_up, "reasons": list(self.reasons), "fix": self.fix,
+                "cad_from_sfm": self.cad_from_sfm.matrix().tolist(), "frames": list(self.frames),
+                "hypotheses": [to_dict(e) for e in self.evidence], "seconds": self.seconds}
+
+
+@dataclass(frozen=True)
+class View:
+    """A registered frame: its camera, rays (SfM lens model), grey image and SfM pose."""
+
+    name: str
+    camera: Camera
+    rays_cam: np.ndarray
+    gray: np.ndarray
+    R_cw: np.ndarray
+    c_sfm: np.ndarray
+
+    def pose(self, cad_from_sfm: Sim3) -> Rigid3:
+        """``T_world_from_cam`` in the CAD frame under ``cad_from_sfm``."""
+        return Rigid3(cad_from_sfm.R @ self.R_cw.T, cad_from_sfm.apply(self.c_sfm[None])[0])
+
+
+def edge_evidence(renderer: RaycastRenderer, gray: np.ndarray, T_world_from_cam: Rigid3, cfg: VerifyConfig,
+                  ) -> tuple[int, int, int, int]:
+    """(samples, hits at the predicted contour, displaced samples, hits at the displaced contour) of one view."""
+    f = renderer.render(T_world_from_cam, with_full_masks=False)
+    ecfg = EdgeRefineConfig(point_step=1, search_px=cfg.near_px, min_contrast=cfg.min_contrast)
+    _, uv, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, ecfg, f.instance)
+    H, W = gray.shape
+    if len(uv) == 0:
+        return 0, 0, 0, 0
+    hits0 = int(np.isfinite(search_edges(gray, uv, n, ecfg)).sum())
+    n_sh = h_sh = 0
+    for s in cfg.shifts_px:
+        for sign in (1.0, -1.0):
+            q = uv + sign * s * n
+            inside = (q[:, 0] > 2) & (q[:, 0] < W - 3) & (q[:, 1] > 2) & (q[:, 1] < H - 3)
+            n_sh += int(inside.sum())
+            h_sh += int(np.isfinite(search_edges(gray, q[inside], n[inside], ecfg)).sum())
+    return len(uv), hits0, n_sh, h_sh
+
+
+@dataclass(frozen=True)
+class FreeSpaceRays:
+    """Observations of SfM points: camera centres and points (N, 3) each, in the SfM frame."""
+
+    origins_sfm: np.ndarray
+    points_sfm: np.ndarray
+
+
+def free_space_rays(rec: Any, n_points: int, per_point: int, seed: int) -> FreeSpaceRays:
+    """A seeded subset of the observations of ``rec``'s points (a ``pycolmap.Reconstruction``)."""
+    rng = np.random.default_rng(seed)
+    ids = np.array(sorted(rec.points3D), dtype=np.int64)
+    if len(ids) > n_points:
+        ids = np.sort(rng.choice(ids, n_points, replace=False))
+    centres = {iid: np.asarray(im.projection_center(), dtype=np.float64) for iid, im in rec.images.items()
+               if im.has_pose}
+    origins, points = [], []
+    for pid in ids:
+        p = rec.points3D[int(pid)]
+        imgs = [e.image_id for e in p.track.elements if e.image_id in centres]
+        if len(imgs) > per_point:
+            imgs = [imgs[i] for i in rng.choice(len(imgs), per_point, replace=False)]
+        for iid in imgs:
+            origins.append(centres[iid])
+            points.append(np.asarray(p.xyz, dtype=np.float64))
+    return FreeSpaceRays(np.reshape(origins, (-1, 3)), np.reshape(points, (-1, 3)))
+
+
+def free_space_evidence(scene: Any, origin_m: np.ndarray, rays: FreeSpaceRays, cad_from_sfm: Sim3, margin_m: float,
+                        margin_rel: float) -> tuple[int, int]:
+    """(rays meeting the CAD at or before their point, of which meet it clearly before: violations).
+
+    ``scene``: an Open3D ``RaycastingScene`` of the CAD with coordinates relative to ``origin_m``."""
+    import open3d as o3d
+
+    if len(rays.points_sfm) == 0:
+        return 0, 0
+    o = cad_from_sfm.apply(rays.origins_sfm) - origin_m
+    x = cad_from_sfm.apply(rays.points_sfm) - origin_m
+    d = x - o
+    dist = np.linalg.norm(d, axis=1)
+    ok = dist > 0
+    o, d, dist = o[ok], d[ok] / dist[ok, None], dist[ok]
+    t = scene.cast_rays(o3d.core.Tensor(np.concatenate([o, d], 1).astype(np.float32)))["t_hit"].numpy()
+    margin = np.maximum(margin_m, margin_rel * dist)
+    meets = t < dist + margin
+    return int(meets.sum()), int((t < dist - margin).sum())
+
+
+def _cad_scene(meshes: Sequence[RenderMesh]) -> tuple[Any, np.ndarray]:
+    import open3d as o3d
+
+    from cadalign.render.raycast import _o3d_mesh
+
+    parts = [m for m in meshes if m.instance > 0]
+    origin = np.concatenate([m.vertices_m for m in parts]).mean(axis=0)
+    scene = o3d.t.geometry.RaycastingScene()
+    for m in parts:
+        scene.add_triangles(_o3d_mesh(np.asarray(m.vertices_m, dtype=np.float64) - origin, m.faces))
+    return scene, origin
+
+
+def _look_alikes(hyps: Sequence[Sim3], cad_points_m: np.ndarray, tol_m: float) -> list[list[bool]]:
+    """same[i][j]: hypotheses i and j put the CAD samples on (nearly) the same SfM-frame points."""
+    from scipy.spatial import cKDTree
+
+    placed = [T.inverse().apply(cad_points_m) * T.s for T in hyps]  # SfM frame, scaled to metres
+    trees = [cKDTree(p) for p in placed]
+    n = len(hyps)
+    same = [[i == j for j in range(n)] for i in range(n)]
+    for i in range(n):
+        for j in range(i + 1, n):
+            dij = trees[j].query(placed[i])[0].mean()
+            dji = trees[i].query(placed[j])[0].mean()
+            same[i][j] = same[j][i] = bool(max(dij, dji) <= tol_m)
+    return same
+
+
+def score_hypotheses(views: Sequence[View], meshes: Sequence[RenderMesh], hyps: Sequence[Sim3],
+                     cloud_scores: Sequence[float], rays: FreeSpaceRays, cfg: VerifyConfig, inlier_m: float,
+                     ) -> list[HypothesisEvidence]:
+    """The image evidence of each hypothesis (see the module doc), in the order given."""
+    renderers: dict[tuple, RaycastRenderer] = {}
+    scene, origin = _cad_scene(meshes)
+    cad = [m for m in meshes if m.instance > 0]
+    pts = np.concatenate([m.vertices_m for m in cad])
+    diameter = float(np.linalg.norm(pts.max(0) - pts.min(0)))
+    sub = pts[:: max(1, len(pts) // 3000)]
+    same = _look_alikes(hyps, sub, cfg.same_rel * diameter)
+    out = []
+    for k, (T, cs) in enumerate(zip(hyps, cloud_scores, strict=True)):
+        n = h0 = ns = hs = 0
+        for v in views:
+            key = (v.camera.width, v.camera.height, tuple(np.round(v.camera.K.ravel(), 6)))
+            if key not in renderers:
+                renderers[key] = RaycastRenderer(cad, v.camera, rays_cam=v.rays_cam)
+            a, b, c, d = edge_evidence(renderers[key], v.gray, v.pose(T), cfg)
+            n, h0, ns, hs = n + a, h0 + b, ns + c, hs + d
+        hit = h0 / n if n else 0.0
+        base = hs / ns if ns else 0.0
+        edge = (hit - base) / max(1.0 - base, 1e-6) if n >= cfg.min_samples else 0.0
+        meets, viol = free_space_evidence(scene, origin, rays, T, inlier_m, cfg.free_margin_rel)
+        free = viol / meets if meets >= cfg.min_free_rays else 0.0
+        out.append(HypothesisEvidence(k, float(cs), float(edge), float(hit), float(base), int(n), float(free),
+                                      int(meets), float(max(edge, 0.0) * (1.0 - free))))
+    ranked = sorted(range(len(out)), key=lambda i: -out[i].score)
+    for pos, i in enumerate(ranked):
+        better = [j for j in ranked[:pos] if same[i][j]]
+        if better:
+            out[i] = _with_same(out[i], better[0])
+    return out
+
+
+def _with_same(e: HypothesisEvidence, j: int) -> HypothesisEvidence:
+    from dataclasses import replace
+
+    return replace(e, same_as=j)
+
+
+FIX = ("give 3+ picked point pairs on distinctive CAD features (--init picks.json, see cadalign.align.picks), or "
+       "choose a hypothesis from verify/hypotheses.png with --hypothesis N; if the CAD is a small part of the "
+       "scene, crop the cloud to it; a longer capture that circles the structure (more frames, more views) "
+       "gives more edges and more points on it")
+
+
+def decide(evidence: Sequence[HypothesisEvidence], hyps: Sequence[Sim3], cfg: VerifyConfig,
+           choice: int | None = None) -> tuple[str, int, int | None, float | None, tuple[str, ...]]:
+    """(outcome, chosen index, runner-up index, margin, reasons) from the evidence.
+
+    ``choice``: a hypothesis a person chose (``--hypothesis N``): the margin is not required, the rest is."""
+    ranked = sorted(evidence, key=lambda e: -e.score)
+    best = ranked[0] if choice is None else evidence[choice]
+    others = [e for e in ranked if e.index != best.index and e.same_as < 0 and best.same_as != e.index
+              and not (e.same_as == best.index)]
+    runner = others[0] if others else None
+    margin = None if runner is None else ((best.score - runner.score) / best.score if best.score > 0 else 0.0)
+    wrong, unsure = [], []
+    if best.samples < cfg.min_samples:
+        unsure.append(f"too little edge evidence: {best.samples} CAD contour samples in the checked frames "
+                      f"(need {cfg.min_samples}); the CAD is small or mostly out of view")
+    elif best.edge < cfg.wrong_edge:
+        wrong.append(f"the CAD's outline is not in the images: edge lift {best.edge:.3f} < {cfg.wrong_edge} "
+                     f"(edges at {100 * best.hit_rate:.0f} % of its contour, {100 * best.hit_rate_shifted:.0f} % "
+                     "when displaced)")
+    elif best.edge < cfg.ok_edge:
+        unsure.append(f"weak edge evidence: edge lift {best.edge:.3f} < {cfg.ok_edge}")
+    if best.free_violation > cfg.wrong_free:
+        wrong.append(f"SfM points were seen through the placed CAD: {100 * best.free_violation:.0f} % of "
+                     f"{best.free_rays} rays meeting it (> {100 * cfg.wrong_free:.0f} %)")
+    elif best.free_violation > cfg.ok_free:
+        unsure.append(f"free-space violations {100 * best.free_violation:.0f} % of {best.free_rays} rays "
+                      f"(> {100 * cfg.ok_free:.0f} %)")
+    if choice is None and margin is not None and margin < cfg.min_margin:
+        unsure.append(f"hypothesis {runner.index} is nearly as likely: margin {margin:.3f} < {cfg.min_margin} "
+                      f"(scores {best.score:.3f} vs {runner.score:.3f})")
+    outcome = "wrong" if wrong else "uncertain" if unsure else "ok"
+    return outcome, best.index, None if runner is None else runner.index, margin, tuple(wrong + unsure)
+
+
+def verify(views: Sequence[View], meshes: Sequence[RenderMesh], hyps: Sequence[Sim3], cloud_scores: Sequence[float],
+           rays: FreeSpaceRays, cfg: VerifyConfig, inlier_m: float, choice: int | None = None) -> Verification:
+    """Score every hypothesis by the images and decide (see the module doc)."""
+    if choice is not None and not 0 <= choice < len(hyps):
+        from cadalign.errors import InputError
+
+        raise InputError(f"--hypothesis {choice}: the alignment has hypotheses 0..{len(hyps) - 1}; see "
+                         "verify/verify.json or verify/hypotheses.png")
+    t0 = time.perf_counter()
+    ev = score_hypotheses(views, meshes, hyps, cloud_scores, rays, cfg, inlier_m)
+    outcome, chosen, runner, margin, reasons = decide(ev, hyps, cfg, choice)
+    log.info("verification: %s, hypothesis %d (edge %.3f, free-space %.3f), margin %s", outcome, chosen,
+             ev[chosen].edge, ev[chosen].free_violation, "n/a" if margin is None else f"{margin:.3f}")
+    return Verification(outcome, chosen, hyps[chosen], margin, runner, tuple(ev), reasons,
+                        "" if outcome == "ok" else FIX, tuple(v.name for v in views), choice is not None,
+                        {"verify": time.perf_counter() - t0})
