@@ -136,7 +136,7 @@ def test_decide_outcomes() -> None:
     assert decide([_ev(0, 0.6), _ev(1, 0.05)], h, cfg)[0] == "ok"
     assert decide([_ev(0, 0.02)], h, cfg)[0] == "wrong"
     assert decide([_ev(0, 0.6, free=0.5)], h, cfg)[0] == "wrong"
-    assert decide([_ev(0, 0.08)], h, cfg)[0] == "uncertain"
+    assert decide([_ev(0, 0.2)], h, cfg)[0] == "uncertain"
     assert decide([_ev(0, 0.6, samples=10)], h, cfg)[0] == "uncertain"
     outcome, chosen, runner, margin, reasons = decide([_ev(0, 0.5), _ev(1, 0.45)], h, cfg)
     assert (outcome, chosen, runner) == ("uncertain", 0, 1) and margin == pytest.approx(0.1)
