@@ -34,7 +34,8 @@ from cadalign.render.verify import VerifyConfig, free_space_rays, verify
 from cadalign.render.verify_run import load_views
 from cadalign.types import Sim3
 
-CASES = ("baseline", "turned_180", "mirrored", "twice_as_large", "clutter_70", "wrong_structure", "small_cad")
+CASES = ("baseline", "baseline_lax_gates", "turned_180", "mirrored", "twice_as_large", "clutter_70", "wrong_structure",
+         "small_cad")
 
 
 def _world_meshes(scene: Path, only: str | None = None) -> list[RenderMesh]:
@@ -92,6 +93,8 @@ def run_case(name: str, build: Path, scene: Path, sim: Path, cfg: VerifyConfig |
                               read_json(sim / "gt" / "sim" / "000000" / "cameras.json")["frames"])
     parts = [CadModel(f"m{i}", m.vertices_m, m.faces) for i, m in enumerate(meshes)]
     acfg = PRESETS["balanced"]
+    if name == "baseline_lax_gates":  # what the images say when the cloud gates let a short clip through
+        acfg = replace(acfg, gates=replace(acfg.gates, min_inliers=20, min_fitness=0.3))
     surf = sample_surface(parts, acfg.cad_samples, 0)
     t0 = time.perf_counter()
     row: dict = {"case": name}

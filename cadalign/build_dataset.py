@@ -228,19 +228,31 @@ def hypotheses_of(align_json: Path) -> tuple[list[Sim3], list[float]]:
 
 
 def _verify(cfg: VerifyConfig, structure: Structure, align_json: Path, sfm_dir: Path, out: Path,
-            hypothesis: int | None) -> Any:  # -> Verification
-    """The image verification of the alignment's hypotheses (raises ``VerificationError`` unless ok)."""
+            hypothesis: int | None, report: dict[str, Any]) -> Any:  # -> Verification
+    """The image verification of the alignment's hypotheses; unless ok, writes the refusal into
+    ``build_report.json/html`` (beside ``out``) and raises ``VerificationError``."""
     import pycolmap
 
-    from cadalign.render.verify_run import verify_alignment
+    from cadalign.render.verify_run import VerificationError, verify_alignment
 
     hyps, scores = hypotheses_of(align_json)
     gates = read_json(align_json)["config"]["gates"]
     verts = np.concatenate([m.vertices_m for m in structure.render_meshes()])
     inlier_m = min(gates["inlier_dist_m"], gates["inlier_dist_rel"] * float(np.linalg.norm(np.ptp(verts, axis=0))))
     rec = pycolmap.Reconstruction(str(sfm_dir / "sparse" / "0"))
-    return verify_alignment(cfg, rec, sfm_dir / "images", structure.render_meshes(), hyps, scores, inlier_m, out,
-                            hypothesis)
+    try:
+        return verify_alignment(cfg, rec, sfm_dir / "images", structure.render_meshes(), hyps, scores, inlier_m,
+                                out, hypothesis)
+    except VerificationError as exc:
+        from cadalign.eval.dataset_eval import write_build_html
+
+        align_rec = read_json(align_json)
+        report = {"refused": str(exc), "verification": exc.verification.summary(), "frames": 0, "splits": {},
+                  "alignment": {k: v for k, v in align_rec.items() if k in ("cad_from_sfm", "metrics", "gates")},
+                  **report}
+        write_json(out.parent / "build_report.json", report)
+        write_build_html(out.parent, report)
+        raise
 
 
 def write_dataset_extras(ds: Path, structure: Structure, verified: dict[int, bool] | None = None, block: int = 10,
@@ -325,7 +337,8 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     verification = None
     if verify is not None and verify.enabled:
         t0 = time.perf_counter()
-        verification = _verify(verify, structure, align_json, sfm_dir, out / "verify", hypothesis)
+        verification = _verify(verify, structure, align_json, sfm_dir, out / "verify", hypothesis,
+                               {"seconds": seconds, "sfm_report": read_json(sfm_dir / "sfm_report.json")})
         cad_from_sfm = verification.cad_from_sfm
         seconds["verify"] = time.perf_counter() - t0
     ds = out / "dataset"

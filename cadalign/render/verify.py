@@ -174,8 +174,9 @@ def edge_evidence(renderer: RaycastRenderer, gray: np.ndarray, T_world_from_cam:
         for sign in (1.0, -1.0):
             q = uv + sign * s * n
             inside = (q[:, 0] > 2) & (q[:, 0] < W - 3) & (q[:, 1] > 2) & (q[:, 1] < H - 3)
-            n_sh += int(inside.sum())
-            h_sh += int(np.isfinite(search_edges(gray, q[inside], n[inside], ecfg)).sum())
+            if inside.any():
+                n_sh += int(inside.sum())
+                h_sh += int(np.isfinite(search_edges(gray, q[inside], n[inside], ecfg)).sum())
     return len(uv), hits0, n_sh, h_sh
 
 
