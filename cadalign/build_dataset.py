@@ -217,6 +217,20 @@ def _edge_align(meshes: list[RenderMesh], rec: Any, refined: dict[str, RefinedCa
     return _edge_align(meshes, rec, refined, sfm_dir, ds, refine, progress)
 
 
+def _roi_points(model: Path, roi: Path, sfm_dir: Path) -> np.ndarray:
+    """The SfM points of ``model`` inside the region of interest ``roi``."""
+    from cadalign.align.roi import read_roi, roi_mask
+    from cadalign.align.run import load_points
+
+    pts = load_points(model)
+    keep = roi_mask(pts, read_roi(roi), read_json(sfm_dir / "cameras.json")["frames"])
+    log.info("region of interest %s: %d of %d SfM points", roi, int(keep.sum()), len(pts))
+    if keep.sum() < 50:
+        raise InputError(f"{roi}: the region of interest holds {int(keep.sum())} of {len(pts)} SfM points; the "
+                         "alignment needs many more: enlarge the box or the clicked outlines")
+    return pts[keep]
+
+
 def hypotheses_of(align_json: Path) -> tuple[list[Sim3], list[float]]:
     """The alignment's refined hypotheses and their cloud scores (an older align.json: its result only)."""
     from cadalign.geometry import sim3_from_matrix
@@ -280,7 +294,7 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
                   gt: Path | None = None, cad_unit: str | None = None, calib: Path | None = None,
                   overwrite: bool = False, progress: Progress | None = None, executor: RayExecutor | None = None,
                   sfm_set: Mapping[str, Any] | None = None, hypothesis: int | None = None,
-                  verify: VerifyConfig | None = DEFAULT_VERIFY) -> Path:
+                  verify: VerifyConfig | None = DEFAULT_VERIFY, roi: Path | None = None) -> Path:
     """Run frames -> SfM -> align -> render -> write; returns ``out``. See the module doc for the layout.
 
     ``calib``: the camera's known intrinsics (a ``calibration.json`` ``{"K": [...]}`` as 'cadalign sim'
@@ -293,8 +307,11 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     ``sfm_set``: SfM settings over the preset's (nested keys of :class:`cadalign.sfm.SfMConfig`, e.g.
     ``{"mapper": {"repair_frames": 20}}``), checked strictly.
     ``verify``: judge the alignment's hypotheses by the images (:mod:`cadalign.render.verify`) and refuse unless
-    the outcome is ``ok``; None trusts the cloud gates alone. ``hypothesis``: the hypothesis a person chose from
-    ``OUT/verify/hypotheses.png`` (the margin to the runner-up is then not required; the evidence still is).
+    the outcome is ``ok``; None trusts the cloud gates alone. ``roi``: a region of interest file
+    (:mod:`cadalign.align.roi`: a box in the SfM frame or clicks round the CAD in a few frames); the alignment
+    then uses only the SfM points there (a CAD that is a small part of the scene). ``hypothesis``: the hypothesis
+    a person chose from ``OUT/verify/hypotheses.png`` (the margin to the runner-up is then not required; the
+    evidence still is).
 
     Raises:
         AlignmentError: the alignment failed its quality gate, or (``VerificationError``) the images do not
@@ -330,8 +347,10 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     seconds["sfm"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     parts = [(structure.models[o.obj_id], o.T_world_from_obj) for o in structure.objects]
-    align_json = align_run(ALIGN_PRESETS[preset], sfm_dir / "sparse" / "0", parts, out / "align", picks=picks,
-                           overwrite=overwrite)
+    points: Path | np.ndarray = sfm_dir / "sparse" / "0"
+    if roi is not None:
+        points = _roi_points(points, Path(roi), sfm_dir)
+    align_json = align_run(ALIGN_PRESETS[preset], points, parts, out / "align", picks=picks, overwrite=overwrite)
     seconds["align"] = time.perf_counter() - t0
     cad_from_sfm = read_sim3(align_json)
     verification = None

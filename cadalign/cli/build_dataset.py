@@ -23,6 +23,9 @@ def command(
     hypothesis: int | None = typer.Option(
         None, "--hypothesis", help="Use alignment hypothesis N (numbered in OUT/verify/hypotheses.png and "
         "verify.json) after a refusal; the images must still confirm it, but not beat the others by a margin."),
+    roi: Path | None = typer.Option(None, "--roi", help="Region of interest (JSON: a box in the SfM frame or clicks "
+                                    "round the CAD in a few frames, see cadalign.align.roi); the alignment uses only "
+                                    "the SfM points there."),
     no_verify: bool = typer.Option(False, "--no-verify", help="Skip the image verification of the alignment "
                                    "(trust the point-cloud gates alone; a wrong placement may then go unnoticed)."),
     gt: Path | None = typer.Option(None, "--gt", help="Simulator output folder: report errors against truth."),
@@ -61,7 +64,7 @@ def command(
         out_dir = build_dataset(source, cad, out, preset=preset, picks=init, gt=gt, cad_unit=cad_unit,
                                 calib=calib, overwrite=overwrite, progress=track, executor=runner,
                                 sfm_set=parse_overrides(sfm_set), hypothesis=hypothesis,
-                                verify=None if no_verify else DEFAULT_VERIFY)
+                                verify=None if no_verify else DEFAULT_VERIFY, roi=roi)
     console.print(f"[green]dataset written to {out_dir / 'dataset'}; report {out_dir / 'build_report.html'}[/]")
 
 
