@@ -158,6 +158,8 @@ def likely_causes(failed: list[GateCheck], metrics: AlignMetrics) -> list[str]:
 
     A unit mix-up comes first only when a scale gate failed; a capture that saw little of the structure
     (few points, low coverage) comes first otherwise, and the gates' own hints name the unit only in passing."""
+    if not failed:
+        return []
     names = {c.name for c in failed}
     scale = bool(names & set(SCALE_GATES))
     causes = [UNIT_HINT] if scale else []
