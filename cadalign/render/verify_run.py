@@ -61,13 +61,18 @@ def load_views(rec: Any, images_dir: Path, n: int) -> list[View]:
     return views
 
 
-def hypotheses_png(views: Sequence[View], meshes: Sequence[RenderMesh], ver: Verification,
-                   hyps: Sequence[Sim3], n_frames: int) -> bytes:
-    """A grid of frames (columns) with the chosen (green) and runner-up (red) hypotheses' contours drawn."""
+def hypotheses_png(views: Sequence[View], meshes: Sequence[RenderMesh], ver: Verification, n_frames: int) -> bytes:
+    """A grid of frames (columns) with the chosen (green) and the next best (red: the runner-up, else the best
+    other hypothesis, a look-alike) hypotheses' contours drawn."""
     import cv2
 
+    hyps = ver.hypotheses
+    second = ver.runner_up
+    if second is None:
+        others = [e.index for e in sorted(ver.evidence, key=lambda e: -e.score) if e.index != ver.chosen]
+        second = others[0] if others else None
     picks = [views[int(i)] for i in np.unique(np.linspace(0, len(views) - 1, min(n_frames, len(views))).round())]
-    shown = [(ver.chosen, (60, 220, 60))] + ([(ver.runner_up, (60, 60, 255))] if ver.runner_up is not None else [])
+    shown = [(ver.chosen, (60, 220, 60))] + ([(second, (60, 60, 255))] if second is not None else [])
     cad = [m for m in meshes if m.instance > 0]
     tiles = []
     for v in picks:
@@ -86,8 +91,8 @@ def hypotheses_png(views: Sequence[View], meshes: Sequence[RenderMesh], ver: Ver
     grid = np.concatenate([np.pad(t, ((0, h - t.shape[0]), (0, 4), (0, 0))) for t in tiles], axis=1)
     e = {x.index: x for x in ver.evidence}
     legend = f"green: hypothesis {ver.chosen} (score {e[ver.chosen].score:.3f})"
-    if ver.runner_up is not None:
-        legend += f"   red: hypothesis {ver.runner_up} (score {e[ver.runner_up].score:.3f})"
+    if second is not None:
+        legend += f"   red: hypothesis {second} (score {e[second].score:.3f})"
     bar = np.zeros((28, grid.shape[1], 3), dtype=np.uint8)
     cv2.putText(bar, f"{ver.outcome.upper()}  {legend}", (6, 19), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1)
     ok, buf = cv2.imencode(".png", np.concatenate([bar, grid], axis=0))
@@ -126,7 +131,7 @@ def verify_alignment(cfg: VerifyConfig, rec: Any, images_dir: Path, meshes: Sequ
     out_dir = Path(out_dir)
     write_json(out_dir / VERIFY_JSON, ver.summary())
     if views:
-        write_bytes(out_dir / VERIFY_PNG, hypotheses_png(views, meshes, ver, hyps, cfg.picture_frames))
+        write_bytes(out_dir / VERIFY_PNG, hypotheses_png(views, meshes, ver, cfg.picture_frames))
     if ver.outcome != "ok":
         raise VerificationError(refusal_message(ver, out_dir), ver)
     return ver

@@ -143,7 +143,7 @@ def test_a_wrong_global_alignment_is_refused_by_the_images(capture: tuple[Path, 
     out = tmp_path / "global"
     shutil.copytree(built / "sfm", out / "sfm")
     with pytest.raises(VerificationError) as exc:
-        build_dataset(sim / "frames", spec, out, preset="balanced")
+        build_dataset(sim / "frames", spec, out, preset="fast")
     msg = str(exc.value)
     assert exc.value.verification.outcome in ("wrong", "uncertain") and "FAIL" in msg and "--hypothesis" in msg
     assert not (out / "dataset").exists()
@@ -152,5 +152,5 @@ def test_a_wrong_global_alignment_is_refused_by_the_images(capture: tuple[Path, 
     assert report["verification"]["outcome"] == exc.value.verification.outcome
     assert "Refused" in (out / "build_report.html").read_text()
     with pytest.raises(VerificationError):
-        build_dataset(sim / "frames", spec, out, preset="balanced", hypothesis=1)
+        build_dataset(sim / "frames", spec, out, preset="fast", hypothesis=1)
     assert not (out / "dataset").exists()
