@@ -68,7 +68,8 @@ def _case(name: str, scene: Path, points: np.ndarray, rng: np.random.Generator,
         clutter = blobs[rng.integers(0, 12, n)] + rng.normal(0, 0.05 * np.linalg.norm(hi - lo), (n, 3))
         return meshes, np.concatenate([keep, clutter]), None, True
     if name == "wrong_structure":
-        other = Path(__file__).resolve().parents[1] / "datasets" / "scenes" / "default.toml"
+        scenes = Path(__file__).resolve().parents[1] / "datasets" / "scenes"
+        other = scenes / ("cluttered_hover.toml" if scene.name == "default.toml" else "default.toml")
         wrong = _world_meshes(other)
         wv = np.concatenate([m.vertices_m for m in wrong])
         k = np.linalg.norm(np.ptp(verts, 0)) / np.linalg.norm(np.ptp(wv, 0))  # same size: only the shape is wrong

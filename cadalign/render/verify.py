@@ -60,12 +60,14 @@ class VerifyConfig:
     that clutter and texture alone produce."""
     min_contrast: float = 6.0
     """Weakest edge counted as a hit, grey levels (0-255) across one pixel."""
+    min_part_samples: int = 50
+    """A CAD part (instance) with fewer contour samples over all checked frames is not scored on its own."""
     min_samples: int = 300
     """Fewer contour samples than this over all frames is too little edge evidence to accept a pose."""
-    ok_edge: float = 0.3
-    """Smallest edge lift (see the module doc) of an accepted pose. The right pose measured 0.71 on the 12-frame
-    tiny capture, its 180-degree turn (whose big block outline still fits) 0.12, wrong global poses 0.05
-    (docs/tuning/verify.md)."""
+    ok_edge: float = 0.45
+    """Smallest edge lift (see the module doc) of an accepted pose. Measured (per-part mean, after the local
+    contour fit): right poses 0.75-0.76 (tiny 12-frame capture, default orbit); turned 180 degrees, whose big
+    symmetric outline still fits, 0.27-0.29; wrong global poses 0.03-0.09 (docs/tuning/verify.md)."""
     wrong_edge: float = 0.1
     """Below this edge lift the images contradict the pose (its outline is no likelier than a displaced one)."""
     ok_free: float = 0.1
@@ -115,10 +117,12 @@ class HypothesisEvidence:
     Attributes:
         index: its position in the alignment's hypothesis list (``--hypothesis N``).
         cloud_score: the alignment's final fit F-score (the cloud's verdict).
-        edge: edge lift ``(h0 - h_shifted) / (1 - h_shifted)``, 0 without enough samples.
+        edge: edge lift ``(h0 - h_shifted) / (1 - h_shifted)``, the mean over the CAD's parts (see
+            :func:`part_lift`), 0 without enough samples.
         hit_rate: ``h0``, share of contour samples with an image edge where the CAD predicts one.
         hit_rate_shifted: the same with the contour displaced (chance level in this clutter).
         samples: contour samples over all frames.
+        parts: CAD parts (instances) with enough contour samples to be scored.
         refined: whether the local contour fit moved it before scoring (``cad_from_sfm`` is then the moved one).
         free_violation: share of rays meeting the CAD that meet it before their point (0 without evidence).
         free_rays: rays meeting the CAD.
@@ -137,6 +141,7 @@ class HypothesisEvidence:
     score: float
     same_as: int = -1
     refined: bool = False
+    parts: int = 0
 
 
 @dataclass(frozen=True)
@@ -184,24 +189,58 @@ class View:
 
 
 def edge_evidence(renderer: RaycastRenderer, gray: np.ndarray, T_world_from_cam: Rigid3, cfg: VerifyConfig,
-                  ) -> tuple[int, int, int, int]:
-    """(samples, hits at the predicted contour, displaced samples, hits at the displaced contour) of one view."""
+                  ) -> np.ndarray:
+    """Per CAD instance seen in one view: rows ``(instance, samples, hits at the predicted contour, displaced
+    samples, hits at the displaced contour)``, (P, 5) int."""
     f = renderer.render(T_world_from_cam, with_full_masks=False)
     ecfg = EdgeRefineConfig(point_step=1, search_px=cfg.near_px, min_contrast=cfg.min_contrast)
     _, uv, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, ecfg, f.instance)
     H, W = gray.shape
     if len(uv) == 0:
-        return 0, 0, 0, 0
-    hits0 = int(np.isfinite(search_edges(gray, uv, n, ecfg)).sum())
-    n_sh = h_sh = 0
+        return np.zeros((0, 5), dtype=np.int64)
+    # the near pixel of each sample (half a pixel back along its normal) names its part
+    near = np.clip(np.rint(uv - 0.5 * n).astype(np.int64), 0, [W - 1, H - 1])
+    inst = f.instance[near[:, 1], near[:, 0]].astype(np.int64)
+    hit0 = np.isfinite(search_edges(gray, uv, n, ecfg))
+    ids = np.unique(inst[inst > 0])
+    rows = np.zeros((len(ids), 5), dtype=np.int64)
+    rows[:, 0] = ids
+    for j, i in enumerate(ids):
+        rows[j, 1], rows[j, 2] = int((inst == i).sum()), int(hit0[inst == i].sum())
     for s in cfg.shifts_px:
         for sign in (1.0, -1.0):
             q = uv + sign * s * n
             inside = (q[:, 0] > 2) & (q[:, 0] < W - 3) & (q[:, 1] > 2) & (q[:, 1] < H - 3)
-            if inside.any():
-                n_sh += int(inside.sum())
-                h_sh += int(np.isfinite(search_edges(gray, q[inside], n[inside], ecfg)).sum())
-    return len(uv), hits0, n_sh, h_sh
+            if not inside.any():
+                continue
+            hit = np.isfinite(search_edges(gray, q[inside], n[inside], ecfg))
+            for j, i in enumerate(ids):
+                m = inst[inside] == i
+                rows[j, 3] += int(m.sum())
+                rows[j, 4] += int(hit[m].sum())
+    return rows
+
+
+def part_lift(rows: np.ndarray, min_part_samples: int) -> tuple[float, float, float, int, int]:
+    """(edge lift, hit rate, displaced hit rate, samples, parts scored) from per-part rows of all views.
+
+    The lift is the mean over parts with at least ``min_part_samples`` contour samples of each part's
+    ``(h0 - h_shifted) / (1 - h_shifted)``: a big, nearly symmetric part (a frame) cannot outvote the small
+    asymmetric ones that tell a placement from its turned look-alike."""
+    if len(rows) == 0:
+        return 0.0, 0.0, 0.0, 0, 0
+    ids = np.unique(rows[:, 0])
+    tot = np.array([rows[rows[:, 0] == i, 1:].sum(axis=0) for i in ids])  # (P, 4)
+    n = int(tot[:, 0].sum())
+    hit = tot[:, 1].sum() / max(n, 1)
+    base = tot[:, 3].sum() / max(tot[:, 2].sum(), 1)
+    ok = (tot[:, 0] >= min_part_samples) & (tot[:, 2] > 0)
+    if not ok.any():
+        return 0.0, float(hit), float(base), n, 0
+    h0 = tot[ok, 1] / tot[ok, 0]
+    hb = tot[ok, 3] / tot[ok, 2]
+    lift = (h0 - hb) / np.maximum(1.0 - hb, 1e-6)
+    return float(lift.mean()), float(hit), float(base), n, int(ok.sum())
 
 
 @dataclass(frozen=True)
@@ -324,17 +363,14 @@ def score_hypotheses(views: Sequence[View], meshes: Sequence[RenderMesh], hyps: 
     same = _look_alikes(hyps, sub, cfg.same_rel * diameter)
     out = []
     for k, (T, cs) in enumerate(zip(hyps, cloud_scores, strict=True)):
-        n = h0 = ns = hs = 0
-        for v in views:
-            a, b, c, d = edge_evidence(renderer_of(v), v.gray, v.pose(T), cfg)
-            n, h0, ns, hs = n + a, h0 + b, ns + c, hs + d
-        hit = h0 / n if n else 0.0
-        base = hs / ns if ns else 0.0
-        edge = (hit - base) / max(1.0 - base, 1e-6) if n >= cfg.min_samples else 0.0
+        rows = np.concatenate([edge_evidence(renderer_of(v), v.gray, v.pose(T), cfg) for v in views])
+        edge, hit, base, n, n_parts = part_lift(rows, cfg.min_part_samples)
+        edge = edge if n >= cfg.min_samples else 0.0
         meets, viol = free_space_evidence(scene, origin, rays, T, inlier_m, cfg.free_margin_rel)
         free = viol / meets if meets >= cfg.min_free_rays else 0.0
         out.append(HypothesisEvidence(k, float(cs), float(edge), float(hit), float(base), int(n), float(free),
-                                      int(meets), float(max(edge, 0.0) * (1.0 - free)), refined=moved[k][1]))
+                                      int(meets), float(max(edge, 0.0) * (1.0 - free)), refined=moved[k][1],
+                                      parts=n_parts))
     ranked = sorted(range(len(out)), key=lambda i: -out[i].score)
     for pos, i in enumerate(ranked):
         better = [j for j in ranked[:pos] if same[i][j]]
