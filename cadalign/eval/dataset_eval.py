@@ -173,7 +173,8 @@ def verification_html(out: Path, ver: dict[str, Any] | None) -> list[str]:
              "image score": h["score"], "edge lift": h["edge"], "edge hits %": 100 * h["hit_rate"],
              "displaced hits %": 100 * h["hit_rate_shifted"], "contour samples": h["samples"],
              "free-space violations %": 100 * h["free_violation"], "rays meeting the CAD": h["free_rays"],
-             "cloud F-score": h["cloud_score"], "look-alike of": "" if h["same_as"] < 0 else h["same_as"]}
+             "photo-consistency (reported only)": h.get("photo"), "cloud F-score": h["cloud_score"],
+             "look-alike of": "" if h["same_as"] < 0 else h["same_as"]}
             for h in sorted(ver["hypotheses"], key=lambda h: -h["score"])]
     margin = "n/a (one hypothesis)" if ver["margin"] is None else f"{ver['margin']:.3f}"
     reasons = "".join(f"<li>{html.escape(r)}</li>" for r in ver["reasons"])

@@ -104,6 +104,8 @@ class VerifyConfig:
     """Two hypotheses whose placed CAD samples lie within this fraction of the CAD diameter of each other
     (mean, both ways) are look-alikes (a symmetric structure's turns): the images cannot and need not tell them
     apart."""
+    photo_points: int = 3000
+    """CAD surface samples of the photo-consistency evidence (reported only)."""
     picture_frames: int = 3
     """Frames drawn in the picture of the best two hypotheses."""
     seed: int = 0
@@ -123,6 +125,9 @@ class HypothesisEvidence:
         hit_rate_shifted: the same with the contour displaced (chance level in this clutter).
         samples: contour samples over all frames.
         parts: CAD parts (instances) with enough contour samples to be scored.
+        photo: photo-consistency of the CAD surface across the views (:func:`photo_consistency`); reported, not
+            part of the decision (a uniform or shaded surface gives no evidence; not measured enough to gate).
+        photo_points: surface samples seen in 3+ views behind ``photo``.
         refined: whether the local contour fit moved it before scoring (``cad_from_sfm`` is then the moved one).
         free_violation: share of rays meeting the CAD that meet it before their point (0 without evidence).
         free_rays: rays meeting the CAD.
@@ -142,6 +147,8 @@ class HypothesisEvidence:
     same_as: int = -1
     refined: bool = False
     parts: int = 0
+    photo: float = 0.0
+    photo_points: int = 0
 
 
 @dataclass(frozen=True)
@@ -292,6 +299,41 @@ def free_space_evidence(scene: Any, origin_m: np.ndarray, rays: FreeSpaceRays, c
     return int(meets.sum()), int((t < dist - margin).sum())
 
 
+def photo_consistency(views: Sequence[View], scene: Any, origin_m: np.ndarray, T: Sim3, surface_m: np.ndarray,
+                      min_views: int = 3) -> tuple[float, int]:
+    """(photo-consistency, points used) of the CAD surface under ``cad_from_sfm = T``.
+
+    Each surface sample (N, 3, CAD frame) is projected into the views that see it (a ray from the camera meets
+    the CAD first at it) and its grey value read; the score is ``1 - mean per-point std / std of all values``
+    over samples seen in ``min_views`` views or more: near 0 when the CAD lies over unrelated image content in
+    each view, towards 1 on a textured surface at the right pose (a uniform surface gives no evidence)."""
+    import open3d as o3d
+
+    vals = np.full((len(surface_m), len(views)), np.nan)
+    for j, v in enumerate(views):
+        pose = v.pose(T)
+        d = surface_m - pose.t
+        dist = np.linalg.norm(d, axis=1)
+        o = np.broadcast_to(pose.t - origin_m, d.shape)
+        t = scene.cast_rays(o3d.core.Tensor(np.concatenate([o, d / dist[:, None]], 1).astype(np.float32)))
+        seen = t["t_hit"].numpy() >= dist - 1e-3 * np.maximum(dist, 1.0)
+        X = (surface_m - pose.t) @ pose.R  # camera frame
+        front = X[:, 2] > 0
+        uv = (X @ v.camera.K.T)[:, :2] / np.where(front, X[:, 2], 1.0)[:, None]
+        px = np.floor(uv).astype(np.int64)
+        H, W = v.gray.shape
+        ok = seen & front & (px[:, 0] >= 0) & (px[:, 0] < W) & (px[:, 1] >= 0) & (px[:, 1] < H)
+        vals[ok, j] = v.gray[px[ok, 1], px[ok, 0]]
+    many = np.sum(np.isfinite(vals), axis=1) >= min_views
+    if many.sum() < 20:
+        return 0.0, int(many.sum())
+    v = vals[many]
+    spread = float(np.nanstd(v))
+    if spread <= 0:
+        return 0.0, int(many.sum())
+    return float(1.0 - np.mean(np.nanstd(v, axis=1)) / spread), int(many.sum())
+
+
 def _cad_scene(meshes: Sequence[RenderMesh]) -> tuple[Any, np.ndarray]:
     import open3d as o3d
 
@@ -321,6 +363,21 @@ def refine_locally(views: Sequence[View], renderer_of: Any, T: Sim3, centre: np.
     assert np.allclose(moved_camera(corr.H_world, poses[0]).t, views[0].pose(corr.H_world.inverse() @ T).t,
                        atol=1e-6 * max(1.0, diameter_m))
     return corr.H_world.inverse() @ T, True
+
+
+def _surface_samples(meshes: Sequence[RenderMesh], n: int, seed: int) -> np.ndarray:
+    """(n, 3) area-uniform samples of the meshes' surfaces, pushed 1 mm off along the face normals."""
+    tris = np.concatenate([m.vertices_m[m.faces] for m in meshes])  # (F, 3, 3)
+    cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    rng = np.random.default_rng(seed)
+    f = rng.choice(len(tris), n, p=area / area.sum())
+    a, b = rng.random((2, n))
+    flip = a + b > 1
+    a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
+    p = tris[f, 0] + a[:, None] * (tris[f, 1] - tris[f, 0]) + b[:, None] * (tris[f, 2] - tris[f, 0])
+    normal = cross[f] / np.maximum(2 * area[f, None], 1e-12)
+    return p + 1e-3 * normal  # outside on a consistently wound mesh; the visibility test tolerates either side
 
 
 def _look_alikes(hyps: Sequence[Sim3], cad_points_m: np.ndarray, tol_m: float) -> list[list[bool]]:
@@ -361,6 +418,7 @@ def score_hypotheses(views: Sequence[View], meshes: Sequence[RenderMesh], hyps: 
     hyps = [T for T, _ in moved]
     sub = pts[:: max(1, len(pts) // 3000)]
     same = _look_alikes(hyps, sub, cfg.same_rel * diameter)
+    surface = _surface_samples(cad, cfg.photo_points, cfg.seed)
     out = []
     for k, (T, cs) in enumerate(zip(hyps, cloud_scores, strict=True)):
         rows = np.concatenate([edge_evidence(renderer_of(v), v.gray, v.pose(T), cfg) for v in views])
@@ -368,9 +426,10 @@ def score_hypotheses(views: Sequence[View], meshes: Sequence[RenderMesh], hyps: 
         edge = edge if n >= cfg.min_samples else 0.0
         meets, viol = free_space_evidence(scene, origin, rays, T, inlier_m, cfg.free_margin_rel)
         free = viol / meets if meets >= cfg.min_free_rays else 0.0
+        photo, n_photo = photo_consistency(views, scene, origin, T, surface)
         out.append(HypothesisEvidence(k, float(cs), float(edge), float(hit), float(base), int(n), float(free),
                                       int(meets), float(max(edge, 0.0) * (1.0 - free)), refined=moved[k][1],
-                                      parts=n_parts))
+                                      parts=n_parts, photo=photo, photo_points=n_photo))
     ranked = sorted(range(len(out)), key=lambda i: -out[i].score)
     for pos, i in enumerate(ranked):
         better = [j for j in ranked[:pos] if same[i][j]]
