@@ -2,17 +2,20 @@
 
 Near a small CAD the sparse SfM cloud also holds the table, the seabed and clutter, so a wrong placement can fit
 the cloud as well as the right one (fitness, RMSE and the symmetry margin all pass). The images cannot be fooled
-the same way. For every hypothesis (the refined global candidates, see :class:`~cadalign.align.AlignResult`):
+the same way. Every hypothesis (the refined global candidates, see :class:`~cadalign.align.AlignResult`) is first
+moved to its nearest fit of the image contours (:func:`refine_locally`), then scored:
 
 (a) Edges, as a contrast. The CAD is rendered from a few registered cameras; its occluding contours
     (:func:`~cadalign.render.edge_refine.contour_samples`) are searched for an image edge of the right sign within
     ``near_px`` (:func:`~cadalign.render.edge_refine.search_edges`). The same search is repeated with every
     contour displaced along its normal by ``shifts_px`` (a slightly wrong pose, without a render). Clutter raises
     both hit rates alike, so the score is the lift ``(h0 - h_shifted) / (1 - h_shifted)``: near 0 for a CAD
-    drawn over texture where it is not, clearly positive where the images have its outline.
+    drawn over texture where it is not, clearly positive where the images have its outline. It is computed per
+    CAD part and averaged over the parts, so a big symmetric part cannot outvote the small asymmetric ones.
 (b) Free space. An SfM point is seen by its track's cameras; if the ray from such a camera to the point meets the
     placed CAD well before the point, the point was seen *through* the CAD: a violation. The share of violating
     rays among those meeting the CAD is near 0 at the right pose.
+(c) Photo-consistency of the CAD surface across views (:func:`photo_consistency`): reported, not gated.
 
 The hypotheses are ranked by ``edge * (1 - free_violation)``; look-alikes (hypotheses placing the CAD on the same
 points, e.g. the turns of a symmetric structure) count once. The chosen one gets an outcome: ``ok``,
