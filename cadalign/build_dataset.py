@@ -366,8 +366,9 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
 
         shutil.rmtree(ds)
     refine_cfg = DEFAULT_REFINE if calib is None else dataclasses.replace(DEFAULT_REFINE, intrinsics=False)
-    config = {"align": fingerprint(read_json(align_json)["cad_from_sfm"] if verification is None or
-                                   verification.chosen == 0 else cad_from_sfm.matrix().tolist()),
+    # the pose used: the verification may choose another hypothesis and moves it to the image contours
+    config = {"align": fingerprint(read_json(align_json)["cad_from_sfm"] if verification is None
+                                   else cad_from_sfm.matrix().tolist()),
               "cad": str(Path(cad).resolve()),
               "depth_scale": DEPTH_SCALE, "camera_refine": refine_cfg, "seabed": DEFAULT_SEABED}
     prepare_stage_dir(ds, "build-dataset", config, overwrite=overwrite)
