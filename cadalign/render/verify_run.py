@@ -78,7 +78,7 @@ def hypotheses_png(views: Sequence[View], meshes: Sequence[RenderMesh], ver: Ver
     for v in picks:
         img = cv2.cvtColor(v.gray.astype(np.uint8), cv2.COLOR_GRAY2BGR)
         r = RaycastRenderer(cad, v.camera, rays_cam=v.rays_cam)
-        for k, colour in shown:
+        for k, colour in shown[::-1]:  # the chosen one on top
             f = r.render(v.pose(hyps[k]), with_full_masks=False)
             _, uv, _ = contour_samples(f.depth_m, f.rays_cam, f.range_m, EdgeRefineConfig(point_step=1), f.instance)
             for x, y in np.round(uv).astype(int):
