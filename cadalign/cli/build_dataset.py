@@ -22,7 +22,8 @@ def command(
     init: Path | None = typer.Option(None, "--init", help="Picked point pairs (JSON) for the coarse alignment."),
     hypothesis: int | None = typer.Option(
         None, "--hypothesis", help="Use alignment hypothesis N (numbered in OUT/verify/hypotheses.png and "
-        "verify.json) after a refusal; the images must still confirm it, but not beat the others by a margin."),
+        "verify.json) after a refusal: no margin over the others is required and weak evidence is accepted (noted in "
+        "the report); evidence against it (outline not in the images, points seen through it) still refuses."),
     roi: Path | None = typer.Option(None, "--roi", help="Region of interest (JSON: a box in the SfM frame or clicks "
                                     "round the CAD in a few frames, see cadalign.align.roi); the alignment uses only "
                                     "the SfM points there."),
