@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from cadalign.errors import AlignmentError, InputError
+from cadalign.errors import InputError, VerificationError
 from cadalign.io import write_bytes, write_json
 from cadalign.render.camera_refine import rays_of
 from cadalign.render.edge_refine import EdgeRefineConfig, contour_samples
@@ -26,16 +26,10 @@ from cadalign.types import Camera, Sim3
 
 log = logging.getLogger(__name__)
 
+__all__ = ["VERIFY_JSON", "VERIFY_PNG", "VerificationError", "hypotheses_png", "load_views", "verify_alignment"]
+
 VERIFY_JSON = "verify.json"
 VERIFY_PNG = "hypotheses.png"
-
-
-class VerificationError(AlignmentError):
-    """The images do not confirm the alignment (``wrong``) or cannot decide it (``uncertain``); no dataset."""
-
-    def __init__(self, message: str, verification: Verification):
-        super().__init__(message)
-        self.verification = verification
 
 
 def load_views(rec: Any, images_dir: Path, n: int) -> list[View]:

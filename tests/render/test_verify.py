@@ -67,9 +67,9 @@ def scene() -> tuple[list[View], RenderMesh, FreeSpaceRays]:
                                                           seed=0)[0]])
     import open3d as o3d
 
-    from cadalign.render.verify import _cad_scene, free_space_evidence
+    from cadalign.render.verify_evidence import cad_scene, free_space_evidence
 
-    scene_obj, origin = _cad_scene([obj])
+    scene_obj, origin = cad_scene([obj])
     for k, az in enumerate(np.radians(np.arange(0, 360, 60) + 15)):
         T = _look_at(np.array([3.5 * np.cos(az), 3.5 * np.sin(az), 2.0]), np.array([0.2, 0.2, 0.3]))
         f = both.render(T, with_full_masks=False)
@@ -86,7 +86,7 @@ def scene() -> tuple[list[View], RenderMesh, FreeSpaceRays]:
         origins.append(np.repeat(T.t[None], seen.sum(), 0))
         points.append(cloud[seen])
     rays = FreeSpaceRays(np.concatenate(origins), np.concatenate(points))
-    assert free_space_evidence(*_cad_scene([obj]), rays, Sim3.identity(), 0.02, 0.01)[1] == 0
+    assert free_space_evidence(*cad_scene([obj]), rays, Sim3.identity(), 0.02, 0.01)[1] == 0
     return views, obj, rays
 
 
