@@ -241,6 +241,20 @@ def hypotheses_of(align_json: Path) -> tuple[list[Sim3], list[float]]:
             [float(h["score"]) for h in hyps])
 
 
+def _gate(cfg: Any, points: Path | np.ndarray, parts: list, cad_from_sfm: Sim3) -> None:
+    """The alignment's quality gates on another hypothesis (``cfg``: an AlignConfig); raises
+    ``AlignmentGateError`` when one fails."""
+    from cadalign.align.gates import check_gates, measure, raise_if_failed
+    from cadalign.align.run import load_points
+    from cadalign.align.surface import sample_surface
+
+    pts = load_points(points)
+    surface = sample_surface(parts, cfg.cad_samples, cfg.seed)
+    metrics = measure(pts, surface, cad_from_sfm, cfg.gates)
+    checks = check_gates(metrics, cad_from_sfm, cad_from_sfm, surface, cfg.gates)
+    raise_if_failed(checks, metrics, cad_from_sfm, "the hypothesis the images chose")
+
+
 def _verify(cfg: VerifyConfig, structure: Structure, align_json: Path, sfm_dir: Path, out: Path,
             hypothesis: int | None, report: dict[str, Any]) -> Any:  # -> Verification
     """The image verification of the alignment's hypotheses; unless ok, writes the refusal into
@@ -358,6 +372,8 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
         t0 = time.perf_counter()
         verification = _verify(verify, structure, align_json, sfm_dir, out / "verify", hypothesis,
                                {"seconds": seconds, "sfm_report": read_json(sfm_dir / "sfm_report.json")})
+        if verification.chosen != 0:  # the cloud gates judged hypothesis 0: judge the chosen one too
+            _gate(ALIGN_PRESETS[preset], points, parts, verification.cad_from_sfm)
         cad_from_sfm = verification.cad_from_sfm
         seconds["verify"] = time.perf_counter() - t0
     ds = out / "dataset"
