@@ -22,8 +22,7 @@ def command(
     init: Path | None = typer.Option(None, "--init", help="Picked point pairs (JSON) for the coarse alignment."),
     hypothesis: int | None = typer.Option(
         None, "--hypothesis", help="Use alignment hypothesis N (numbered in OUT/verify/hypotheses.png and "
-        "verify.json) after a refusal: no margin over the others is required and weak evidence is accepted (noted in "
-        "the report); evidence against it (outline not in the images, points seen through it) still refuses."),
+        "verify.json) after a refusal: no margin over the others is required, but the images must still confirm it."),
     roi: Path | None = typer.Option(None, "--roi", help="Region of interest (JSON: a box in the SfM frame or clicks "
                                     "round the CAD in a few frames, see cadalign.align.roi); the alignment uses only "
                                     "the SfM points there."),

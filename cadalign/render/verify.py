@@ -264,8 +264,8 @@ def decide(evidence: Sequence[HypothesisEvidence], hyps: Sequence[Sim3], cfg: Ve
            choice: int | None = None) -> tuple[str, int, int | None, float | None, tuple[str, ...]]:
     """(outcome, chosen index, runner-up index, margin, reasons) from the evidence.
 
-    ``choice``: a hypothesis a person chose (``--hypothesis N``): the margin is not required, and weak evidence
-    (``uncertain``) is accepted with its reasons kept as warnings; evidence against it (``wrong``) still refuses."""
+    ``choice``: a hypothesis a person chose (``--hypothesis N``): the margin to the others is not required, its
+    own evidence is (a wrong pose a person picked by mistake is refused all the same)."""
     ranked = sorted(evidence, key=lambda e: -e.score)
     best = ranked[0] if choice is None else evidence[choice]
     others = [e for e in ranked if e.index != best.index and e.same_as < 0 and best.same_as != e.index
@@ -292,11 +292,6 @@ def decide(evidence: Sequence[HypothesisEvidence], hyps: Sequence[Sim3], cfg: Ve
         unsure.append(f"hypothesis {runner.index} is nearly as likely: margin {margin:.3f} < {cfg.min_margin} "
                       f"(scores {best.score:.3f} vs {runner.score:.3f})")
     outcome = "wrong" if wrong else "uncertain" if unsure else "ok"
-    if choice is not None and outcome == "uncertain":
-        # a person looked at the picture and chose: weak evidence is theirs to accept (kept as warnings in the
-        # report); evidence against the pose still refuses
-        log.warning("hypothesis %d chosen by the user despite: %s", best.index, "; ".join(unsure))
-        outcome = "ok"
     return outcome, best.index, None if runner is None else runner.index, margin, tuple(wrong + unsure)
 
 

@@ -144,7 +144,6 @@ def test_decide_outcomes() -> None:
     # a look-alike (a symmetric structure's turn) is no rival; a person's choice needs no margin
     assert decide([_ev(0, 0.5), _ev(1, 0.5, same_as=0)], h, cfg)[0] == "ok"
     assert decide([_ev(0, 0.6), _ev(1, 0.55)], h, cfg, choice=1)[:2] == ("ok", 1)
-    # a person's choice accepts weak evidence (kept as a warning) but not evidence against the pose
-    weak = decide([_ev(0, 0.6), _ev(1, 0.2)], h, cfg, choice=1)
-    assert weak[:2] == ("ok", 1) and "weak edge evidence" in weak[4][0]
+    # a person's choice needs its own evidence: weak or contradicted evidence still refuses
+    assert decide([_ev(0, 0.6), _ev(1, 0.2)], h, cfg, choice=1)[:2] == ("uncertain", 1)
     assert decide([_ev(0, 0.6), _ev(1, 0.6, free=0.5)], h, cfg, choice=1)[0] == "wrong"
