@@ -39,6 +39,7 @@ from cadalign.io import fingerprint, prepare_stage_dir, read_json, write_json
 from cadalign.render.bop_writer import PosedObject, frame_done, merge_scene_files
 from cadalign.render.camera_refine import CameraRefineConfig, RefinedCamera, rays_of, refine_cameras
 from cadalign.render.raycast import RaycastRenderer, RenderMesh
+from cadalign.render.verify import VerifyConfig
 from cadalign.scale.frames import CameraModel, FrameJob, FrameShared, write_frame
 from cadalign.types import Camera, Rigid3, Sim3
 
@@ -52,6 +53,7 @@ DEPTH_SCALE = 1.0
 SPEC_SUFFIXES = (".toml", ".yaml", ".yml")
 DEFAULT_REFINE = CameraRefineConfig()
 DEFAULT_SEABED = SeabedConfig()
+DEFAULT_VERIFY = VerifyConfig()
 
 
 @dataclass(frozen=True)
@@ -215,6 +217,72 @@ def _edge_align(meshes: list[RenderMesh], rec: Any, refined: dict[str, RefinedCa
     return _edge_align(meshes, rec, refined, sfm_dir, ds, refine, progress)
 
 
+def _roi_points(model: Path, roi: Path, sfm_dir: Path) -> np.ndarray:
+    """The SfM points of ``model`` inside the region of interest ``roi``."""
+    from cadalign.align.roi import read_roi, roi_mask
+    from cadalign.align.run import load_points
+
+    pts = load_points(model)
+    keep = roi_mask(pts, read_roi(roi), read_json(sfm_dir / "cameras.json")["frames"])
+    log.info("region of interest %s: %d of %d SfM points", roi, int(keep.sum()), len(pts))
+    if keep.sum() < 50:
+        raise InputError(f"{roi}: the region of interest holds {int(keep.sum())} of {len(pts)} SfM points; the "
+                         "alignment needs many more: enlarge the box or the clicked outlines")
+    return pts[keep]
+
+
+def hypotheses_of(align_json: Path) -> tuple[list[Sim3], list[float]]:
+    """The alignment's refined hypotheses and their cloud scores (an older align.json: its result only)."""
+    from cadalign.geometry import sim3_from_matrix
+
+    rec = read_json(align_json)
+    hyps = rec.get("hypotheses") or [{"matrix": rec["cad_from_sfm"]["matrix"], "score": float("nan")}]
+    return ([sim3_from_matrix(np.asarray(h["matrix"], dtype=np.float64)) for h in hyps],
+            [float(h["score"]) for h in hyps])
+
+
+def _gate(cfg: Any, points: Path | np.ndarray, parts: list, cad_from_sfm: Sim3) -> None:
+    """The alignment's quality gates on another hypothesis (``cfg``: an AlignConfig); raises
+    ``AlignmentGateError`` when one fails."""
+    from cadalign.align.gates import check_gates, measure, raise_if_failed
+    from cadalign.align.run import load_points
+    from cadalign.align.surface import sample_surface
+
+    pts = load_points(points)
+    surface = sample_surface(parts, cfg.cad_samples, cfg.seed)
+    metrics = measure(pts, surface, cad_from_sfm, cfg.gates)
+    checks = check_gates(metrics, cad_from_sfm, cad_from_sfm, surface, cfg.gates)
+    raise_if_failed(checks, metrics, cad_from_sfm, "the hypothesis the images chose")
+
+
+def _verify(cfg: VerifyConfig, structure: Structure, align_json: Path, sfm_dir: Path, out: Path,
+            hypothesis: int | None, report: dict[str, Any]) -> Any:  # -> Verification
+    """The image verification of the alignment's hypotheses; unless ok, writes the refusal into
+    ``build_report.json/html`` (beside ``out``) and raises ``VerificationError``."""
+    import pycolmap
+
+    from cadalign.render.verify_run import VerificationError, verify_alignment
+
+    hyps, scores = hypotheses_of(align_json)
+    gates = read_json(align_json)["config"]["gates"]
+    verts = np.concatenate([m.vertices_m for m in structure.render_meshes()])
+    inlier_m = min(gates["inlier_dist_m"], gates["inlier_dist_rel"] * float(np.linalg.norm(np.ptp(verts, axis=0))))
+    rec = pycolmap.Reconstruction(str(sfm_dir / "sparse" / "0"))
+    try:
+        return verify_alignment(cfg, rec, sfm_dir / "images", structure.render_meshes(), hyps, scores, inlier_m,
+                                out, hypothesis)
+    except VerificationError as exc:
+        from cadalign.eval.dataset_eval import write_build_html
+
+        align_rec = read_json(align_json)
+        report = {"refused": str(exc), "verification": exc.verification.summary(), "frames": 0, "splits": {},
+                  "alignment": {k: v for k, v in align_rec.items() if k in ("cad_from_sfm", "metrics", "gates")},
+                  **report}
+        write_json(out.parent / "build_report.json", report)
+        write_build_html(out.parent, report)
+        raise
+
+
 def write_dataset_extras(ds: Path, structure: Structure, verified: dict[int, bool] | None = None, block: int = 10,
                          gap: int = 1) -> dict[str, list[int]]:
     """models/ + models_info.json, splits.json and per-split COCO annotations (verified frames only)."""
@@ -239,7 +307,9 @@ def write_dataset_extras(ds: Path, structure: Structure, verified: dict[int, boo
 def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced", picks: Path | None = None,
                   gt: Path | None = None, cad_unit: str | None = None, calib: Path | None = None,
                   overwrite: bool = False, progress: Progress | None = None, executor: RayExecutor | None = None,
-                  sfm_set: Mapping[str, Any] | None = None, topic: str | None = None) -> Path:
+                  sfm_set: Mapping[str, Any] | None = None, topic: str | None = None,
+                  hypothesis: int | None = None, verify: VerifyConfig | None = DEFAULT_VERIFY,
+                  roi: Path | None = None) -> Path:
     """Run frames -> SfM -> align -> render -> write; returns ``out``. See the module doc for the layout.
 
     ``calib``: the camera's known intrinsics and lens distortion, any format of
@@ -254,9 +324,16 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     ``sfm_set``: SfM settings over the preset's (nested keys of :class:`cadalign.sfm.SfMConfig`, e.g.
     ``{"mapper": {"repair_frames": 20}}``), checked strictly.
     ``topic``: the image topic when ``source`` is a ROS bag (None: the bag's only image topic).
+    ``verify``: judge the alignment's hypotheses by the images (:mod:`cadalign.render.verify`) and refuse unless
+    the outcome is ``ok``; None trusts the cloud gates alone. ``roi``: a region of interest file
+    (:mod:`cadalign.align.roi`: a box in the SfM frame or clicks round the CAD in a few frames); the alignment
+    then uses only the SfM points there (a CAD that is a small part of the scene). ``hypothesis``: the hypothesis
+    a person chose from ``OUT/verify/hypotheses.png`` (the margin to the runner-up is then not required; the
+    evidence still is).
 
     Raises:
-        AlignmentError: the alignment failed its quality gate (no dataset is written).
+        AlignmentError: the alignment failed its quality gate, or (``VerificationError``) the images do not
+            confirm it (no dataset is written; ``OUT/verify/`` holds the evidence and the picture).
         InputError, ConfigError: unusable inputs, or ``out`` holds results of another config.
     """
     from cadalign.align import PRESETS as ALIGN_PRESETS
@@ -288,17 +365,31 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     seconds["sfm"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     parts = [(structure.models[o.obj_id], o.T_world_from_obj) for o in structure.objects]
-    align_json = align_run(ALIGN_PRESETS[preset], sfm_dir / "sparse" / "0", parts, out / "align", picks=picks,
-                           overwrite=overwrite)
+    points: Path | np.ndarray = sfm_dir / "sparse" / "0"
+    if roi is not None:
+        points = _roi_points(points, Path(roi), sfm_dir)
+    align_json = align_run(ALIGN_PRESETS[preset], points, parts, out / "align", picks=picks, overwrite=overwrite)
     seconds["align"] = time.perf_counter() - t0
     cad_from_sfm = read_sim3(align_json)
+    verification = None
+    if verify is not None and verify.enabled:
+        t0 = time.perf_counter()
+        verification = _verify(verify, structure, align_json, sfm_dir, out / "verify", hypothesis,
+                               {"seconds": seconds, "sfm_report": read_json(sfm_dir / "sfm_report.json")})
+        if verification.chosen != 0:  # the cloud gates judged hypothesis 0: judge the chosen one too
+            _gate(ALIGN_PRESETS[preset], points, parts, verification.cad_from_sfm)
+        cad_from_sfm = verification.cad_from_sfm
+        seconds["verify"] = time.perf_counter() - t0
     ds = out / "dataset"
     if overwrite and ds.exists():
         import shutil
 
         shutil.rmtree(ds)
     refine_cfg = DEFAULT_REFINE if calib is None else dataclasses.replace(DEFAULT_REFINE, intrinsics=False)
-    config = {"align": fingerprint(read_json(align_json)["cad_from_sfm"]), "cad": str(Path(cad).resolve()),
+    # the pose used: the verification may choose another hypothesis and moves it to the image contours
+    config = {"align": fingerprint(read_json(align_json)["cad_from_sfm"] if verification is None
+                                   else cad_from_sfm.matrix().tolist()),
+              "cad": str(Path(cad).resolve()),
               "depth_scale": DEPTH_SCALE, "camera_refine": refine_cfg, "seabed": DEFAULT_SEABED}
     prepare_stage_dir(ds, "build-dataset", config, overwrite=overwrite)
     t0 = time.perf_counter()
@@ -317,6 +408,8 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
         "seconds": seconds, "sfm_report": read_json(sfm_dir / "sfm_report.json"),
         "colmap_log": colmap_said.to_json(),
     }
+    if verification is not None:
+        report["verification"] = verification.summary()
     if (ds / "seabed.json").is_file():
         report["seabed"] = read_json(ds / "seabed.json")
     if (ds / "edge_align.json").is_file():

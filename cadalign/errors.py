@@ -44,6 +44,15 @@ class AlignmentError(CadalignError):
     """A registration failed its quality gate; nothing was written."""
 
 
+class VerificationError(AlignmentError):
+    """The images do not confirm the alignment (outcome ``wrong``) or cannot decide it (``uncertain``); no dataset
+    was written. ``verification`` holds the evidence (a :class:`cadalign.render.verify.Verification`)."""
+
+    def __init__(self, message: str, verification: object = None):
+        super().__init__(message)
+        self.verification = verification
+
+
 class TrainingError(CadalignError):
     """Training hit a non-finite input or loss (naming the sample and step), or a checkpoint of another
     model or class list was offered to resume or evaluate."""

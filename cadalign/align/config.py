@@ -64,6 +64,10 @@ class GlobalRegConfig:
     """This many best distinct candidates (rotations more than 5 degrees apart) each get the full ICP and
     refinement, and the best final fit at the inlier distance wins: the decision between near-symmetric
     look-alikes is taken on all points at full resolution."""
+    hypotheses: int = bounded(4, ge=1)
+    """This many best distinct candidates (the refined ones first, then the next ones after their short ICP
+    only) are kept as hypotheses for the image verification (:mod:`cadalign.render.verify`), which moves each
+    to the image contours and decides between them: near a small CAD the cloud's ranking can be wrong."""
 
 
 @dataclass(frozen=True)

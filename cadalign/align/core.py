@@ -75,16 +75,20 @@ def distinct_candidates(cands: list[Candidate], k: int, min_deg: float = DISTINC
 
 
 def _starts(points: np.ndarray, surface: CadSurface, cfg: AlignConfig, method: str, picks: Picks | None,
-            prior: Sim3 | None) -> list[Sim3]:
-    """The coarse estimates to refine: one for picks or a prior, the best distinct ones for global."""
+            prior: Sim3 | None) -> tuple[list[Sim3], list[Sim3]]:
+    """The coarse estimates to refine (one for picks or a prior, the best distinct ones for global), and the
+    next distinct global candidates kept unrefined as hypotheses for the image verification."""
     if method == "picks":
         assert picks is not None
-        return [sim3_from_picks(picks)]
+        return [sim3_from_picks(picks)], []
     if method == "prior":
         assert prior is not None
-        return [prior]
+        return [prior], []
     cands = global_registration(points, surface, cfg.global_reg, cfg.icp, cfg.seed)
-    return [c.cad_from_sfm for c in distinct_candidates(cands, cfg.global_reg.final_candidates)]
+    n = cfg.global_reg.final_candidates
+    distinct = [c.cad_from_sfm for c in distinct_candidates(cands, max(n, cfg.global_reg.hypotheses))]
+    return distinct[:n], distinct[n:]
+
 
 
 def final_score(points: np.ndarray, surface: CadSurface, T: Sim3, inlier_m: float, seed: int) -> float:
@@ -154,7 +158,7 @@ def align(
     method = _coarse_method(cfg, picks, prior)
     surface = cad if isinstance(cad, CadSurface) else sample_surface(cad, cfg.cad_samples, cfg.seed)
     t1 = time.perf_counter()
-    starts = _starts(points, surface, cfg, method, picks, prior)
+    starts, extras = _starts(points, surface, cfg, method, picks, prior)
     seconds = {"sample": t1 - t0, "coarse": time.perf_counter() - t1}
     icp_points = subsample(points, cfg.icp.max_points, cfg.seed)
     inlier_m = gate_distances(surface, cfg.gates)[0]
@@ -176,4 +180,8 @@ def align(
     seconds["gates"] = time.perf_counter() - t4
     raise_if_failed(checks, metrics, T, context)
     log.info("%s", format_report(checks, metrics, T, context))
-    return AlignResult(T, method, coarse, metrics, checks, seconds, tuple(history), scores)
+    # the refined ones first (the result is the first), then the unrefined global candidates
+    hypotheses = tuple((f[1], f[0]) for f in finals) + tuple(
+        (E, final_score(points, surface, E, inlier_m, cfg.seed)) for E in extras
+        if all(np.degrees(geodesic_angle(E.R, f[1].R)) > DISTINCT_DEG for f in finals))
+    return AlignResult(T, method, coarse, metrics, checks, seconds, tuple(history), scores, hypotheses)

@@ -143,6 +143,42 @@ def check_gates(
     return tuple(checks)
 
 
+SCALE_GATES = ("cad_extent_m", "inlier_rmse_m", "inlier_rmse_floor_m", "scale_vs_expected")
+"""Gates whose failure points at the CAD's unit first."""
+
+SHORT_COVERAGE = 0.35
+"""A cloud explaining less of the CAD than this (coverage) comes from a capture that saw little of it."""
+
+SHORT_POINTS = 3000
+"""Fewer SfM points than this is a short or low-resolution clip (the README gives the smallest capture)."""
+
+
+def likely_causes(failed: list[GateCheck], metrics: AlignMetrics) -> list[str]:
+    """The likely causes of the failed gates, most likely first.
+
+    A unit mix-up comes first only when a scale gate failed; a capture that saw little of the structure
+    (few points, low coverage) comes first otherwise, and the gates' own hints name the unit only in passing."""
+    if not failed:
+        return []
+    names = {c.name for c in failed}
+    scale = bool(names & set(SCALE_GATES))
+    causes = [UNIT_HINT] if scale else []
+    if metrics.coverage < SHORT_COVERAGE or metrics.n_points < SHORT_POINTS:
+        causes.append(f"a short capture: {metrics.n_points} SfM points explain {100 * metrics.coverage:.0f} % of the "
+                      "CAD; film more frames that circle the structure (the README gives the smallest capture that "
+                      "works), or give picks")
+    for c in failed:
+        if not c.hint:
+            continue
+        hint = c.hint
+        if not scale and UNIT_HINT in hint:
+            hint = hint.replace(f" ({UNIT_HINT})", "").replace(UNIT_HINT, "the CAD's unit")
+        if scale and UNIT_HINT in hint:
+            hint = hint.replace(f" ({UNIT_HINT})", " (the unit, above)").replace(UNIT_HINT, "the unit, above")
+        causes.append(f"{c.name}: {hint}")
+    return causes
+
+
 def format_report(checks: tuple[GateCheck, ...], metrics: AlignMetrics, cad_from_sfm: Sim3, context: str) -> str:
     """A multi-line report: what failed, every gate's numbers, and the likely causes."""
     failed = [c for c in checks if not c.passed]
@@ -151,7 +187,7 @@ def format_report(checks: tuple[GateCheck, ...], metrics: AlignMetrics, cad_from
     lines = [head, f"  scale {cad_from_sfm.s:.6g} m per SfM unit; {metrics.n_points} points, {metrics.n_roi} in "
                    f"the fitness region, {metrics.n_inliers} inliers, coverage {metrics.coverage:.2f}"]
     lines += ["  " + c.line() for c in checks]
-    lines += [f"  likely cause ({c.name}): {c.hint}" for c in failed if c.hint]
+    lines += [f"  likely cause {i}: {c}" for i, c in enumerate(likely_causes(failed, metrics), 1)]
     return "\n".join(lines)
 
 

@@ -92,6 +92,10 @@ class AlignResult:
         global_scores: for a global coarse estimate, the final fit score (F-score of precision and
             coverage at the inlier distance) of the result and of the best refined pose turned more than
             5 degrees away (0 if none); close values mean a near-symmetric, ambiguous structure.
+        hypotheses: ``(cad_from_sfm, final fit score)`` of every refined pose, best fit first (the result is
+            the first), then of the next distinct global candidates after their short ICP only (up to
+            ``global_reg.hypotheses`` in all): what the image verification (:mod:`cadalign.render.verify`)
+            judges again.
     """
 
     cad_from_sfm: Sim3
@@ -102,6 +106,7 @@ class AlignResult:
     seconds: dict[str, float]
     history: tuple[IcpStep, ...]
     global_scores: tuple[float, float] | None = None
+    hypotheses: tuple[tuple[Sim3, float], ...] = ()
 
     @property
     def scale(self) -> float:

@@ -147,6 +147,7 @@ def result_record(result: AlignResult, cfg: AlignConfig, inputs: dict, sample_s:
         "coarse": {"method": result.coarse_from, **sim3_record(result.coarse),
                    "global_scores": result.global_scores},
         "metrics": to_dict(result.metrics),
+        "hypotheses": [{"score": sc, **sim3_record(T)} for T, sc in result.hypotheses],
         "gates": [{k: v for k, v in to_dict(g).items() if k != "hint"} for g in result.gates],
         "seconds": {**result.seconds, "sample": result.seconds.get("sample", 0.0) + sample_s},
         "history": [to_dict(h) for h in result.history],

@@ -21,6 +21,14 @@ def command(
     out: Path = typer.Option(..., "--out", help="Output folder (sfm/, align/, dataset/, build_report.*)."),
     preset: str = typer.Option("balanced", "--preset", help="fast | balanced | accurate (SfM and alignment)."),
     init: Path | None = typer.Option(None, "--init", help="Picked point pairs (JSON) for the coarse alignment."),
+    hypothesis: int | None = typer.Option(
+        None, "--hypothesis", help="Use alignment hypothesis N (numbered in OUT/verify/hypotheses.png and "
+        "verify.json) after a refusal: no margin over the others is required, but the images must still confirm it."),
+    roi: Path | None = typer.Option(None, "--roi", help="Region of interest (JSON: a box in the SfM frame or clicks "
+                                    "round the CAD in a few frames, see cadalign.align.roi); the alignment uses only "
+                                    "the SfM points there."),
+    no_verify: bool = typer.Option(False, "--no-verify", help="Skip the image verification of the alignment "
+                                   "(trust the point-cloud gates alone; a wrong placement may then go unnoticed)."),
     gt: Path | None = typer.Option(None, "--gt", help="Simulator output folder: report errors against truth."),
     cad_unit: str | None = typer.Option(None, "--cad-unit", help="Unit of a CAD mesh file: m, cm, mm or in."),
     calib: Path | None = typer.Option(
@@ -42,7 +50,7 @@ def command(
                                        "many CPUs); default: all CPUs (local), 2 tasks per CPU in flight."),
 ) -> None:
     """Frames -> SfM -> CAD alignment (Sim3) -> per-frame CAD depth, normals, masks, poses -> BOP dataset."""
-    from cadalign.build_dataset import build_dataset
+    from cadalign.build_dataset import DEFAULT_VERIFY, build_dataset
     from cadalign.cli.sfm import parse_overrides
     from cadalign.errors import ConfigError
     from cadalign.scale import executor_config, make_executor
@@ -59,7 +67,8 @@ def command(
         runner = make_executor(cfg)
         out_dir = build_dataset(source, cad, out, preset=preset, picks=init, gt=gt, cad_unit=cad_unit,
                                 calib=calib, overwrite=overwrite, progress=track, executor=runner,
-                                sfm_set=parse_overrides(sfm_set), topic=topic)
+                                sfm_set=parse_overrides(sfm_set), topic=topic, hypothesis=hypothesis,
+                                verify=None if no_verify else DEFAULT_VERIFY, roi=roi)
     console.print(f"[green]dataset written to {out_dir / 'dataset'}; report {out_dir / 'build_report.html'}[/]")
 
 

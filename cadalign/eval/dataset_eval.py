@@ -123,8 +123,10 @@ def write_build_html(out: Path, report: dict[str, Any]) -> Path:
     parts = [
         f"<html><head><meta charset='utf-8'><style>{CSS}</style><title>cadalign dataset</title></head><body>",
         "<h1>cadalign build-dataset</h1>",
-        f"<p>{report['frames']} frames; splits {report['splits']}</p>",
+        f"<p><b>Refused: no dataset was written.</b></p><pre>{html.escape(report['refused'])}</pre>"
+        if report.get("refused") else f"<p>{report['frames']} frames; splits {report['splits']}</p>",
     ]
+    parts += verification_html(out, report.get("verification"))
     metrics = report["alignment"].get("metrics", {})
     parts += [
         "<h2>Alignment</h2>",
@@ -159,6 +161,29 @@ def write_build_html(out: Path, report: dict[str, Any]) -> Path:
         "</body></html>",
     ]
     return write_text(out / "build_report.html", "\n".join(parts))
+
+
+def verification_html(out: Path, ver: dict[str, Any] | None) -> list[str]:
+    """The image verification: outcome, margin, every hypothesis's evidence, and the picture of the best two."""
+    from cadalign.eval.report import img_tag
+
+    if not ver:
+        return []
+    rows = [{"hypothesis": h["index"], "chosen": "yes" if h["index"] == ver["chosen"] else "",
+             "image score": h["score"], "edge lift": h["edge"], "edge hits %": 100 * h["hit_rate"],
+             "displaced hits %": 100 * h["hit_rate_shifted"], "contour samples": h["samples"],
+             "free-space violations %": 100 * h["free_violation"], "rays meeting the CAD": h["free_rays"],
+             "photo-consistency (reported only)": h.get("photo"), "cloud F-score": h["cloud_score"],
+             "look-alike of": "" if h["same_as"] < 0 else h["same_as"]}
+            for h in sorted(ver["hypotheses"], key=lambda h: -h["score"])]
+    margin = "n/a (one hypothesis)" if ver["margin"] is None else f"{ver['margin']:.3f}"
+    reasons = "".join(f"<li>{html.escape(r)}</li>" for r in ver["reasons"])
+    return ["<h2>Verification against the images</h2>",
+            f"<p>outcome <b>{ver['outcome']}</b>, hypothesis {ver['chosen']}"
+            f"{' (chosen by the user)' if ver.get('user_choice') else ''}, margin to the runner-up {margin}</p>",
+            f"<ul>{reasons}</ul>" if reasons else "", table(rows),
+            "<p>CAD contours of the chosen (green) and runner-up (red) hypotheses over a few frames:</p>",
+            img_tag(out / "verify" / "hypotheses.png", "hypotheses")]
 
 
 def _pretty(obj: Any) -> str:

@@ -43,6 +43,14 @@ def test_reference_case_result_is_complete(global_result, cloud):
     assert r.n_inliers >= 0.9 * cloud.on_structure.sum()
     best, runner_up = r.global_scores
     assert best > runner_up  # the true pose beats its symmetric look-alikes
+    # issue 44: the result and its rivals are kept as hypotheses for the image verification, result first,
+    # all distinct (more than 5 degrees apart)
+    from cadalign.align.config import PRESETS as P
+    from cadalign.geometry import geodesic_angle
+
+    hyps = [T for T, _ in r.hypotheses]
+    assert hyps[0] is r.cad_from_sfm and 2 <= len(hyps) <= P["fast"].global_reg.hypotheses
+    assert all(geodesic_angle(a.R, b.R) > np.radians(5) for i, a in enumerate(hyps) for b in hyps[i + 1:])
 
 
 def test_most_points_land_on_the_structure(global_result, cloud, surface):

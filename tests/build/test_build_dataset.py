@@ -71,6 +71,9 @@ def test_dataset_matches_the_truth(built: Path) -> None:
     assert vt["depth"]["cad_depth"]["coverage"] > 0.9 > 0.2 > vt["depth"]["sfm_depth"]["coverage"]
     html = (built / "build_report.html").read_text()
     assert "CAD depth vs SfM depth" in html
+    # issue 44: the alignment was verified against the images and the report shows the evidence
+    assert report["verification"]["outcome"] == "ok" and report["verification"]["hypotheses"][0]["edge"] > 0.5
+    assert "Verification against the images" in html and (built / "verify" / "hypotheses.png").is_file()
 
 
 def test_dataset_layout_splits_and_coco(built: Path) -> None:
@@ -162,3 +165,29 @@ def _assert_poses_close(a: dict, b: dict) -> None:
             assert x["obj_id"] == y["obj_id"]
             assert np.allclose(x["cam_t_m2c"], y["cam_t_m2c"], atol=5.0)  # mm; multi-threaded SfM: ~1 mm apart
             assert np.allclose(x["cam_R_m2c"], y["cam_R_m2c"], atol=5e-3)  # ~0.3 deg
+
+
+def test_a_wrong_global_alignment_is_refused_by_the_images(capture: tuple[Path, Path], built: Path,
+                                                          tmp_path: Path) -> None:
+    """Issue 44: on this 12-frame capture the global registration finds no right candidate (all are 90-180 deg
+    off) and its best one passes every cloud gate. The image verification refuses it: no dataset, the reason
+    (edges and free space), the fix, the picture of the hypotheses and a report; a person's choice of a
+    hypothesis is refused too, as the images contradict it."""
+    from cadalign.build_dataset import build_dataset
+    from cadalign.render.verify_run import VerificationError
+
+    spec, sim = capture
+    out = tmp_path / "global"
+    shutil.copytree(built / "sfm", out / "sfm")
+    with pytest.raises(VerificationError) as exc:
+        build_dataset(sim / "frames", spec, out, preset="fast")
+    msg = str(exc.value)
+    assert exc.value.verification.outcome in ("wrong", "uncertain") and "FAIL" in msg and "--hypothesis" in msg
+    assert not (out / "dataset").exists()
+    assert (out / "verify" / "hypotheses.png").stat().st_size > 1000
+    report = read_json(out / "build_report.json")
+    assert report["verification"]["outcome"] == exc.value.verification.outcome
+    assert "Refused" in (out / "build_report.html").read_text()
+    with pytest.raises(VerificationError):
+        build_dataset(sim / "frames", spec, out, preset="fast", hypothesis=1)
+    assert not (out / "dataset").exists()
