@@ -14,7 +14,7 @@ from cadalign.errors import InputError
 from cadalign.geometry.camera import project
 from cadalign.geometry.rotations import axis_angle_to_matrix, geodesic_angle
 from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, EdgeTracker, as_gray
-from cadalign.infer.track.run import TrackRunConfig, read_init_pose
+from cadalign.infer.track.run import TrackRunConfig, read_init_pose, track_video
 from cadalign.infer.track.tracker import StructureTracker, TrackerConfig
 from cadalign.render.edge_refine import EdgeRefineConfig, edge_jacobian, motion, search_edges
 from cadalign.types import Camera, Rigid3
@@ -344,3 +344,63 @@ def test_infer_tracks_rgb_frames_from_an_init_pose(tmp_path: Path, track_sim: Pa
     assert ev["detection"]["tp"] > 0  # accuracy: the boxes tests and the scene benchmarks (a 320x240 orbit of
     # small parts over a flat seabed is near the tracker's limits: see issue 43's note)
     assert (out / "overlay.mp4").is_file() and json.loads((out / "timings.json").read_text())["frames"] == len(names)
+
+
+def test_detector_detections_propose_structure_poses() -> None:
+    """Each detection of a class proposes T_cam_from_obj @ inv(T_world_from_obj) for every instance of that
+    class, best score first, capped; a class the structure lacks proposes nothing."""
+    from cadalign.build_dataset import Structure
+    from cadalign.cad.model import CadModel
+    from cadalign.infer.track.start import hypotheses
+    from cadalign.render.bop_writer import PosedObject
+    from cadalign.types import Detection
+
+    box = CadModel("b", np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]]), np.array([[0, 1, 2]]))
+    T_wo = [Rigid3(np.eye(3), np.array([1.0, 0, 0])), Rigid3(axis_angle_to_matrix(np.array([0, 0, 0.5])),
+                                                             np.array([0, 2.0, 0]))]
+    structure = Structure((PosedObject("v1", 1, 2, T_wo[0]), PosedObject("v2", 1, 2, T_wo[1]),
+                           PosedObject("frame", 2, 1, Rigid3.identity())), {1: box, 2: box},
+                          ("background", "structure", "valve"))
+    T_cw = Rigid3(axis_angle_to_matrix(np.array([0.1, 0.2, 0.3])), np.array([0.3, -0.2, 5.0]))
+    T_co = T_cw @ T_wo[1]  # the network saw v2
+    m = np.zeros((4, 4), bool)
+    dets = [Detection(np.zeros(4), 2, 0.6, m, np.eye(3), np.zeros(3)),
+            Detection(np.zeros(4), 2, 0.9, m, T_co.R, T_co.t),
+            Detection(np.zeros(4), 3, 0.99, m, np.eye(3), np.ones(3))]
+    hyps = hypotheses(dets, structure, ("background", "structure", "valve", "hot_stab"), max_hypotheses=3)
+    assert [n for n, _ in hyps] == ["detector:valve:v1", "detector:valve:v2", "detector:valve:v1"]
+    assert np.allclose(hyps[1][1].matrix(), T_cw.matrix())  # the right instance gives the camera pose
+
+
+def test_tracker_starts_from_restart_hypotheses_without_an_init_pose(tmp_path: Path, boxes) -> None:
+    """With no --init-pose, the restart source (a detector's proposals) starts the track, and is asked again
+    only while lost."""
+    import imageio.v3 as iio
+
+    from cadalign.build_dataset import Structure
+    from cadalign.cad.model import CadModel
+    from cadalign.render.bop_writer import PosedObject
+
+    meshes, cam, render = boxes
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(4):
+        iio.imwrite(frames / f"{k:06d}.png", np.repeat(render(_view(k))[..., None], 3, axis=2).round().astype(np.uint8))
+    structure = Structure(
+        tuple(PosedObject(f"box_{m.instance}", m.instance, 1, Rigid3.identity()) for m in meshes),
+        {m.instance: CadModel(f"box_{m.instance}", m.vertices_m, m.faces) for m in meshes},
+        ("background", "structure"))
+    asked = []
+
+    def source(image: np.ndarray, name: str) -> list:
+        asked.append(name)
+        wrong = _perturbed(_view(0).inverse(), 1.5, 40.0, 1)  # a wrong proposal and a rough right one
+        return [("detector:wrong", wrong), ("detector:box", _perturbed(_view(int(name[:6])).inverse(), 0.1, 3.0, 2))]
+
+    out = tmp_path / "out"
+    track_video(TrackRunConfig(BOXES_TRACKER, overlay=False), frames, structure, cam, out, restart_source=source)
+    steps = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
+    assert [s["state"] for s in steps] == ["ok"] * 4
+    assert steps[0]["source"] == "detector:box" and asked == ["000000.png"]
+    T = Rigid3.from_matrix(np.asarray(steps[3]["T_cam_from_world"]))
+    assert _reproj_px(meshes, cam, T, _view(3).inverse()) < 0.5
