@@ -15,8 +15,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from cadalign.config import bounded
-from cadalign.io import read_json
+from cadalign.io import read_image, read_json
+from cadalign.types import Rigid3
 
 log = logging.getLogger(__name__)
 
@@ -127,36 +130,57 @@ def train_pose_stage(ctx: DemoContext) -> dict:
 
 
 def infer_stage(ctx: DemoContext) -> dict:
-    """Pose inference with the trained detector on the held-out (test) frames, evaluated against the truth."""
+    """Part poses on the held-out (test) frames from RGB alone, evaluated against the truth: the structure tracker
+    (:mod:`cadalign.infer.track`) with the camera's intrinsics only (no depth, no camera poses), started from a
+    simulated navigation pose (the first frame's true pose turned 10 deg and moved 0.5 m, as a USBL/DVL fix is
+    off) and restarted by the trained detector."""
     from cadalign.build_dataset import load_structure
     from cadalign.infer import detect as det
-    from cadalign.infer.pipeline import PRESETS
-    from cadalign.infer.run import calibration_from_scene, run
-    from cadalign.models.maskrcnn.detector import load_pose_model
+    from cadalign.infer.run import calibration_from_scene
+    from cadalign.infer.track.run import TrackRunConfig, track_video
+    from cadalign.infer.track.start import detector_restarts
     from cadalign.train.data import select
+    from cadalign.types import Camera
 
     sel = select(ctx.dataset, "test")
     scene = sel.scene_dir
     names = {im_id: name for name, im_id in det.frame_ids(scene).items()}
     clip = ctx.out / "infer" / "heldout_frames"
     clip.mkdir(parents=True, exist_ok=True)
-    for im_id in list(sel.ids)[: ctx.cfg.infer_frames]:
-        link = clip / names[im_id]
+    picked = [names[im_id] for im_id in list(sel.ids)[: ctx.cfg.infer_frames]]
+    for name in picked:
+        link = clip / name
         if not link.exists():
-            link.symlink_to((ctx.sim_dir / "frames" / names[im_id]).resolve())
+            link.symlink_to((ctx.sim_dir / "frames" / name).resolve())
     structure = load_structure(ctx.scene)
-    net, meta = load_pose_model(ctx.out / "train" / "pose")
-    # enhance = "auto": the raw frames are prepared as the network's training images were (a built dataset's
-    # were CLAHE-enhanced by SfM, the simulator's exact truth is raw), as the training run recorded
-    cfg = PRESETS["fast"]
-    detector = det.TorchDetector(net, cfg.detector_score_thresh, "cpu", cfg.tiles, cfg.nms_iou)
+    first = read_image(clip / sorted(picked)[0])
+    K = calibration_from_scene(scene, use_poses=False).K_default
+    camera = Camera(K, first.shape[1], first.shape[0])
+    nav = simulated_navigation_pose(ctx.sim_dir, sorted(picked)[0])
+    restart, info = detector_restarts(ctx.out / "train" / "pose", structure, camera)
     out = ctx.out / "infer" / "poses"
-    run(cfg, clip, detector, structure.models, tuple(meta.get("classes", structure.class_names)), out,
-        calib=calibration_from_scene(scene), detector_info={"kind": "network", "run": str(ctx.out / "train" / "pose")},
-        gt_scene=scene, overwrite=True)
+    track_video(TrackRunConfig(), clip, structure, camera, out, init_pose=nav, restart_source=restart,
+                gt_scene=scene, overwrite=True,
+                record={"detector": info, "init_pose": "simulated navigation fix: truth + 10 deg / 0.5 m"})
     ev = out / "eval.json"
     return {"dir": "infer/poses", "frames": len(list(clip.iterdir())), "timings": read_json(out / "timings.json"),
-            "eval": read_json(ev) if ev.is_file() else None}
+            "eval": read_json(ev) if ev.is_file() else None,
+            "inputs": "RGB frames + intrinsics; start: a simulated navigation fix (truth + 10 deg / 0.5 m) and the "
+                      "trained detector; no depth, no camera poses"}
+
+
+def simulated_navigation_pose(sim_dir: Path, frame: str, seed: int = 0, turn_deg: float = 10.0,
+                              shift_m: float = 0.5) -> Rigid3:
+    """``T_cam_from_world`` of a frame as a navigation fix gives it: the simulator's true pose turned by exactly
+    ``turn_deg`` about a random axis and moved by exactly ``shift_m`` (seeded)."""
+    from cadalign.geometry.rotations import axis_angle_to_matrix
+
+    e = read_json(Path(sim_dir) / "gt" / "sim" / "000000" / "cameras.json")["frames"][frame]
+    T = Rigid3(np.reshape(e["R_cam_from_world"], (3, 3)), np.asarray(e["t_cam_from_world_m"]))
+    rng = np.random.default_rng(seed)
+    ax, d = rng.normal(size=3), rng.normal(size=3)
+    turn = Rigid3(axis_angle_to_matrix(np.radians(turn_deg) * ax / np.linalg.norm(ax)), shift_m * d / np.linalg.norm(d))
+    return turn @ T
 
 
 def fuse_stage(ctx: DemoContext) -> dict:

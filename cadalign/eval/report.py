@@ -91,9 +91,13 @@ def _infer_section(out: Path, info: dict) -> str:
                      "R err mean (deg)": (o.get("r_err_deg") or {}).get("mean"),
                      "AR MSSD": o.get("ar_mssd"), "AR MSPD": o.get("ar_mspd")})
     t = info.get("timings") or {}
-    trows = [{"step": k, "ms per frame": v.get("mean_ms")} for k, v in (t.get("stages") or {}).items()]
-    return (f"<h2 id='infer'>Pose inference on {info.get('frames')} held-out frames</h2>" + table(rows)
-            + "<h3>Time per stage</h3>" + table(trows))
+    trows = [{"step": k, "ms per frame": v.get("mean_ms")}
+             for k, v in (t.get("stages") or t.get("per_stage") or {}).items()]
+    inputs = f"<p>Inputs: {html.escape(str(info['inputs']))}.</p>" if info.get("inputs") else ""
+    tracked = (f"<p>{t['tracked']} of {t['frames']} frames tracked, {t['lost']} lost (no pose reported).</p>"
+               if "tracked" in t else "")
+    return (f"<h2 id='infer'>Pose inference on {info.get('frames')} held-out frames</h2>" + inputs + tracked
+            + table(rows) + "<h3>Time per stage</h3>" + table(trows))
 
 
 def _fuse_section(out: Path, info: dict) -> str:

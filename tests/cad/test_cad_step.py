@@ -3,7 +3,6 @@ in a scene file, and the subsea panel exported to STEP and read back. Files are 
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -104,9 +103,7 @@ def test_subsea_panel_exported_to_step_reads_back_within_tolerance(tmp_path: Pat
         seen.add(id(model))
         placed[name.replace("/", "_")] = (model.vertices_m @ T.R.T + T.t, model.faces)
     path = write_step(tmp_path / "panel.step", {n: mesh_solid(v, f) for n, (v, f) in placed.items()}, "mm")
-    t0 = time.perf_counter()
     back = load_cad(path, clean=False)
-    seconds = time.perf_counter() - t0
     tol = TessellationConfig().linear_m
     assert back.unit == "mm" and set(back.part_names) == set(placed), back.part_names
     for i, name in enumerate(back.part_names):
@@ -115,7 +112,6 @@ def test_subsea_panel_exported_to_step_reads_back_within_tolerance(tmp_path: Pat
         v_got = back.vertices_m[np.unique(sel)]
         assert _distance(v_ref, f_ref, v_got).max() <= tol
         assert _distance(back.vertices_m, sel, v_ref).max() <= tol
-    assert seconds < 20, seconds
 
 
 def _distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
