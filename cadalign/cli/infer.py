@@ -126,6 +126,12 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
     cfg = resolve(TrackRunConfig, PRESETS, preset if preset in PRESETS else "balanced", config, {})
     restart = None
     info: dict = {"kind": "none"}
+    network = None
+    if model is not None:  # first: a wrong run folder fails before anything is read
+        from cadalign.models.maskrcnn.detector import load_pose_model
+
+        net, meta = load_pose_model(model, device)
+        network = (net, {**meta, "run": str(model)})
     structure = load_structure(cad, cad_unit)
     gt_scene = det.resolve_scene_dir(gt) if gt is not None else None
     first = next(iter(iter_frames(source, max_frames=1, topic=topic)), None)
@@ -150,7 +156,7 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
     if model is not None:
         from cadalign.infer.track.start import detector_restarts
 
-        restart, info = detector_restarts(model, structure, camera, device)
+        restart, info = detector_restarts(network, structure, camera, device)
     T0 = read_init_pose(init_pose) if init_pose is not None else None
     path = track_video(cfg, source, structure, camera, out, init_pose=T0, restart_source=restart, gt_scene=gt_scene,
                        max_frames=max_frames, overwrite=overwrite, progress=track, lens=lens, topic=topic,

@@ -33,19 +33,21 @@ def hypotheses(detections: list, structure: Structure, class_names: tuple[str, .
     return out
 
 
-def detector_restarts(model: Path, structure: Structure, camera: Camera, device: str = "cpu",
+def detector_restarts(model: Path | tuple, structure: Structure, camera: Camera, device: str = "cpu",
                       score_thresh: float = 0.7) -> tuple[Callable[[np.ndarray, str], list], dict]:
-    """A restart source for :func:`cadalign.infer.track.run.track_video` from a trained pose network, and the
-    record of what it is."""
+    """A restart source for :func:`cadalign.infer.track.run.track_video` from a trained pose network (its run
+    folder, or ``(network, meta)`` as :func:`~cadalign.models.maskrcnn.detector.load_pose_model` returns them),
+    and the record of what it is."""
     from cadalign.data import image_prep
     from cadalign.infer import detect as det
     from cadalign.infer.run import resolve_prep
     from cadalign.models.maskrcnn.detector import load_pose_model
 
-    net, meta = load_pose_model(model, device)
+    net, meta = load_pose_model(model, device) if isinstance(model, Path) else model
     class_names = tuple(meta.get("classes", structure.class_names))
     detector = det.TorchDetector(net, score_thresh, device)
-    info = {"kind": "network", "run": str(model), "step": meta.get("step")}
+    info = {"kind": "network", "run": str(model) if isinstance(model, Path) else meta.get("run"),
+            "step": meta.get("step")}
     prep = resolve_prep("auto", info)
     info["images"] = prep
 
