@@ -11,16 +11,13 @@ chamfer); residuals are Huber-weighted and truncated. Configured by :class:`cada
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cadalign.infer.model_geom import ModelGeometry, contour_points, project_points, render_silhouette
+from cadalign.infer.refine_config import RefineConfig
 from cadalign.infer.refine_math import apply_twist, huber_weights, pose_prior, proj_jacobian, small_step, solve_step
 from cadalign.types import Rigid3
-
-if TYPE_CHECKING:
-    from cadalign.infer.refine import RefineConfig
 
 
 @dataclass(frozen=True)
