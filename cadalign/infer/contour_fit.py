@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cadalign.geometry.compare import mask_iou
 from cadalign.infer.model_geom import ModelGeometry, contour_points, project_points, render_silhouette
 from cadalign.infer.refine_config import RefineConfig
 from cadalign.infer.refine_math import apply_twist, huber_weights, pose_prior, proj_jacobian, small_step, solve_step
@@ -157,6 +158,4 @@ def refine_silhouette(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, mask: 
 
 def silhouette_iou(geom: ModelGeometry, T: Rigid3, K: np.ndarray, mask: np.ndarray) -> float:
     """IoU of the model's rendered silhouette at ``T`` with ``mask`` (H, W) (used to pick among candidates)."""
-    sil = render_silhouette(geom, T, np.asarray(K, float), mask.shape)
-    union = np.count_nonzero(sil | mask)
-    return float(np.count_nonzero(sil & mask) / union) if union else 0.0
+    return mask_iou(render_silhouette(geom, T, np.asarray(K, float), mask.shape), mask)
