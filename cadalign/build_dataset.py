@@ -25,7 +25,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -41,13 +41,12 @@ from cadalign.render.camera_refine import CameraRefineConfig, RefinedCamera, ray
 from cadalign.render.raycast import RaycastRenderer, RenderMesh
 from cadalign.render.verify import VerifyConfig
 from cadalign.scale.frames import CameraModel, FrameJob, FrameShared, write_frame
-from cadalign.types import Camera, Rigid3, Sim3
+from cadalign.types import Camera, Progress, Rigid3, Sim3
 
 if TYPE_CHECKING:
     from cadalign.scale.executor import RayExecutor
 
 log = logging.getLogger(__name__)
-Progress = Callable[[Iterable, str, int], Iterable]
 SCENE = Path("all") / "000000"
 DEPTH_SCALE = 1.0
 SPEC_SUFFIXES = (".toml", ".yaml", ".yml")

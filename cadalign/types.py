@@ -13,11 +13,17 @@ puts pixel centres at integers, so subtract 0.5 when handing points to cv2.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from cadalign.errors import DegenerateGeometryError, InputError
+
+Progress = Callable[[Iterable[Any], str, int | None], Iterable[Any]]
+"""A progress wrapper, ``progress(items, description, total) -> items``: yields ``items`` while showing progress
+(``total``: how many, None when unknown). The CLI passes a rich bar; the library never draws one itself."""
 
 
 def _as_f64(a: object, shape: tuple[int, ...], name: str, *, finite: bool = False) -> np.ndarray:

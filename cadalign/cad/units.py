@@ -9,12 +9,12 @@ sizes that are implausible for subsea hardware.
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
 
 from cadalign.errors import UnitError
-
-if TYPE_CHECKING:
-    from cadalign.cad.model import CadModel
 
 logger = logging.getLogger(__name__)
 
@@ -23,6 +23,24 @@ UNIT_TO_M: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
 
 #: Largest extent (metres) a subsea part is expected to have: a bolt head to a manifold.
 PLAUSIBLE_SIZE_M: tuple[float, float] = (0.01, 50.0)
+
+
+
+class SizedModel(Protocol):
+    """What :func:`check_unit` reads of a model (a :class:`~cadalign.cad.model.CadModel`); a protocol so this
+    module, which the model imports, does not import the model back."""
+
+    @property
+    def extent(self) -> np.ndarray: ...  # (3,) metres
+    @property
+    def source(self) -> Path | None: ...
+    @property
+    def name(self) -> str: ...
+    @property
+    def class_name(self) -> str: ...
+    @property
+    def unit(self) -> str: ...
+
 
 _UNIT_WORDS = {"m": "metres", "cm": "centimetres", "mm": "millimetres", "in": "inches"}
 
@@ -102,7 +120,7 @@ def _suggest_unit(size_m: float, unit: str, expected_size_m: tuple[float, float]
     return None
 
 
-def check_unit(model: CadModel, expected_size_m: tuple[float, float]) -> float:
+def check_unit(model: SizedModel, expected_size_m: tuple[float, float]) -> float:
     """Check that a model's largest extent lies in the size range expected for its class.
 
     Catches a 600 mm valve loaded as metres (600 m across) before it poisons

@@ -11,8 +11,11 @@ from cadalign.cli.common import console, user_errors
 app = typer.Typer(help="Emulate LiDAR, multibeam sonar or novel views by ray casting, or build a layered mesh "
                        "from one image.", no_args_is_help=True)
 
-SOURCE_HELP = ("Scene spec (TOML/YAML), mesh PLY (e.g. a fused map; colour/class/part/pane properties used), or an "
-               "image: SCENE/rgb/NNNNNN.png of a BOP scene or an .npz with rgb, depth_m, K.")
+SOURCE_HELP = ("Scene spec (TOML/YAML), mesh PLY (e.g. a fused map; colour/class/part/pane properties used), a CAD "
+               "file (OBJ, STL, GLB/GLTF, DAE, OFF, STEP/IGES), or an image: SCENE/rgb/NNNNNN.png of a BOP scene or "
+               "an .npz with rgb, depth_m, K.")
+UNIT_HELP = ("Length unit of a mesh/CAD SOURCE: m, cm, mm or in. Default: metres for a PLY, else the unit the file "
+             "declares or the size rule of 'cadalign.cad.load_cad'.")
 POSE_HELP = ("Sensor pose in the world: 'x,y,z' or 'x,y,z,roll,pitch,yaw' (m, deg, extrinsic xyz) or a JSON with "
              "a 4x4 T_world_from_sensor. Axes: LiDAR/sonar x forward, y left, z up; views x right, y down, "
              "z forward (aim with --look-at). Default: a scene's first trajectory pose / the image's camera.")
@@ -52,7 +55,8 @@ def _predictors(model_depth: Path | None, model_seg: Path | None, device: str, s
 
 
 def _emulate(sensor: str, source: Path, out: Path, preset: str | None, config: Path | None, pose: str | None,
-             look_at: str | None, engine: str | None, overwrite: bool, models: dict | None = None) -> Path:
+             look_at: str | None, engine: str | None, overwrite: bool, models: dict | None = None,
+             unit: str | None = None) -> Path:
     import numpy as np
 
     from cadalign.config import resolve
@@ -73,7 +77,8 @@ def _emulate(sensor: str, source: Path, out: Path, preset: str | None, config: P
         T_cam = look_at_fn(eye, target)
         T = T_cam if sensor in ("view", "mesh") else sensor_pose_from_camera(T_cam)
     assert T is None or isinstance(T, Rigid3)
-    return run(sensor, cfg, source, out, pose=T, overwrite=overwrite, **(models or {}))  # type: ignore[arg-type]
+    return run(sensor, cfg, source, out, pose=T, overwrite=overwrite, unit=unit,  # type: ignore[arg-type]
+               **(models or {}))
 
 
 def _options(sensor: str, default_preset: str, what: str):
@@ -88,11 +93,12 @@ def _options(sensor: str, default_preset: str, what: str):
         model_depth: Path | None = typer.Option(None, "--model-depth", help=MODEL_DEPTH_HELP),
         model_seg: Path | None = typer.Option(None, "--model-seg", help=MODEL_SEG_HELP),
         device: str = typer.Option("cpu", "--device", help="Torch device of the networks."),
+        unit: str | None = typer.Option(None, "--unit", help=UNIT_HELP),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
     ) -> None:
         with user_errors():
             models = _predictors(model_depth, model_seg, device, source)
-            path = _emulate(sensor, source, out, preset, config, pose, look_at, engine, overwrite, models)
+            path = _emulate(sensor, source, out, preset, config, pose, look_at, engine, overwrite, models, unit)
         console.print(f"[green]{sensor} written to {path}[/]")
 
     return command

@@ -29,7 +29,15 @@ import numpy as np
 
 from cadalign.emulate import figures, layered_mesh, lidar, sonar, views
 from cadalign.emulate.mesh import LayeredMesh
-from cadalign.emulate.sources import SCENE_SUFFIXES, DepthFn, SegFn, load_source, read_image_input, write_ply
+from cadalign.emulate.sources import (
+    MESH_SUFFIXES,
+    SCENE_SUFFIXES,
+    DepthFn,
+    SegFn,
+    load_source,
+    read_image_input,
+    write_ply,
+)
 from cadalign.errors import InputError
 from cadalign.io import prepare_stage_dir, read_json, write_image, write_json
 from cadalign.types import Rigid3
@@ -86,7 +94,7 @@ def default_pose(source: Path, sensor: Sensor) -> Rigid3:
 
         spec = load_scene(source)
         T_cam = frame_poses(spec.trajectory, 1, spec.seed)[0]
-    elif source.suffix.lower() == ".ply":
+    elif source.suffix.lower() in MESH_SUFFIXES:
         raise InputError(f"{source}: a mesh source has no default pose; pass --pose x,y,z[,roll,pitch,yaw]")
     else:
         T = read_image_input(source).T_world_from_cam
@@ -98,18 +106,19 @@ def default_pose(source: Path, sensor: Sensor) -> Rigid3:
 
 def run(sensor: Sensor, cfg: Any, source: Path, out_dir: Path, *, pose: Rigid3 | None = None,
         overwrite: bool = False, depth_fn: DepthFn | None = None, seg_fn: SegFn | None = None,
-        models: dict[str, str] | None = None) -> Path:
+        models: dict[str, str] | None = None, unit: str | None = None) -> Path:
     """Emulate ``sensor`` in ``source`` and write its files to ``out_dir`` (see the module docstring).
 
     For an image source, ``depth_fn`` / ``seg_fn`` replace the ground-truth depth / classes by network
-    predictions; ``models`` names them (e.g. the run folders) in the recorded config.
+    predictions; ``models`` names them (e.g. the run folders) in the recorded config. ``unit`` is a mesh file's
+    length unit (:func:`cadalign.emulate.sources.load_source`).
     """
     if sensor not in CONFIGS:
         raise InputError(f"unknown sensor {sensor!r}; allowed: {', '.join(CONFIGS)}")
     source, out_dir = Path(source), Path(out_dir)
     if not source.exists():
         raise InputError(f"SOURCE not found: {source}")
-    if sensor == "mesh" and (source.suffix.lower() in SCENE_SUFFIXES or source.suffix.lower() == ".ply"):
+    if sensor == "mesh" and (source.suffix.lower() in SCENE_SUFFIXES or source.suffix.lower() in MESH_SUFFIXES):
         raise InputError(f"{source}: 'emulate mesh' builds a layered mesh from one image; give an RGB frame of a "
                          "BOP scene (SCENE/rgb/NNNNNN.png) or an .npz with rgb, depth_m and K")
     T = pose if pose is not None else (None if sensor == "mesh" else default_pose(source, sensor))
@@ -117,12 +126,15 @@ def run(sensor: Sensor, cfg: Any, source: Path, out_dir: Path, *, pose: Rigid3 |
     record = {"sensor": sensor, "config": cfg, "source": str(source.resolve()),
               "source_size": stat.st_size, "source_mtime_ns": stat.st_mtime_ns,
               "T_world_from_sensor": None if T is None else T.matrix().tolist(), "models": models or {}}
+    if unit is not None:  # recorded only when given, so the records of earlier runs stay valid
+        record["unit"] = unit
     done = prepare_stage_dir(out_dir, f"emulate_{sensor}", record, overwrite=overwrite)
     if done and (out_dir / SUMMARY).is_file():
         log.info("%s: finished %s emulation found, reusing it", out_dir, sensor)
         return out_dir
     t0 = time.perf_counter()
-    mesh = load_source(source, image_config=cfg if sensor == "mesh" else None, depth_fn=depth_fn, seg_fn=seg_fn)
+    mesh = load_source(source, image_config=cfg if sensor == "mesh" else None, depth_fn=depth_fn, seg_fn=seg_fn,
+                       unit=unit)
     t1 = time.perf_counter()
     summary = {"sensor": sensor, "faces": mesh.n_faces, "load_s": t1 - t0}
     summary |= _WRITERS[sensor](mesh, cfg, T, out_dir, source)

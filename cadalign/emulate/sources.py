@@ -2,9 +2,11 @@
 
 - a scene spec (``.toml``/``.yaml``): every object's CAD mesh posed in the world, class from the spec, part
   id = instance id (object ``k`` -> ``k + 1``, seabed 0), colour = the main colour of its material;
-- a mesh ``.ply``: e.g. a fused map or a layered mesh written by ``cadalign emulate mesh``; per-vertex
-  ``red/green/blue`` and per-vertex or per-face ``class``/``class_id``/``label``, ``part``/``part_id``/
-  ``instance`` and ``pane``/``pane_id`` properties are used when present;
+- a mesh ``.ply`` (binary or ASCII): e.g. a fused map or a layered mesh written by ``cadalign emulate mesh``;
+  per-vertex ``red/green/blue`` and per-vertex or per-face ``class``/``class_id``/``label``, ``part``/``part_id``/
+  ``instance`` and ``pane``/``pane_id`` properties are used when present; metres unless a unit is given;
+- any other CAD file :func:`cadalign.cad.load.load_cad` reads (OBJ, STL, GLB/GLTF, DAE, OFF, STEP/IGES), in the
+  unit given or the one it detects: class 0, part = the file's part + 1, colour from the file (grey without);
 - one image: an RGB frame of a BOP scene folder (``.../rgb/000000.png``; depth, class and instance maps and
   K are read beside it) or an ``.npz`` with ``rgb``, ``depth_m``, ``K`` and optional ``class_id``,
   ``part_id``, ``pane_mask`` -> a layered mesh (:mod:`cadalign.emulate.layered_mesh`) in the camera frame.
@@ -21,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cadalign.cad.load import SUPPORTED_EXTENSIONS
+from cadalign.cad.units import unit_scale
 from cadalign.emulate.layered_mesh import PRESETS, ImageInput, mesh_from_image
 from cadalign.emulate.mesh import LayeredMesh, concatenate
 from cadalign.errors import InputError
@@ -30,6 +34,8 @@ from cadalign.types import Camera
 log = logging.getLogger(__name__)
 SCENE_SUFFIXES = (".toml", ".yaml", ".yml")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".npz")
+MESH_SUFFIXES = SUPPORTED_EXTENSIONS
+"""Mesh and CAD files: ``.ply`` by :func:`ply_mesh` (layers kept), the others by :func:`cad_mesh`."""
 _CLASS_KEYS = ("class", "class_id", "label")
 _PART_KEYS = ("part", "part_id", "instance")
 _PANE_KEYS = ("pane", "pane_id")
@@ -57,12 +63,18 @@ def scene_mesh(path: Path) -> LayeredMesh:
     return concatenate(meshes)
 
 
-def _field(data: np.ndarray | None, keys: tuple[str, ...]) -> np.ndarray | None:
-    if data is None or data.dtype.names is None:
-        return None
+def _names(data: np.ndarray | dict | None) -> tuple[str, ...]:
+    """Property names of a PLY element's data: a structured array (binary PLY) or a dict of arrays (ASCII PLY)."""
+    if isinstance(data, dict):
+        return tuple(data)
+    return () if data is None or data.dtype.names is None else tuple(data.dtype.names)
+
+
+def _field(data: np.ndarray | dict | None, keys: tuple[str, ...]) -> np.ndarray | None:
+    names = _names(data)
     for k in keys:
-        if k in data.dtype.names:
-            return np.asarray(data[k])
+        if k in names:
+            return np.asarray(data[k])  # type: ignore[index]
     return None
 
 
@@ -78,8 +90,9 @@ def _face_layer(vdata, fdata, faces: np.ndarray, keys: tuple[str, ...]) -> np.nd
     return np.where(b == c, b, a)
 
 
-def ply_mesh(path: Path) -> LayeredMesh:
-    """A mesh PLY with optional colour / class / part / pane properties per vertex or face."""
+def ply_mesh(path: Path, unit: str | None = None) -> LayeredMesh:
+    """A mesh PLY (binary or ASCII) with optional colour / class / part / pane properties per vertex or face;
+    vertices in ``unit`` (``m``, ``cm``, ``mm``, ``in``; None: metres, as a layered mesh or a fused map is)."""
     import trimesh
 
     path = Path(path)
@@ -95,17 +108,38 @@ def ply_mesh(path: Path) -> LayeredMesh:
     vdata, fdata = raw.get("vertex", {}).get("data"), raw.get("face", {}).get("data")
     faces = np.asarray(m.faces, dtype=np.int64)
     vrgb = None
-    if vdata is not None and all(c in (vdata.dtype.names or ()) for c in ("red", "green", "blue")):
+    if all(c in _names(vdata) for c in ("red", "green", "blue")):
         vrgb = np.stack([vdata[c] for c in ("red", "green", "blue")], 1).astype(np.uint8)
-    if fdata is not None and all(c in (fdata.dtype.names or ()) for c in ("red", "green", "blue")):
+    if all(c in _names(fdata) for c in ("red", "green", "blue")):
         frgb = np.stack([fdata[c] for c in ("red", "green", "blue")], 1).astype(np.uint8)
     elif vrgb is not None:
         frgb = np.rint(vrgb[faces].astype(np.float64).mean(1)).astype(np.uint8)
     else:
         frgb = np.full((len(faces), 3), 180, np.uint8)
-    return LayeredMesh(np.asarray(m.vertices), faces, frgb, _face_layer(vdata, fdata, faces, _CLASS_KEYS),
+    scale = 1.0 if unit is None else unit_scale(unit)
+    return LayeredMesh(np.asarray(m.vertices) * scale, faces, frgb, _face_layer(vdata, fdata, faces, _CLASS_KEYS),
                        _face_layer(vdata, fdata, faces, _PART_KEYS), _face_layer(vdata, fdata, faces, _PANE_KEYS),
                        vrgb)
+
+
+def cad_mesh(path: Path, unit: str | None = None) -> LayeredMesh:
+    """A CAD file read by :func:`cadalign.cad.load.load_cad` (in ``unit``, None: detected) as a layered mesh: class
+    0, part = the file's part + 1, face colour from the file's face or vertex colours (grey without)."""
+    from cadalign.cad.load import load_cad
+
+    model = load_cad(Path(path), unit=unit)
+    faces = np.asarray(model.faces, dtype=np.int64)
+    n = len(faces)
+    vrgb = None if model.vertex_colors is None else np.asarray(model.vertex_colors)[:, :3].astype(np.uint8)
+    if model.face_colors is not None:
+        frgb = np.asarray(model.face_colors)[:, :3].astype(np.uint8)
+    elif vrgb is not None:
+        frgb = np.rint(vrgb[faces].astype(np.float64).mean(1)).astype(np.uint8)
+    else:
+        frgb = np.full((n, 3), 180, np.uint8)
+    parts = np.zeros(n, np.int32) if model.part_labels is None else np.asarray(model.part_labels, np.int32)
+    return LayeredMesh(np.asarray(model.vertices_m), faces, frgb, np.zeros(n, np.int32), parts + 1,
+                       np.zeros(n, np.int32), vrgb)
 
 
 def write_ply(mesh: LayeredMesh, path: Path) -> Path:
@@ -220,25 +254,31 @@ def require_image_source(path: Path, given: str) -> None:
 
 
 def load_source(path: Path, *, image_config: object | None = None, depth_fn: DepthFn | None = None,
-                seg_fn: SegFn | None = None) -> LayeredMesh:
+                seg_fn: SegFn | None = None, unit: str | None = None) -> LayeredMesh:
     """The layered mesh of any SOURCE (see the module docstring); world frame when a pose is known.
 
-    ``depth_fn`` / ``seg_fn`` replace an image source's depth / classes by predictions (:func:`with_predictions`).
+    ``depth_fn`` / ``seg_fn`` replace an image source's depth / classes by predictions (:func:`with_predictions`);
+    ``unit`` is a mesh file's length unit (``m``, ``cm``, ``mm``, ``in``; see :func:`ply_mesh`, :func:`cad_mesh`).
 
     Raises:
-        InputError: an unsupported SOURCE, or ``depth_fn`` / ``seg_fn`` with a scene or mesh
-        (:func:`require_image_source`).
+        InputError: an unsupported SOURCE, ``depth_fn`` / ``seg_fn`` with a scene or mesh
+        (:func:`require_image_source`), or ``unit`` with a source that is not a mesh file.
     """
     path = Path(path)
     suffix = path.suffix.lower()
     if depth_fn is not None or seg_fn is not None:
         require_image_source(path, " and ".join(n for n, f in (("depth_fn", depth_fn), ("seg_fn", seg_fn)) if f))
+    if unit is not None and suffix not in MESH_SUFFIXES:
+        raise InputError(f"{path}: a unit applies to a mesh file ({', '.join(MESH_SUFFIXES)}); a scene spec gives "
+                         "each object's unit and an image's depth is in metres. Drop the unit")
     if suffix in SCENE_SUFFIXES:
         return scene_mesh(path)
     if suffix == ".ply":
-        return ply_mesh(path)
+        return ply_mesh(path, unit)
+    if suffix in MESH_SUFFIXES:
+        return cad_mesh(path, unit)
     if suffix in IMAGE_SUFFIXES:
         inp = with_predictions(read_image_input(path), depth_fn, seg_fn)
         return mesh_from_image(inp, image_config or PRESETS["default"])
-    raise InputError(f"unsupported SOURCE {path}: use a scene spec ({', '.join(SCENE_SUFFIXES)}), a mesh .ply, "
-                     f"or an image ({', '.join(IMAGE_SUFFIXES)})")
+    raise InputError(f"unsupported SOURCE {path}: use a scene spec ({', '.join(SCENE_SUFFIXES)}), a mesh or CAD "
+                     f"file ({', '.join(MESH_SUFFIXES)}), or an image ({', '.join(IMAGE_SUFFIXES)})")

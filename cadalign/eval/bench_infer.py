@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from cadalign.eval.bench import BenchConfig, Metric, Sweep, SweepPoint
 from cadalign.eval.bench_data import BenchData
+from cadalign.eval.bench_framework import BenchConfig, Metric, Sweep, SweepPoint
 from cadalign.io import fingerprint
 
 BASELINE = "detector only"

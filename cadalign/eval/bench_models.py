@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from cadalign.eval.bench import BenchConfig, Metric, Sweep, SweepPoint
 from cadalign.eval.bench_data import BenchData
+from cadalign.eval.bench_framework import BenchConfig, Metric, Sweep, SweepPoint
 from cadalign.io import fingerprint
 
 SCENE = Path("gt") / "sim" / "000000"

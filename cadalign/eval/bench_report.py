@@ -12,7 +12,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from cadalign.eval.bench import BENCH_JSON, STAGES, load_bench, num, stage_rows
+from cadalign.eval.bench_framework import BENCH_JSON, STAGES, load_bench, num, stage_rows
 from cadalign.eval.report import CSS, img_tag, table
 from cadalign.io import read_json, write_text
 

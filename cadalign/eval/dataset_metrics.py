@@ -1,10 +1,14 @@
-"""Accuracy of generated ground truth against exact (simulated) truth: depth, masks, poses, alignment."""
+"""Accuracy of generated ground truth against exact (simulated) truth: depth, masks, poses, alignment.
+
+Mask IoU is :func:`cadalign.geometry.compare.mask_iou` (re-exported here; 0 for two empty masks, which the dataset
+evaluation never compares: it scores only objects with at least 50 visible true pixels)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from cadalign.geometry import geodesic_angle
+from cadalign.geometry.compare import mask_iou as mask_iou
+from cadalign.geometry.compare import rotation_error_deg
 from cadalign.types import Rigid3, Sim3
 
 
@@ -26,12 +30,6 @@ def depth_errors(pred_m: np.ndarray, true_m: np.ndarray, region: np.ndarray | No
     ratio = np.maximum(p / t, t / p)
     return {**out, "abs_rel": float(np.mean(np.abs(p - t) / t)), "rmse_m": float(np.sqrt(np.mean((p - t) ** 2))),
             "delta1": float(np.mean(ratio < 1.25))}
-
-
-def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
-    """Intersection over union of two boolean masks; 1.0 when both are empty."""
-    union = np.logical_or(a, b).sum()
-    return float(np.logical_and(a, b).sum() / union) if union else 1.0
 
 
 def boundary_offset_px(truth: np.ndarray, est: np.ndarray) -> tuple[float, float]:
@@ -57,7 +55,7 @@ def boundary_offset_px(truth: np.ndarray, est: np.ndarray) -> tuple[float, float
 
 def pose_errors(est: Rigid3, true: Rigid3) -> tuple[float, float]:
     """(rotation error in degrees, translation error in metres) between two poses."""
-    return float(np.degrees(geodesic_angle(est.R, true.R))), float(np.linalg.norm(est.t - true.t))
+    return float(rotation_error_deg(est.R, true.R)), float(np.linalg.norm(est.t - true.t))
 
 
 def sim3_errors(est: Sim3, true: Sim3, at_points: np.ndarray) -> dict[str, float]:
@@ -68,7 +66,7 @@ def sim3_errors(est: Sim3, true: Sim3, at_points: np.ndarray) -> dict[str, float
     """
     d = est.apply(at_points) - true.apply(at_points)
     return {
-        "rotation_deg": float(np.degrees(geodesic_angle(est.R, true.R))),
+        "rotation_deg": float(rotation_error_deg(est.R, true.R)),
         "scale_rel": float(abs(est.s / true.s - 1.0)),
         "translation_m": float(np.sqrt(np.mean(np.sum(d**2, axis=1)))),
     }

@@ -27,7 +27,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from cadalign.cad.symmetry import Symmetry
-from cadalign.errors import InputError
+from cadalign.geometry.camera import project_points
+from cadalign.geometry.compare import box_iou as box_iou
+from cadalign.geometry.compare import mask_iou as mask_iou
 from cadalign.geometry.rotations import geodesic_angle
 
 MSSD_THRESHOLDS = tuple(round(0.05 * k, 2) for k in range(1, 11))
@@ -36,28 +38,6 @@ MSPD_THRESHOLDS_PX = tuple(5.0 * k for k in range(1, 11))
 """BOP19 MSPD thresholds in pixels at 640 px image width (scaled by ``width / 640``)."""
 BOP_SYM_DISC_STEP = 0.01
 """BOP's ``max_sym_disc_step`` for discretising continuous symmetries."""
-
-
-def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Pairwise IoU of boxes ``a`` (N, 4) and ``b`` (M, 4), xyxy pixels; returns (N, M), 0 for empty boxes."""
-    a = np.asarray(a, dtype=np.float64).reshape(-1, 4)
-    b = np.asarray(b, dtype=np.float64).reshape(-1, 4)
-    area_a = np.clip(a[:, 2] - a[:, 0], 0, None) * np.clip(a[:, 3] - a[:, 1], 0, None)
-    area_b = np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None)
-    lt = np.maximum(a[:, None, :2], b[None, :, :2])
-    rb = np.minimum(a[:, None, 2:], b[None, :, 2:])
-    inter = np.prod(np.clip(rb - lt, 0, None), axis=-1)
-    union = area_a[:, None] + area_b[None, :] - inter
-    return np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
-
-
-def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
-    """IoU of two boolean masks of the same shape (0 when both are empty)."""
-    a, b = np.asarray(a, bool), np.asarray(b, bool)
-    if a.shape != b.shape:
-        raise InputError(f"mask shapes differ: {a.shape} vs {b.shape}")
-    union = np.count_nonzero(a | b)
-    return float(np.count_nonzero(a & b) / union) if union else 0.0
 
 
 def match_detections(
@@ -225,17 +205,12 @@ def mssd(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarra
                for S in syms)
 
 
-def _project(K: np.ndarray, X: np.ndarray) -> np.ndarray:
-    z = np.where(np.abs(X[:, 2:3]) > 1e-9, X[:, 2:3], 1e-9)
-    return (X[:, :2] / z) @ np.asarray(K, float)[:2, :2].T + np.asarray(K, float)[:2, 2]
-
-
 def mspd(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, K: np.ndarray,
          pts: np.ndarray, syms: list[np.ndarray]) -> float:
     """Maximum Symmetry-aware Projection Distance (px): MSSD's max after projection with ``K`` (3, 3)."""
-    pe = _project(K, _apply(R_est, t_est, pts))
-    return min(float(np.linalg.norm(pe - _project(K, _apply(R_gt @ S[:3, :3], R_gt @ S[:3, 3] + t_gt, pts)),
-                                    axis=1).max()) for S in syms)
+    pe = project_points(K, _apply(R_est, t_est, pts), signed=True)
+    return min(float(np.linalg.norm(pe - project_points(K, _apply(R_gt @ S[:3, :3], R_gt @ S[:3, 3] + t_gt, pts),
+                                    signed=True), axis=1).max()) for S in syms)
 
 
 def recall_curve(errors: np.ndarray, n_targets: int, thresholds: np.ndarray) -> np.ndarray:

@@ -23,16 +23,16 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from cadalign.errors import ConfigError
-from cadalign.eval.bench import json_safe, num
 from cadalign.eval.bench_data import bench_scene, simulate_clip, size_spec, write_scene_variant
+from cadalign.eval.bench_framework import json_safe, num
 from cadalign.io import fingerprint, read_image, read_json, write_json
+from cadalign.types import Progress
 
 log = logging.getLogger(__name__)
 ROBUSTNESS_JSON = "robustness.json"
@@ -137,7 +137,7 @@ def conditions(size: str) -> list[tuple[str, str, Any]]:
 
 def run_robustness(out_dir: Path, *, size: str = "small", seed: int = 0, models: Path | None = None,
                    with_sfm: bool = True, resolution: tuple[int, int] | None = None, frames: int | None = None,
-                   progress: Callable[[Iterable[Any], str, int], Iterable[Any]] | None = None) -> dict[str, Any]:
+                   progress: Progress | None = None) -> dict[str, Any]:
     """Simulate and score every condition of ``size`` into ``out_dir`` (see the module doc); returns the dict.
 
     ``resolution`` / ``frames`` override the size's SfM clip (default: ``size_spec(size).sfm_*``)."""

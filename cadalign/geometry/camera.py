@@ -33,6 +33,11 @@ def intrinsics(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
 
     Raises:
         InputError: if any value is non-finite or a focal length is not positive.
+
+    >>> intrinsics(500.0, 500.0, 320.0, 240.0)
+    array([[500.,   0., 320.],
+           [  0., 500., 240.],
+           [  0.,   0.,   1.]])
     """
     vals = np.array([fx, fy, cx, cy], dtype=np.float64)
     if not np.all(np.isfinite(vals)) or fx <= 0 or fy <= 0:
@@ -93,6 +98,32 @@ def _rays(K: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.stack([x, y, np.ones_like(x)], axis=-1)
 
 
+def _to_pixels(K: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels of (N, 2) normalised image coordinates ``x / z, y / z``: THE pinhole formula (skew included)."""
+    return xy @ K[:2, :2].T + K[:2, 2]
+
+
+def project_points(K: np.ndarray, X_cam: np.ndarray, *, min_z: float = 1e-9, signed: bool = False) -> np.ndarray:
+    """(N, 2) pixel coordinates of camera points (N, 3), unchecked, for inner loops (see :func:`project`).
+
+    Depths below ``min_z`` are raised to ``min_z``, so points on or behind the camera land far outside the image
+    (callers filter them by ``z``); ``signed=True`` divides by the signed depth instead and only replaces
+    ``|z| <= min_z`` by ``min_z`` (the BOP toolkit's projection, used by MSPD).
+
+    >>> K = np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]])
+    >>> project_points(K, np.array([[0.0, 0, 2], [0.2, -0.1, 1]]))
+    array([[32., 24.],
+           [52., 14.]])
+    >>> project_points(K, np.array([[0.1, 0, -1]]), signed=True)
+    array([[22., 24.]])
+    """
+    K = np.asarray(K, dtype=np.float64)
+    X = np.asarray(X_cam, dtype=np.float64)
+    z = X[:, 2:3]
+    z = np.where(np.abs(z) > min_z, z, min_z) if signed else np.maximum(z, min_z)
+    return _to_pixels(K, X[:, :2] / z)
+
+
 def project(K: np.ndarray, X_cam: np.ndarray, eps: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
     """Project camera-frame points to pixel coordinates (pixel-centre convention).
 
@@ -111,8 +142,7 @@ def project(K: np.ndarray, X_cam: np.ndarray, eps: float = 1e-9) -> tuple[np.nda
     valid &= np.where(valid, X[:, 2], 0.0) > eps
     Xs = np.where(valid[:, None], X, np.array([0.0, 0.0, 1.0]))
     with np.errstate(over="ignore", invalid="ignore"):
-        xy = Xs[:, :2] / Xs[:, 2:3]
-        uv = xy @ K[:2, :2].T + K[:2, 2]
+        uv = _to_pixels(K, Xs[:, :2] / Xs[:, 2:3])
     valid &= np.all(np.isfinite(uv), axis=1)
     uv[~valid] = np.nan
     return uv, valid

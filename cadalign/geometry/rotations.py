@@ -267,6 +267,12 @@ def geodesic_angle(R1: np.ndarray, R2: np.ndarray) -> np.ndarray:
 
     Returns:
         (...) angles in radians.
+
+    >>> Rz = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])  # a quarter turn about z
+    >>> float(np.degrees(geodesic_angle(np.eye(3), Rz)))
+    90.0
+    >>> np.degrees(geodesic_angle(np.eye(3), np.stack([np.eye(3), Rz @ Rz]))).round(6)
+    array([  0., 180.])
     """
     R1 = as_batched(R1, (3, 3), "R1")
     R2 = as_batched(R2, (3, 3), "R2")

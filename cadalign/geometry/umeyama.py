@@ -101,6 +101,11 @@ def umeyama(
             largest coordinate), collinear points (second singular value below
             :data:`COLLINEAR_REL_TOL` times the first) in ``src`` or ``dst``, or
             a rank-deficient cross-covariance (inconsistent correspondences).
+
+    >>> src = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    >>> T = umeyama(src, 2.0 * src + [1.0, 2.0, 3.0])
+    >>> round(T.s, 9), T.t.round(9).tolist(), bool(np.allclose(T.R, np.eye(3)))
+    (2.0, [1.0, 2.0, 3.0], True)
     """
     src_a, dst_a, w = _check_inputs(src, dst, weights)
     x, mu_src = centre(src_a, w)

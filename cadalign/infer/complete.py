@@ -39,7 +39,7 @@ import numpy as np
 
 from cadalign.config import bounded
 from cadalign.eval.pose_eval import CroppedMask
-from cadalign.eval.pose_metrics import box_iou
+from cadalign.geometry.compare import box_iou
 from cadalign.infer.model_geom import ModelGeometry, project_points, render_depth
 from cadalign.infer.track_fit import RefitConfig
 from cadalign.types import Rigid3

@@ -11,16 +11,14 @@ chamfer); residuals are Huber-weighted and truncated. Configured by :class:`cada
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cadalign.geometry.compare import mask_iou
 from cadalign.infer.model_geom import ModelGeometry, contour_points, project_points, render_silhouette
+from cadalign.infer.refine_config import RefineConfig
 from cadalign.infer.refine_math import apply_twist, huber_weights, pose_prior, proj_jacobian, small_step, solve_step
 from cadalign.types import Rigid3
-
-if TYPE_CHECKING:
-    from cadalign.infer.refine import RefineConfig
 
 
 @dataclass(frozen=True)
@@ -160,6 +158,4 @@ def refine_silhouette(geom: ModelGeometry, T_init: Rigid3, K: np.ndarray, mask: 
 
 def silhouette_iou(geom: ModelGeometry, T: Rigid3, K: np.ndarray, mask: np.ndarray) -> float:
     """IoU of the model's rendered silhouette at ``T`` with ``mask`` (H, W) (used to pick among candidates)."""
-    sil = render_silhouette(geom, T, np.asarray(K, float), mask.shape)
-    union = np.count_nonzero(sil | mask)
-    return float(np.count_nonzero(sil & mask) / union) if union else 0.0
+    return mask_iou(render_silhouette(geom, T, np.asarray(K, float), mask.shape), mask)

@@ -6,17 +6,13 @@ optional slide of the pose along its viewing ray to the observed depth. Configur
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 from scipy.ndimage import binary_erosion
 
 from cadalign.infer.model_geom import ModelGeometry
+from cadalign.infer.refine_config import RefineConfig
 from cadalign.infer.refine_math import apply_twist, clamp_step, huber_weights, pose_prior, small_step, solve_step
 from cadalign.types import Rigid3
-
-if TYPE_CHECKING:
-    from cadalign.infer.refine import RefineConfig
 
 ICP_DAMPING = 1e-6
 """Relative damping of the ICP normal equations (well conditioned: only guards exact singularity)."""

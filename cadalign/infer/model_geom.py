@@ -13,7 +13,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from cadalign.cad.model import CadModel
+from cadalign.geometry.camera import project_points
 from cadalign.types import Rigid3
+
+__all__ = ["ModelGeometry", "contour_points", "draw_wireframe", "project_points", "render_depth", "render_silhouette"]
 
 _CV_SHIFT = 4  # fixed-point bits for cv2.fillPoly / cv2.polylines (1/16 px)
 
@@ -82,12 +85,6 @@ class ModelGeometry:
         pts = np.asarray(pts, dtype=np.float64)
         return ModelGeometry(np.asarray(model.vertices_m, float), np.asarray(model.faces), fn, uniq, edge_faces,
                              uniq[feature], pts, fn[fidx], float(model.diameter_m), cKDTree(pts))
-
-
-def project_points(K: np.ndarray, X_cam: np.ndarray) -> np.ndarray:
-    """(N, 2) pixel coordinates of camera points (N, 3) with z > 0 (callers filter z)."""
-    z = np.maximum(X_cam[:, 2:3], 1e-9)
-    return (X_cam[:, :2] / z) * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
 
 
 def render_silhouette(geom: ModelGeometry, T_cam_from_obj: Rigid3, K: np.ndarray, shape: tuple[int, int],

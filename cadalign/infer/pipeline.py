@@ -20,7 +20,8 @@ import numpy as np
 
 from cadalign.cad.model import CadModel
 from cadalign.config import bounded
-from cadalign.eval.pose_metrics import box_iou, rotation_error_deg
+from cadalign.eval.pose_metrics import rotation_error_deg
+from cadalign.geometry.compare import box_iou, mask_iou
 from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.infer.complete import CompleteConfig, WorldTrack
 from cadalign.infer.detect import Detector, TileConfig
@@ -569,6 +570,4 @@ def _window_iou(geom: ModelGeometry, T: Rigid3, K: np.ndarray, mask: np.ndarray)
     h, w = rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1
     x0, y0 = max(int(cols[0] - w // 2), 0), max(int(rows[0] - h // 2), 0)
     win = mask[y0:y0 + 2 * h, x0:x0 + 2 * w]
-    sil = render_silhouette(geom, T, K, win.shape, (x0, y0))
-    union = np.count_nonzero(sil | win)
-    return float(np.count_nonzero(sil & win) / union) if union else 0.0
+    return mask_iou(render_silhouette(geom, T, K, win.shape, (x0, y0)), win)

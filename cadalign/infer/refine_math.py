@@ -8,17 +8,13 @@ a shift. A point moves as ``X' = X + omega x (X - t) + v``; its projection's Jac
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from cadalign.geometry.camera import project_jacobian
 from cadalign.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from cadalign.infer.model_geom import ModelGeometry
+from cadalign.infer.refine_config import RefineConfig
 from cadalign.types import Rigid3
-
-if TYPE_CHECKING:
-    from cadalign.infer.refine import RefineConfig
 
 
 def apply_twist(xi: np.ndarray, T: Rigid3) -> Rigid3:

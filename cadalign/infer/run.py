@@ -24,7 +24,7 @@ import contextlib
 import json
 import logging
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -41,10 +41,9 @@ from cadalign.infer.model_geom import draw_wireframe
 from cadalign.infer.pipeline import InferConfig, PosePipeline, PoseRecord
 from cadalign.infer.video import VideoFrame, iter_frames
 from cadalign.io import atomic_path, prepare_stage_dir, read_json, write_json, write_text
-from cadalign.types import Rigid3
+from cadalign.types import Progress, Rigid3
 
 log = logging.getLogger(__name__)
-Progress = Callable[[Iterable, str, int | None], Iterable]
 COLORS = ((255, 80, 80), (80, 255, 80), (80, 160, 255), (255, 220, 60), (255, 80, 255), (60, 255, 255))
 
 

@@ -18,7 +18,7 @@ when it is small (it corrects a residual, not a failed alignment) and the fit ha
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,7 +26,7 @@ import numpy as np
 
 from cadalign.geometry.camera import project_jacobian
 from cadalign.geometry.rotations import axis_angle_to_matrix, geodesic_angle, matrix_to_axis_angle
-from cadalign.types import Rigid3, Sim3
+from cadalign.types import Progress, Rigid3, Sim3
 
 log = logging.getLogger(__name__)
 
@@ -346,7 +346,7 @@ def fit_edge_correction(renderers: Sequence[Any], grays: Sequence[np.ndarray], p
 
 def edge_align_frames(poses: dict[str, Rigid3], renderer_of: Callable[[str], Any],
                       gray_of: Callable[[str], np.ndarray], centre: np.ndarray, cfg: EdgeRefineConfig,
-                      progress: Callable[[Iterable, str, int], Iterable] | None = None,
+                      progress: Progress | None = None,
                       ) -> tuple[dict[str, Rigid3], dict[str, dict[str, Any]], dict[str, Any]]:
     """The shared correction fitted on ``cfg.frames`` evenly spaced frames of ``poses`` (name ->
     ``T_world_from_cam``), applied to all of them, then each frame's own correction (``cfg.per_frame``).

@@ -19,16 +19,16 @@ from __future__ import annotations
 import importlib.util
 import logging
 import os
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
 from cadalign.config import bounded
 from cadalign.errors import ConfigError
 from cadalign.scale.frames import FrameJob, FrameShared, render_chunk
+from cadalign.types import Progress
 
 log = logging.getLogger(__name__)
-Progress = Callable[[Iterable, str, int], Iterable]
 ChunkFn = Callable[[Sequence[FrameJob], FrameShared], list[int]]
 KINDS = ("local", "ray")
 

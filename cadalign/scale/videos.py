@@ -20,7 +20,7 @@ reported and the others go on; ``ROOT/videos_report.json`` lists every video's o
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -29,9 +29,9 @@ from cadalign.config import read_mapping
 from cadalign.errors import CadalignError, ConfigError
 from cadalign.io import read_json, write_json
 from cadalign.scale.executor import ExecutorConfig, ensure_ray, ray_map
+from cadalign.types import Progress
 
 log = logging.getLogger(__name__)
-Progress = Callable[[Iterable, str, int], Iterable]
 JOB_KEYS = ("source", "name", "cad", "init", "calib", "gt", "cad_unit")
 JOBS_SUFFIXES = (".toml", ".yaml", ".yml")
 REPORT = "videos_report.json"

@@ -9,17 +9,17 @@ from __future__ import annotations
 
 import logging
 import shutil
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from cadalign.errors import DegenerateGeometryError, InputError
 from cadalign.sfm.config import SfMConfig
+from cadalign.types import Progress
 
 log = logging.getLogger(__name__)
 
-Progress = Callable[[Iterable, str, int], Iterable]
 _EXTRACT_CHUNK = 8  # images per extract_features call, so progress can be shown
 
 

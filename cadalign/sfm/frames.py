@@ -32,6 +32,7 @@ from cadalign.errors import InputError
 from cadalign.formats.bag import is_bag, iter_bag_frames
 from cadalign.io import link_or_copy, read_image, write_image
 from cadalign.sfm.config import FrameConfig
+from cadalign.types import Progress
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +43,6 @@ _DIFF_DUPLICATE = 0.01  # mean |grey difference| / 255 below which a frame witho
 _DARK_P99 = 12  # a frame whose 99th-percentile grey level is at most this is black (lamps off, lens cap)
 _BRIGHT_P1 = 243  # a frame whose 1st-percentile grey level is at least this is overexposed (washed out)
 
-Progress = Callable[[Iterable, str, int], Iterable]
 
 
 @dataclass(frozen=True)

@@ -14,17 +14,15 @@ import logging
 import shutil
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from cadalign.sfm import colmap
 from cadalign.sfm.config import SfMConfig
 from cadalign.sfm.consistency import Consistency, keep_largest_piece, sequence_consistency
-from cadalign.sfm.frames import Progress
+from cadalign.sfm.layout import Layout
 from cadalign.sfm.refine import model_loop_pairs
 from cadalign.sfm.report import model_stats, registered_images
-
-if TYPE_CHECKING:
-    from cadalign.sfm.pipeline import Layout
+from cadalign.types import Progress
 
 log = logging.getLogger(__name__)
 

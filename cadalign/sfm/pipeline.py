@@ -43,7 +43,8 @@ from cadalign.sfm import colmap
 from cadalign.sfm.colmap_log import colmap_log, summed
 from cadalign.sfm.config import SfMConfig
 from cadalign.sfm.depth import sparse_depth
-from cadalign.sfm.frames import IMAGE_SUFFIXES, Progress, extract_frames, is_video
+from cadalign.sfm.frames import IMAGE_SUFFIXES, extract_frames, is_video
+from cadalign.sfm.layout import REPORT_NAME, Layout
 from cadalign.sfm.mapping import map_frames, num_verified, write_model
 from cadalign.sfm.refine import refine
 from cadalign.sfm.report import (
@@ -53,48 +54,14 @@ from cadalign.sfm.report import (
     registered_images,
     topdown_frame,
 )
+from cadalign.types import Progress
 
 log = logging.getLogger(__name__)
 STEPS = ("frames", "features", "matches", "mapping", "refine", "export")
-REPORT_NAME = "sfm_report.json"
 _OUTPUTS = ("images", "masks", "frames.json", "database.db", "database.db-shm", "database.db-wal", "sparse",
             "database.pre_loop.db", "database.kept.db",
             "mapping_tmp", "cameras.json", TUM_NAME, "depth", "trajectory.png", "trajectory_vs_gt.png", REPORT_NAME,
             "steps", MANIFEST_NAME)
-
-
-@dataclasses.dataclass(frozen=True)
-class Layout:
-    """Paths of one SfM output folder."""
-
-    root: Path
-
-    @property
-    def images(self) -> Path:
-        return self.root / "images"
-
-    @property
-    def masks(self) -> Path:
-        return self.root / "masks"
-
-    @property
-    def database(self) -> Path:
-        return self.root / "database.db"
-
-    @property
-    def model(self) -> Path:
-        return self.root / "sparse" / "0"
-
-    @property
-    def depth(self) -> Path:
-        return self.root / "depth"
-
-    @property
-    def report(self) -> Path:
-        return self.root / REPORT_NAME
-
-    def marker(self, step: str) -> Path:
-        return self.root / "steps" / f"{step}.json"
 
 
 def source_identity(source: Path, topic: str | None = None) -> dict[str, Any]:

@@ -16,7 +16,7 @@ import numpy as np
 from cadalign.config import from_dict
 from cadalign.errors import ConfigError
 from cadalign.sim.effects import EFFECTS, FrameBuffers, Lamp, WaterParams, apply_effects, water_from_jerlov
-from cadalign.sim.spec import SceneSpec
+from cadalign.sim.scene_spec import SceneSpec
 from cadalign.sim.trajectory import pose_at
 from cadalign.types import Rigid3
 

@@ -25,7 +25,6 @@ import dataclasses
 import logging
 import shutil
 import time
-from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -39,13 +38,12 @@ from cadalign.sim.render import FrameGT, GroundTruthCaster, RGBRenderer
 from cadalign.sim.scene import SimScene, build_scene, camera_from_spec
 from cadalign.sim.spec import SceneSpec, load_scene
 from cadalign.sim.trajectory import pose_at
-from cadalign.types import Camera, Rigid3
+from cadalign.types import Camera, Progress, Rigid3
 
 log = logging.getLogger(__name__)
 DEPTH_SCALE = 1.0  # BOP depth PNG unit: 1 mm (65.5 m range)
 SCENE_SUBDIR = Path("gt") / "sim" / "000000"
 
-Progress = Callable[[Iterable[int], str, int], Iterable[int]]
 
 
 def apply_overrides(

@@ -13,7 +13,7 @@ import functools
 import numpy as np
 
 from cadalign.errors import ConfigError
-from cadalign.sim.spec import TrajectorySpec
+from cadalign.sim.scene_spec import TrajectorySpec
 from cadalign.types import Rigid3
 
 WORLD_UP = np.array([0.0, 0.0, 1.0])
