@@ -23,8 +23,10 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
                  "cadalign.eval.dataset_metrics", "cadalign.eval.map_metrics", "cadalign.eval.sfm_metrics",
                  "cadalign.eval.pose_symmetry", "cadalign.eval.pose_eval")),
     ("stages", ("cadalign.sim", "cadalign.sfm", "cadalign.align", "cadalign.render.camera_refine",
-                "cadalign.render.edge_refine", "cadalign.build_dataset", "cadalign.scale", "cadalign.data.image_prep",
-                "cadalign.models", "cadalign.train", "cadalign.infer", "cadalign.fuse", "cadalign.emulate")),
+                "cadalign.render.edge_refine", "cadalign.render.verify", "cadalign.render.verify_config",
+                "cadalign.render.verify_evidence", "cadalign.render.verify_run", "cadalign.build_dataset",
+                "cadalign.scale", "cadalign.data.image_prep", "cadalign.models", "cadalign.train", "cadalign.infer",
+                "cadalign.fuse", "cadalign.emulate")),
     ("top", ("cadalign.eval", "cadalign.demo", "cadalign.demo_stages", "cadalign.cli")),
 )
 """(layer name, rooms) pairs, lowest layer first."""

@@ -20,7 +20,7 @@ from cadalign.render.raycast import RaycastRenderer, RenderMesh
 from cadalign.types import Camera, Rigid3, Sim3
 
 if TYPE_CHECKING:
-    from cadalign.render.verify import VerifyConfig
+    from cadalign.render.verify_config import VerifyConfig
 
 @dataclass(frozen=True)
 class View:

@@ -19,7 +19,7 @@ import contextlib
 import json
 import logging
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,10 +33,9 @@ from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, as_gray, with
 from cadalign.infer.track.tracker import StructureTracker, TrackerConfig, TrackStep
 from cadalign.infer.video import iter_frames
 from cadalign.io import atomic_path, prepare_stage_dir, read_json, write_json
-from cadalign.types import Camera, Rigid3
+from cadalign.types import Camera, Progress, Rigid3
 
 log = logging.getLogger(__name__)
-Progress = Callable[[Iterable, str, int | None], Iterable]
 
 
 @dataclass(frozen=True)
