@@ -44,6 +44,9 @@ class TrackerConfig:
     vertical axis (world z) in steps of this many degrees (a cut to another side of the structure); 0: off."""
     orbit_fits: int = 3
     """Of those turned views, the best this many by the search's score are fitted."""
+    orbit_every: int = 4
+    """The turned views are tried on the first lost frame and every this many after (about 10 s of CPU each on
+    the default orbit): a return is regained within this many frames."""
     acquire_rounds: int = 2
     """Searches per hypothesis: when none of a search's candidates passes, the next searches round the best of
     them (a rough pose whose error is partly translation needs two)."""
@@ -196,7 +199,7 @@ class StructureTracker:
             tried += n
             if fit is not None and (best is None or fit.support > best[0].support):
                 best = (fit, name)
-        if best is None and own:  # then round the whole structure
+        if best is None and own and self._lost_frames % max(self.cfg.orbit_every, 1) == 0:  # round the structure
             for name, T_cw in self._orbit_hypotheses(gray):
                 fit, n = self._search(gray, T_cw.inverse())
                 tried += n
