@@ -148,7 +148,9 @@ def contour_samples(depth: np.ndarray, rays_unit: np.ndarray, range_m: np.ndarra
 def search_edges(gray: np.ndarray, uv: np.ndarray, normal: np.ndarray, cfg: EdgeRefineConfig) -> np.ndarray:
     """Signed offset (pixels, along ``normal``) of the image edge nearest in strength to each predicted
     contour point; NaN where no edge of the expected contrast sign and at least ``min_contrast`` is found
-    inside the search range (or the peak lies on the range's end)."""
+    inside the search range (or the peak lies on the range's end). ``gray`` (H, W) or (H, W, C): with several
+    channels each sample takes the channel whose edge is strongest (a yellow part on a white desk differs in
+    blue, hardly in grey)."""
     import cv2
 
     S = float(cfg.search_px)
@@ -163,6 +165,10 @@ def search_edges(gray: np.ndarray, uv: np.ndarray, normal: np.ndarray, cfg: Edge
     sign = np.sign(prof[:, (s >= 0.5) & (s <= S)].mean(axis=1) - prof[:, (s <= -0.5) & (s >= -S)].mean(axis=1))
     score = d * sign[:, None]
     inside = np.abs(sd) <= S
+    if score.ndim == 3:  # (N, samples, channels): each sample's strongest channel
+        best = np.argmax(np.where(inside[None, :, None], score, -np.inf).max(axis=1), axis=1)
+        rows = np.arange(len(best))
+        score, sign = score[rows, :, best], sign[rows, best]
     score = np.where(inside[None, :], score, -np.inf)
     k = np.argmax(score, axis=1)
     rows = np.arange(len(k))

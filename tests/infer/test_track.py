@@ -401,6 +401,7 @@ def test_tracker_starts_from_restart_hypotheses_without_an_init_pose(tmp_path: P
     track_video(TrackRunConfig(BOXES_TRACKER, overlay=False), frames, structure, cam, out, restart_source=source)
     steps = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
     assert [s["state"] for s in steps] == ["ok"] * 4
-    assert steps[0]["source"] == "detector:box" and asked == ["000000.png"]
-    T = Rigid3.from_matrix(np.asarray(steps[3]["T_cam_from_world"]))
-    assert _reproj_px(meshes, cam, T, _view(3).inverse()) < 0.5
+    assert steps[0]["source"].startswith("detector:") and asked == ["000000.png"]
+    for k in (0, 3):  # (on these clean boxes even the wrong proposal's search may find the right pose)
+        T = Rigid3.from_matrix(np.asarray(steps[k]["T_cam_from_world"]))
+        assert _reproj_px(meshes, cam, T, _view(k).inverse()) < 0.5

@@ -45,6 +45,8 @@ def _edge_strength(gray: np.ndarray, blur_px: float) -> np.ndarray:
     gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
     m = np.sqrt(gx * gx + gy * gy)
+    if m.ndim == 3:  # colour: the strongest channel's gradient
+        m = m.max(axis=2)
     m = m / max(float(np.percentile(m, 99)), 1e-6)  # contrast-free: turbid and clear water alike
     m = np.minimum(m, 1.0)
     return cv2.GaussianBlur(m, (0, 0), blur_px) if blur_px > 0 else m

@@ -55,9 +55,10 @@ def time_tracker(frames: list[np.ndarray], structure: Structure, camera: Camera,
                  cfg: TrackerConfig | None = None) -> tuple[float, list[float], int]:
     """(CPU s of the start, CPU s of each continued frame, frames tracked)."""
     tr = StructureTracker(structure.render_meshes(), camera, cfg)
+    colour = tr.cfg.edges.colour
     start, per, ok = 0.0, [], 0
     for k, img in enumerate(frames):
-        g = as_gray(img)
+        g = as_gray(img, colour)
         c0 = time.process_time()
         s = tr.step(g, [("init_pose", init_pose)] if tr.last_pose is None else [])
         dt = time.process_time() - c0

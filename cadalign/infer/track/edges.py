@@ -59,6 +59,10 @@ class EdgeTrackConfig:
     survey video (3 deg, 0.5 m apart at 11 m) a constant-velocity prediction is off by less."""
     point_step: int = 1
     """Use every n-th contour pixel (raster order) at each level."""
+    colour: bool = False
+    """Search the edges in the three colour channels (each sample takes its strongest) rather than in grey: a
+    part and its background can differ in hue more than in brightness (a yellow part on a white desk). Off: on
+    visp_rbt's cluttered desk it found more edges for wrong poses too (docs/tuning/tracker.md)."""
     min_contrast: float = 3.0
     """Weakest accepted edge: grey-level step over one pixel (0-255); turbid water lowers contrast."""
     depth_jump: float = 0.05
@@ -264,10 +268,14 @@ def _pixels(K: np.ndarray, X_cam: np.ndarray) -> np.ndarray:
     return np.where(valid[:, None], uv - 0.5, -1e4)
 
 
-def as_gray(image: np.ndarray) -> np.ndarray:
-    """(H, W) float32 grey levels 0-255 of an RGB uint8 (or already grey) image."""
+def as_gray(image: np.ndarray, colour: bool = False) -> np.ndarray:
+    """The frame as the edge search reads it: (H, W) float32 grey levels 0-255 of an RGB uint8 (or already
+    grey) image, or with ``colour`` the (H, W, 3) channels as float32 (each edge sample then takes its strongest
+    channel, :func:`~cadalign.render.edge_refine.search_edges`)."""
     import cv2
 
+    if image.ndim == 3 and colour:
+        return np.ascontiguousarray(image[..., :3], dtype=np.float32)
     if image.ndim == 3:
         image = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
     return image.astype(np.float32)

@@ -173,7 +173,7 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                 if restart_source is not None and tracker.lost:
                     restarts += list(restart_source(image, vf.name))
                     times["detector"].append(time.perf_counter() - t0)
-                step = tracker.step(as_gray(image), restarts)
+                step = tracker.step(as_gray(image, cfg.tracker.edges.colour), restarts)
                 (times["restart"] if step.source not in ("track",) else times["track"]).append(step.seconds)
                 states[step.state] += 1
                 recs, missing = part_records(step, vf.index, vf.name, structure, cfg)

@@ -47,6 +47,9 @@ class TrackerConfig:
     orbit_every: int = 4
     """The turned views are tried on the first lost frame and every this many after (about 10 s of CPU each on
     the default orbit): a return is regained within this many frames."""
+    start_margin: float = 0.05
+    """A restart hypothesis' own fit is kept unless a candidate of the search round it has this much more
+    support (on a cluttered desk, wrong candidates reached the right pose's support)."""
     acquire_rounds: int = 2
     """Searches per hypothesis: when none of a search's candidates passes, the next searches round the best of
     them (a rough pose whose error is partly translation needs two)."""
@@ -219,19 +222,23 @@ class StructureTracker:
     def _search(self, gray: np.ndarray, T_world_from_cam: Rigid3) -> tuple[EdgeFit | None, int]:
         """The best-supported passing fit from a rough pose: the pose itself and the candidates of the
         pan/tilt/roll search round it, in up to ``acquire_rounds`` searches (each round the best fit of the
-        one before when none passed); (None, tries) when none passes."""
+        one before when none passed); (None, tries) when none passes. The pose's own fit is kept unless a
+        candidate beats its support by ``start_margin`` (clutter lends wrong candidates support too)."""
         start, tried = T_world_from_cam, 0
         for _ in range(max(self.cfg.acquire_rounds, 1)):
-            best: EdgeFit | None = None
-            top: EdgeFit | None = None
-            for T_wc in [start] + [T for _, T in candidates(self.edges, gray, start, self.cfg.acquire)]:
+            own = self.edges.fit(gray, start, self.cfg.restart_levels)
+            tried += 1
+            best = own if self.good(own, start=True) else None
+            top = own
+            for _, T_wc in candidates(self.edges, gray, start, self.cfg.acquire):
                 tried += 1
                 fit = self.edges.fit(gray, T_wc, self.cfg.restart_levels)
-                if self.good(fit, start=True) and (best is None or fit.support > best.support):
+                if self.good(fit, start=True) and (best is None or fit.support > best.support + (
+                        self.cfg.start_margin if best is own else 0.0)):
                     best = fit
-                if top is None or fit.support > top.support:
+                if fit.support > top.support:
                     top = fit
-            if best is not None or top is None:
+            if best is not None:
                 return best, tried
             start = top.T_world_from_cam
         return None, tried
