@@ -181,5 +181,5 @@ def test_bench_fuse_open3d_alone_setting(fuse_sim: Path) -> None:
     shared = (src, [src.frame(i) for i in src.ids])
     met = fuse_measure(shared, {"voxel_m": 0.06, "open3d_alone": True}, seed=0)
     assert met["ms_per_frame"] > 0 and met["ms_tsdf"] > 0 and "ms_labels" not in met
-    # Open3D's own mesh of the same frames lies on the CAD like ours
-    assert 0 < met["chamfer_m"] < 0.1
+    # Open3D's own mesh of the same frames lies on the CAD like ours; not on the accuracy axis (never recommended)
+    assert 0 < met["open3d_chamfer_m"] < 0.1 and "chamfer_m" not in met
