@@ -8,7 +8,8 @@ keeps adapting). The legacy ``ScalableTSDFVolume`` is not used: in open3d 0.20 i
 Labels: a fourth attribute ``label`` holds class log-probabilities relative to the most likely class per
 voxel (zero-filled = uniform, see :mod:`cadalign.fuse.semantic`). The update is pixel-driven: each valid
 pixel (one in ``label_pixel_stride``^2 a frame, the grid's offset cycling; ``label_cell_voxels`` > 1 puts a
-label cell's distribution in its lowest voxel) casts samples along its ray at z-offsets inside ``+-label_band/2`` of its depth (a band no wider than
+label cell's distribution in its lowest voxel) casts samples along its ray at z-offsets inside
+``+-label_band/2`` of its depth (a band no wider than
 the truncation), i.e. only voxels with ``|sdf| < trunc/2`` near the surface it saw, and each such voxel
 gets one Bayes update per frame (when several samples of one frame land in one voxel, one of them is used: a
 frame is one observation, not many). ``label_lookup`` picks how samples find their voxels: ``frustum`` (one
