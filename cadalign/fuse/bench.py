@@ -21,11 +21,61 @@ from pathlib import Path
 import numpy as np
 
 from cadalign.config import to_dict
-from cadalign.fuse.base import FuseFrame, SemanticMap
+from cadalign.fuse.base import FuseFrame, LabelledGeometry, SemanticMap, origin_from_frame, valid_depth
 from cadalign.fuse.config import FuseConfig
 from cadalign.fuse.inputs import open_source
 from cadalign.fuse.map_io import new_map
 from cadalign.io import write_json
+from cadalign.types import Rigid3
+
+OPEN3D = "open3d"
+"""Name of the Open3D-alone timing in :func:`bench_fuse`'s result and :func:`time_interleaved`'s maps."""
+
+
+class Open3DTSDF:
+    """Open3D's ``VoxelBlockGrid`` alone (``tsdf``, ``weight``, ``color``; no labels, no weight cap): the
+    reference cost of geometry, timed beside the semantic map. Each frame is what Open3D's own examples do:
+    ``compute_unique_block_coordinates`` then ``integrate`` (depth and colour), with ``cfg``'s voxel size,
+    block size, initial block count, truncation and depth range."""
+
+    def __init__(self, cfg: FuseConfig) -> None:
+        from cadalign.fuse.tsdf import require_open3d
+
+        o3d = require_open3d()
+        self.cfg, self.o3d = cfg, o3d
+        f32 = o3d.core.float32
+        self.vbg = o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight", "color"), (f32,) * 3, ((1,), (1,), (3,)),
+                                                 float(cfg.voxel_m), int(cfg.block_resolution),
+                                                 int(cfg.block_count), o3d.core.Device("CPU:0"))
+        self.origin: np.ndarray | None = None
+        self.seconds = {"tsdf": 0.0}
+        self.frames_integrated = 0
+
+    def integrate(self, frame: FuseFrame) -> None:
+        o3d, cfg = self.o3d, self.cfg
+        t0 = time.perf_counter()
+        mask = valid_depth(frame.depth_m, cfg.depth_min_m, cfg.depth_max_m)
+        if self.origin is None:
+            self.origin = origin_from_frame(frame, mask, cfg.voxel_m * cfg.block_resolution)
+        K = o3d.core.Tensor(frame.camera.K)
+        E = o3d.core.Tensor((frame.T_cam_from_world @ Rigid3(np.eye(3), self.origin)).matrix())
+        depth = o3d.t.geometry.Image(o3d.core.Tensor(np.where(mask, frame.depth_m, 0).astype(np.float32)))
+        rgb = frame.rgb if frame.rgb is not None else np.full((*mask.shape, 3), 128, np.uint8)
+        color = o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(rgb, dtype=np.float32) / 255.0))
+        args = (1.0, float(cfg.depth_max_m), float(cfg.trunc_voxels))
+        coords = self.vbg.compute_unique_block_coordinates(depth, K, E, *args)
+        self.vbg.integrate(coords, depth, color, K, E, *args)
+        self.seconds["tsdf"] += time.perf_counter() - t0
+        self.frames_integrated += 1
+
+    def extract_mesh(self, n_classes: int) -> LabelledGeometry:
+        """The zero level set (world coordinates), every vertex class 0 with uniform probabilities (no labels)."""
+        mesh = self.vbg.extract_triangle_mesh(weight_threshold=max(float(self.cfg.mesh_weight_threshold) - 0.5, 0.0))
+        pos = mesh.vertex.positions.numpy().astype(np.float64) + self.origin
+        n = len(pos)
+        return LabelledGeometry(pos, np.zeros((n, 3), np.float32), np.full((n, 3), 128, np.uint8),
+                                np.zeros(n, np.int64), np.full((n, n_classes), 1 / n_classes, np.float32),
+                                mesh.triangle.indices.numpy().astype(np.int64))
 
 
 def baseline_of(cfg: FuseConfig) -> FuseConfig:
@@ -60,11 +110,12 @@ class PathTiming:
         }
 
 
-def time_interleaved(frames: list[FuseFrame], n_classes: int, cfgs: dict[str, FuseConfig], *,
-                     warmup: int = 2) -> tuple[dict[str, PathTiming], dict[str, SemanticMap]]:
-    """Fuse ``frames`` into one new map per configuration, alternating the configurations frame by frame
-    (and their order every frame); returns the timings (the first ``warmup`` frames untimed) and the maps."""
-    maps = {name: new_map(cfg, n_classes) for name, cfg in cfgs.items()}
+def time_interleaved(frames: list[FuseFrame], n_classes: int, cfgs: dict[str, FuseConfig | Open3DTSDF], *,
+                     warmup: int = 2) -> tuple[dict[str, PathTiming], dict[str, SemanticMap | Open3DTSDF]]:
+    """Fuse ``frames`` into one new map per configuration (or into the given :class:`Open3DTSDF`), alternating
+    them frame by frame (and their order every frame); returns the timings (the first ``warmup`` frames
+    untimed) and the maps."""
+    maps = {name: new_map(c, n_classes) if isinstance(c, FuseConfig) else c for name, c in cfgs.items()}
     timings = {name: PathTiming() for name in cfgs}
     names = list(cfgs)
     for k, frame in enumerate(frames):
@@ -102,19 +153,22 @@ def _open3d_threads() -> int | None:
 
 def bench_fuse(source: Path, cfg: FuseConfig, *, frames: int = 32, warmup: int = 2,
                baseline: FuseConfig | None = None, out: Path | None = None) -> dict:
-    """Fuse the first ``frames`` frames of ``source`` (GT depth and labels) with ``cfg`` and with ``baseline``
-    (default :func:`baseline_of` ``cfg``), interleaved, and time each ``integrate``.
+    """Fuse the first ``frames`` frames of ``source`` (GT depth and labels) with ``cfg``, with ``baseline``
+    (default :func:`baseline_of` ``cfg``) and with Open3D's VoxelBlockGrid alone (:class:`Open3DTSDF`, no
+    labels), interleaved, and time each ``integrate``.
 
-    Returns (and writes to ``out/bench_fuse.json`` when given) for both: ms per frame and frames/s (median and
+    Returns (and writes to ``out/bench_fuse.json`` when given) for each: ms per frame and frames/s (median and
     mean wall time), CPU ms per frame, ms per part; the speed-up (baseline ms / ms, wall and CPU, medians);
+    ``fps_vs_open3d``: frames/s of ``cfg`` over Open3D's alone (medians; ``_mean``: from mean times);
     the load average before and after; the CPU count, image size and both configs.
     """
     baseline = baseline if baseline is not None else baseline_of(cfg)
     src = open_source(source, label_confidence=cfg.label_confidence, max_frames=frames + warmup)
     loaded = [src.frame(i) for i in src.ids]
     load_before = load_average()
-    timings, _ = time_interleaved(loaded, src.n_classes, {"new": cfg, "baseline": baseline}, warmup=warmup)
-    new, base = timings["new"].summary(), timings["baseline"].summary()
+    timings, _ = time_interleaved(loaded, src.n_classes, {"new": cfg, "baseline": baseline, OPEN3D: Open3DTSDF(cfg)},
+                                  warmup=warmup)
+    new, base, o3d_alone = (timings[k].summary() for k in ("new", "baseline", OPEN3D))
     cam = loaded[0].camera
     result = {
         "method": cfg.method, "voxel_m": cfg.voxel_m, "image": f"{cam.width}x{cam.height}",
@@ -123,6 +177,9 @@ def bench_fuse(source: Path, cfg: FuseConfig, *, frames: int = 32, warmup: int =
         "baseline": base,
         "speedup_wall": base["ms_per_frame_median"] / new["ms_per_frame_median"],
         "speedup_cpu": base["cpu_ms_per_frame_median"] / max(new["cpu_ms_per_frame_median"], 1e-9),
+        OPEN3D: o3d_alone,
+        "fps_vs_open3d": o3d_alone["ms_per_frame_median"] / new["ms_per_frame_median"],
+        "fps_vs_open3d_mean": o3d_alone["ms_per_frame_mean"] / new["ms_per_frame_mean"],
         "load_average_before": load_before, "load_average_after": load_average(), "cpu_count": os.cpu_count(),
         "open3d_threads": _open3d_threads(),
         "config": to_dict(cfg), "baseline_config": to_dict(baseline), "source": str(src.scene.dir),

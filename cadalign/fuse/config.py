@@ -60,8 +60,15 @@ class FuseConfig:
     label_threads: int = bounded(2, ge=1)
     """Threads for the frustum label update (NumPy releases the GIL, so they use separate cores); the result
     is the same for any number. 1 = none (on a machine already busy, threads only add hand-over cost)."""
-    label_pixel_stride: int = bounded(1, ge=1)
-    """Use every n-th pixel (in both directions) for the label update (speed knob; 1 = every pixel)."""
+    label_cell_voxels: int = bounded(1, ge=1, le=8)
+    """Edge of a label cell in TSDF voxels (1, 2, 4 or 8; must divide ``block_resolution``): one class
+    distribution per cell, held by its lowest-index voxel. 1 = a distribution per voxel (exact, the first
+    implementation, the default: 2 lost more label accuracy than ``label_pixel_stride`` 2 for less speed)."""
+    label_pixel_stride: int = bounded(2, ge=1)
+    """Largest pixel stride (both directions) of the label update, its speed knob: a frame fuses the labels of
+    one pixel in s^2, the grid's offset cycling frame by frame; smaller where samples would land > 2 voxels
+    apart, and 1 for sparse depth. 2 keeps fusion with labels >= 0.8x Open3D's grid alone at 640x480, 2 cm
+    (docs/tuning/fuse_labels.md); 1 = every pixel (the first implementation)."""
     pred_depth_foreground_only: bool = True
     """With predicted depth and a segmentation model: fuse only pixels segmented as non-background (depth
     networks also predict depths for open water, which would become phantom surfaces)."""
@@ -77,6 +84,10 @@ class FuseConfig:
         if self.label_band_voxels > self.trunc_voxels:
             raise ValueError(f"label_band_voxels ({self.label_band_voxels}) must be <= trunc_voxels "
                              f"({self.trunc_voxels}): labels are only updated where |sdf| < trunc/2")
+        f = self.label_cell_voxels
+        if f & (f - 1) or self.block_resolution % f:
+            raise ValueError(f"label_cell_voxels ({f}) must be a power of two dividing block_resolution "
+                             f"({self.block_resolution})")
         if self.depth_min_m >= self.depth_max_m:
             raise ValueError(f"depth_min_m ({self.depth_min_m}) must be < depth_max_m ({self.depth_max_m})")
 

@@ -7,7 +7,9 @@ keeps adapting). The legacy ``ScalableTSDFVolume`` is not used: in open3d 0.20 i
 
 Labels: a fourth attribute ``label`` holds class log-probabilities relative to the most likely class per
 voxel (zero-filled = uniform, see :mod:`cadalign.fuse.semantic`). The update is pixel-driven: each valid
-pixel casts samples along its ray at z-offsets inside ``+-label_band/2`` of its depth (a band no wider than
+pixel (one in ``label_pixel_stride``^2 a frame, the grid's offset cycling; ``label_cell_voxels`` > 1 puts a
+label cell's distribution in its lowest voxel) casts samples along its ray at z-offsets inside
+``+-label_band/2`` of its depth (a band no wider than
 the truncation), i.e. only voxels with ``|sdf| < trunc/2`` near the surface it saw, and each such voxel
 gets one Bayes update per frame (when several samples of one frame land in one voxel, one of them is used: a
 frame is one observation, not many). ``label_lookup`` picks how samples find their voxels: ``frustum`` (one
@@ -43,7 +45,7 @@ from cadalign.fuse.base import (
 from cadalign.fuse.config import FuseConfig
 from cadalign.fuse.semantic import bayes_update, clamped_log_probs, gather_rows, scatter_rows
 from cadalign.fuse.tsdf_frustum import FrustumLabeler
-from cadalign.fuse.tsdf_labels import Rays, band_offsets, band_pixels
+from cadalign.fuse.tsdf_labels import Rays, band_offsets, band_pixels, cell_holder, label_stride
 from cadalign.types import Rigid3
 
 log = logging.getLogger(__name__)
@@ -134,9 +136,7 @@ class SemanticTSDF:
         else:
             self.vbg.integrate(coords, dimg, Kt, E, 1.0, dmax, mult)
         if capped:
-            rows = self.vbg.hashmap().find(coords)[0].numpy().astype(np.int64)
-            weight = _view(self.vbg.attribute("weight"))
-            weight[rows] = np.minimum(weight[rows], np.float32(cfg.weight_cap))
+            self._cap_weights(coords)
         t1, c1 = time.perf_counter(), time.process_time()
         if cfg.label_lookup != "frustum" or not self._update_labels_frustum(frame, mask):
             self._update_labels(frame, mask)
@@ -146,6 +146,17 @@ class SemanticTSDF:
         self.cpu_seconds["tsdf"] += c1 - c0
         self.cpu_seconds["labels"] += c2 - c1
         self.frames_integrated += 1
+
+    def _cap_weights(self, coords) -> None:  # noqa: ANN001 - an (N, 3) int32 open3d.core.Tensor
+        """Cap the weights of the given blocks at ``weight_cap``, writing only blocks that exceed it (reading
+        them as whole rows in buffer order is ~4x cheaper than a min-and-write of every block)."""
+        cap = np.float32(self.cfg.weight_cap)
+        rows = np.sort(self.vbg.hashmap().find(coords)[0].numpy().astype(np.int64))
+        weight = _view(self.vbg.attribute("weight")).reshape(-1, self.res**3)
+        w = np.take(weight, rows, axis=0)
+        over = w.max(axis=1) > cap
+        if over.any():
+            weight[rows[over]] = np.minimum(w[over], cap)
 
     def _touched_blocks(self, frame: FuseFrame, mask: np.ndarray, dimg, Kt, E):  # noqa: ANN001, ANN202 - o3d
         """(N, 3) int32 keys of the blocks this frame integrates: Open3D's own selection (rays of every 4th
@@ -174,15 +185,20 @@ class SemanticTSDF:
             for name in ATTRS:
                 _view(self.vbg.attribute(name))[fresh] = 0.0
 
+    def _label_pixels(self, frame: FuseFrame, mask: np.ndarray) -> np.ndarray:
+        """Flat indices of the pixels whose labels this frame fuses: every valid pixel, or those on a
+        ``label_pixel_stride`` grid (see :func:`~cadalign.fuse.tsdf_labels.label_stride`) whose offset
+        cycles with the frame count, so s^2 consecutive frames use every pixel once (no voxel is skipped
+        frame after frame by a camera that hardly moves). Sparse depth keeps every point."""
+        s = self.cfg.label_pixel_stride if mask.mean() >= SPARSE_DEPTH_FRACTION else 1
+        if s > 1:
+            s = label_stride(s, self.cfg.voxel_m, frame.camera.fx, np.asarray(frame.depth_m)[mask])
+        return band_pixels(mask, s, self.frames_integrated)
+
     def _surface_samples(self, frame: FuseFrame, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         """Voxel indices (n P, 3) int32 of samples with |sdf| < label_band/2 <= trunc/2 (offset-major: the n
         samples of the P pixels), the flat pixel indices (P,) and n."""
-        s = self.cfg.label_pixel_stride
-        if s > 1:
-            sub = np.zeros_like(mask)
-            sub[::s, ::s] = mask[::s, ::s]
-            mask = sub
-        pix = np.flatnonzero(mask)
+        pix = self._label_pixels(frame, mask)
         cam = frame.camera
         v, u = np.divmod(pix, cam.width)
         z = np.asarray(frame.depth_m, dtype=np.float32).reshape(-1)[pix]
@@ -193,15 +209,15 @@ class SemanticTSDF:
         x = ((u + np.float32(0.5 - cam.cx)) * np.float32(1 / cam.fx)).astype(np.float32)
         y = ((v + np.float32(0.5 - cam.cy)) * np.float32(1 / cam.fy)).astype(np.float32)
         dirs = [x * R[k, 0] + y * R[k, 1] + R[k, 2] for k in range(3)]
-        band = self.cfg.label_band_voxels
-        n = max(1, int(np.ceil(band - 1e-6)))  # samples one voxel apart (or closer) across the band
-        offsets = ((np.arange(n) + 0.5) / n - 0.5) * (band * self.cfg.voxel_m)
+        # samples one label cell apart (or closer) across the band
+        offsets = band_offsets(self.cfg.label_band_voxels, self.cfg.voxel_m, self.cfg.label_cell_voxels)
+        n = len(offsets)
         vox = np.empty((n * len(pix), 3), dtype=np.int32)
         for j, o in enumerate(offsets):
             zo = z + np.float32(o)
             for k in range(3):
                 vox[j * len(pix):(j + 1) * len(pix), k] = np.rint(zo * dirs[k] + t[k])
-        return vox, pix, n
+        return cell_holder(vox, self.cfg.label_cell_voxels), pix, n
 
     def _flat_index(self, vox: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Flattened voxel index into the attribute buffers and a found-mask, for (M, 3) int32 voxel indices."""
@@ -230,7 +246,7 @@ class SemanticTSDF:
         """The label update of :meth:`_update_labels` (same voxels, same values) through the frustum path;
         False (nothing done) when the frame's blocks span too big a box."""
         cfg, cam = self.cfg, frame.camera
-        pix = band_pixels(mask, cfg.label_pixel_stride) if cfg.label_pixel_stride > 1 else np.flatnonzero(mask)
+        pix = self._label_pixels(frame, mask)
         if len(pix) == 0:  # label_pixel_stride left no valid pixel
             return True
         if self._rays is None or self._rays.key != Rays.of_key(cam.K, cam.width, cam.height):
@@ -247,13 +263,13 @@ class SemanticTSDF:
             _view(self.vbg.attribute("label")).reshape(-1, self.n_classes),
             np.asarray(frame.probs, dtype=np.float32).reshape(self.n_classes, -1), pix, (self._rays.x, self._rays.y),
             np.asarray(frame.depth_m, dtype=np.float32).reshape(-1), T,
-            band_offsets(cfg.label_band_voxels, cfg.voxel_m), self.res, cfg.label_min_prob, cfg.label_log_floor,
-            find_rows)
+            band_offsets(cfg.label_band_voxels, cfg.voxel_m, cfg.label_cell_voxels), self.res, cfg.label_min_prob,
+            cfg.label_log_floor, find_rows, cfg.label_cell_voxels)
 
     def stored_at(self, points_local: np.ndarray) -> np.ndarray:
         """(N, C) stored relative log-probabilities of the voxel nearest to each local point (0 = uniform)."""
         vox = np.ascontiguousarray(np.round(np.asarray(points_local) / self.cfg.voxel_m).astype(np.int32))
-        flat, ok = self._flat_index(vox)
+        flat, ok = self._flat_index(cell_holder(vox, self.cfg.label_cell_voxels))
         out = np.zeros((len(vox), self.n_classes), dtype=np.float32)
         label = _view(self.vbg.attribute("label")).reshape(-1, self.n_classes)
         out[ok] = gather_rows(label, flat[ok])

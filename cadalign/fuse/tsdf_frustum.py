@@ -59,16 +59,16 @@ class FrustumLabeler:
 
     def update(self, label: np.ndarray, probs: np.ndarray, pix: np.ndarray, rays: tuple[np.ndarray, np.ndarray],
                depth: np.ndarray, T_vox: np.ndarray, offsets: np.ndarray, res: int, min_prob: float,
-               log_floor: float, find_rows: Callable[[np.ndarray], np.ndarray]) -> bool:
+               log_floor: float, find_rows: Callable[[np.ndarray], np.ndarray], cell_voxels: int = 1) -> bool:
         """Bayes-update the (N, C) ``label`` rows of the samples of pixels ``pix`` in place; False (nothing
         done) if their blocks span more than :data:`~cadalign.fuse.tsdf_labels.MAX_TABLE_CELLS` cells.
 
         ``probs`` (C, H W) float32; ``rays`` the per-pixel slopes; ``depth`` (H W,) float32 metres; ``T_vox``
         local-from-camera with voxel units; ``find_rows`` maps (K, 3) int32 block keys to (K,) int32 buffer
-        rows (-1: not allocated).
+        rows (-1: not allocated); ``cell_voxels`` the label cell edge in voxels.
         """
         parts = min(self.threads, max(1, len(offsets) * len(pix) // MIN_SAMPLES_PER_THREAD))
-        w = _LabelPass(label, probs, pix, rays, depth, T_vox, offsets, res, min_prob, log_floor, parts)
+        w = _LabelPass(label, probs, pix, rays, depth, T_vox, offsets, res, min_prob, log_floor, parts, cell_voxels)
         ranges = self._map(w.voxels, list(range(parts)))
         lo = np.min([r[0] for r in ranges], axis=0).astype(np.int64)
         shape = np.max([r[1] for r in ranges], axis=0).astype(np.int64) - lo + 1
@@ -94,10 +94,10 @@ class _LabelPass:
 
     def __init__(self, label: np.ndarray, probs: np.ndarray, pix: np.ndarray, rays: tuple[np.ndarray, np.ndarray],
                  depth: np.ndarray, T_vox: np.ndarray, offsets: np.ndarray, res: int, min_prob: float,
-                 log_floor: float, parts: int) -> None:
+                 log_floor: float, parts: int, cell_voxels: int = 1) -> None:
         self.label, self.probs, self.pix, self.rays, self.depth = label, probs, pix, rays, depth
         self.T_vox, self.offsets, self.res, self.min_prob, self.log_floor = T_vox, offsets, res, min_prob, log_floor
-        self.p, self.parts = len(pix), parts
+        self.p, self.parts, self.cell_voxels = len(pix), parts, cell_voxels
         self.runs = segments(len(offsets), self.p, parts)
         m = len(offsets) * self.p
         self.block = np.empty((3, m), dtype=np.int32)
@@ -114,7 +114,8 @@ class _LabelPass:
         """Blocks and in-block offsets of run ``i``'s samples, its share of the observations; block key range."""
         for (s, p0, p1), (j, _, _) in zip(self._slices(i), self.runs[i], strict=True):
             pp = self.pix[p0:p1]
-            vox = sample_voxels(self.rays[0][pp], self.rays[1][pp], self.depth[pp], self.T_vox, self.offsets[j:j + 1])
+            vox = sample_voxels(self.rays[0][pp], self.rays[1][pp], self.depth[pp], self.T_vox, self.offsets[j:j + 1],
+                                self.cell_voxels)
             self.block[:, s], self.local[s] = split_blocks(vox, self.res)
         q0, q1 = self.p * i // self.parts, self.p * (i + 1) // self.parts
         self.obs[q0:q1] = clamped_log_probs(np.take(self.probs, self.pix[q0:q1], axis=1), self.min_prob).T

@@ -41,11 +41,25 @@ def keys_of_cells(cells: np.ndarray, lo: np.ndarray, shape: np.ndarray) -> np.nd
     return np.stack([x + lo[0], y + lo[1], z + lo[2]], axis=1).astype(np.int32)
 
 
-def band_pixels(mask: np.ndarray, stride: int) -> np.ndarray:
-    """Flat indices of the valid pixels on a ``stride`` grid (rows and columns 0, stride, ...)."""
+def band_pixels(mask: np.ndarray, stride: int, phase: int = 0) -> np.ndarray:
+    """Flat indices of the valid pixels on a ``stride`` grid shifted by ``phase`` (0 .. stride^2 - 1: rows
+    ``phase // stride``, ``+ stride``, ...; columns ``phase % stride``, ...)."""
+    if stride == 1:
+        return np.flatnonzero(mask)
+    r, c = divmod(phase % (stride * stride), stride)
     sub = np.zeros_like(mask)
-    sub[::stride, ::stride] = mask[::stride, ::stride]
+    sub[r::stride, c::stride] = mask[r::stride, c::stride]
     return np.flatnonzero(sub)
+
+
+def label_stride(max_stride: int, voxel_m: float, fx: float, depth_m: np.ndarray) -> int:
+    """The pixel stride of a frame's label samples: ``max_stride`` at most, and at most as large as keeps
+    neighbouring samples within 2 voxels of each other at the frame's median depth (``depth_m`` (P,) of the
+    valid pixels), so coarse pixels (far surfaces, small images) keep every pixel."""
+    if max_stride <= 1 or len(depth_m) == 0:
+        return 1
+    pixel_m = float(np.median(depth_m)) / fx
+    return int(max(1, min(max_stride, np.floor(2 * voxel_m / pixel_m))))
 
 
 @dataclass(frozen=True)
@@ -75,18 +89,20 @@ class Rays:
         return Rays(key, x, y)
 
 
-def band_offsets(band_voxels: float, voxel_m: float) -> np.ndarray:
-    """Depth offsets (n,) float64 of the samples across the band, one voxel apart (or closer), metres."""
-    n = max(1, int(np.ceil(band_voxels - 1e-6)))
+def band_offsets(band_voxels: float, voxel_m: float, cell_voxels: int = 1) -> np.ndarray:
+    """Depth offsets (n,) float64 of the samples across the band, one label cell (``cell_voxels`` voxels)
+    apart or closer, metres."""
+    n = max(1, int(np.ceil(band_voxels / cell_voxels - 1e-6)))
     return ((np.arange(n) + 0.5) / n - 0.5) * (band_voxels * voxel_m)
 
 
 def sample_voxels(x: np.ndarray, y: np.ndarray, z: np.ndarray, local_from_cam_vox: np.ndarray,
-                  offsets: np.ndarray) -> np.ndarray:
+                  offsets: np.ndarray, cell_voxels: int = 1) -> np.ndarray:
     """(3, n P) int32 voxel indices of the samples (offset-major) of P pixels with ray slopes x, y and depth z.
 
     ``local_from_cam_vox`` is the 4x4 local-from-camera transform with the translation in voxels and the
-    rotation divided by the voxel size (float32 arithmetic in the reference path's order).
+    rotation divided by the voxel size (float32 arithmetic in the reference path's order). With
+    ``cell_voxels`` > 1 each index is that of its label cell's holder voxel (see :func:`cell_holder`).
     """
     R = local_from_cam_vox[:3, :3].astype(np.float32)
     t = local_from_cam_vox[:3, 3].astype(np.float32)
@@ -104,7 +120,15 @@ def sample_voxels(x: np.ndarray, y: np.ndarray, z: np.ndarray, local_from_cam_vo
             tmp += t[k]
             np.rint(tmp, out=tmp)
             out[k, j * p:(j + 1) * p] = tmp
-    return out
+    return cell_holder(out, cell_voxels)
+
+
+def cell_holder(vox: np.ndarray, cell_voxels: int) -> np.ndarray:
+    """In place: int32 voxel indices -> the lowest-index voxel of their label cell (``cell_voxels`` a power of
+    two: clear the low bits, a floor division that also holds for negative indices)."""
+    if cell_voxels > 1:
+        np.bitwise_and(vox, np.int32(-cell_voxels), out=vox)
+    return vox
 
 
 def split_blocks(vox: np.ndarray, res: int) -> tuple[np.ndarray, np.ndarray]:

@@ -107,6 +107,9 @@ def test_bench_fuse(fuse_sim: Path, small_cfg: FuseConfig, tmp_path: Path) -> No
     assert r["config"]["label_lookup"] == "frustum" and r["baseline_config"]["label_lookup"] == "reference"
     assert r["speedup_wall"] > 0 and r["speedup_cpu"] > 0 and r["cpu_ms_per_frame_median"] > 0
     assert r["load_average_before"] >= 0 and r["cpu_count"] >= 1
+    # Open3D's grid alone, timed in the same run: geometry only
+    assert r["open3d"]["frames_per_second_median"] > 0 and set(r["open3d"]["ms_by_part"]) == {"tsdf"}
+    assert r["fps_vs_open3d"] > 0 and r["fps_vs_open3d_mean"] > 0
     saved = read_json(tmp_path / "bench_fuse.json")
     assert saved["frames_timed"] == 2 and saved["baseline"]["frames_per_second_median"] > 0
 
@@ -155,3 +158,28 @@ def test_bench_fuse_sweep_measures_new_and_old_in_one_run(fuse_sim: Path) -> Non
     assert met["ms_tsdf"] > 0 and met["ms_labels"] > 0 and met["cpu_ms_per_frame"] > 0
     assert met["speedup_cpu_vs_old"] > 0 and met["load_average"] >= 0
     assert 0 < met["chamfer_m"] < 0.1 and met["label_accuracy"] > 0.5
+    assert met["open3d_ms_per_frame"] > 0 and met["fps_vs_open3d"] > 0
+
+
+@pytest.mark.parametrize("size", ["tiny", "full"])
+def test_bench_fuse_sweep_has_open3d_alone_as_its_baseline(size: str, tmp_path: Path) -> None:
+    from cadalign.eval.bench import BenchConfig
+    from cadalign.eval.bench_data import SIZES, BenchData
+    from cadalign.eval.bench_stages import FUSE_OPEN3D, fuse_sweep
+
+    sweep = fuse_sweep(BenchData(tmp_path, SIZES[size]), BenchConfig(size=size))  # nothing runs yet
+    base = [p for p in sweep.points if p.name == sweep.baseline]
+    assert len(base) == 1 and FUSE_OPEN3D in base[0].name and base[0].knobs["open3d_alone"]
+    assert base[0].knobs["voxel_m"] == min(p.knobs["voxel_m"] for p in sweep.points)
+
+
+def test_bench_fuse_open3d_alone_setting(fuse_sim: Path) -> None:
+    from cadalign.eval.bench_stages import fuse_measure
+    from cadalign.fuse.inputs import open_source
+
+    src = open_source(fuse_sim, max_frames=2)
+    shared = (src, [src.frame(i) for i in src.ids])
+    met = fuse_measure(shared, {"voxel_m": 0.06, "open3d_alone": True}, seed=0)
+    assert met["ms_per_frame"] > 0 and met["ms_tsdf"] > 0 and "ms_labels" not in met
+    # Open3D's own mesh of the same frames lies on the CAD like ours; not on the accuracy axis (never recommended)
+    assert 0 < met["open3d_chamfer_m"] < 0.1 and "chamfer_m" not in met

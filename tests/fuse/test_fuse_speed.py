@@ -36,14 +36,14 @@ def _fuse(src: FrameSource, cfg: FuseConfig) -> SemanticTSDF:
     return m
 
 
-@pytest.mark.parametrize("res, stride, threads", [(8, 1, 1), (4, 1, 2), (4, 2, 3)])
+@pytest.mark.parametrize("res, stride, threads, cell", [(8, 1, 1, 1), (4, 1, 2, 1), (4, 2, 3, 1), (8, 1, 2, 2)])
 def test_frustum_labels_equal_the_reference_bit_for_bit(src: FrameSource, small_cfg: FuseConfig, res: int,
-                                                        stride: int, threads: int,
+                                                        stride: int, threads: int, cell: int,
                                                         monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(tsdf_frustum, "MIN_SAMPLES_PER_THREAD", 1000)  # the tiny frames use the threads too
     # a small initial table: it grows (and moves every block) during the run, which the lookups must survive
     cfg = dataclasses.replace(small_cfg, block_resolution=res, block_count=300, label_pixel_stride=stride,
-                              label_threads=threads)
+                              label_threads=threads, label_cell_voxels=cell)
     fast = _fuse(src, cfg)
     ref = _fuse(src, dataclasses.replace(cfg, label_lookup="reference"))
     a, b = _sorted_state(fast), _sorted_state(ref)
@@ -139,3 +139,33 @@ def test_sparse_depth_off_open3d_grid_is_fused(lookup: str) -> None:
     labelled = label[(label != 0).any(axis=1)]
     # two samples (one voxel apart along the ray) per valid pixel, each in its own voxel, all saying class 2
     assert len(labelled) == 2 * len(u) and np.all(labelled.argmax(axis=1) == 2)
+
+
+def test_band_pixels_phases_cover_every_pixel_once() -> None:
+    mask = np.ones((5, 6), dtype=bool)
+    mask[2, 3] = False
+    seen = np.concatenate([band_pixels(mask, 2, phase) for phase in range(4)])
+    np.testing.assert_array_equal(np.sort(seen), np.flatnonzero(mask))  # s^2 consecutive frames: each pixel once
+    np.testing.assert_array_equal(band_pixels(mask, 2, 4), band_pixels(mask, 2, 0))
+    np.testing.assert_array_equal(band_pixels(mask, 1, 3), np.flatnonzero(mask))
+
+
+def test_label_stride_keeps_samples_within_two_voxels() -> None:
+    from cadalign.fuse.tsdf_labels import label_stride
+
+    z = np.full(100, 8.5)
+    assert label_stride(2, 0.02, 457.0, z) == 2  # 640x480 at 8.5 m: 1.9 cm pixels, 2 cm voxels
+    assert label_stride(2, 0.02, 228.5, z) == 1  # 320x240: 3.7 cm pixels, every pixel is needed
+    assert label_stride(4, 0.02, 525.0, np.full(10, 1.0)) == 4  # near: the configured bound
+    assert label_stride(1, 0.02, 457.0, z) == label_stride(3, 0.02, 457.0, z[:0]) == 1
+
+
+def test_label_cell_voxels_must_divide_the_block() -> None:
+    from cadalign.fuse.tsdf_labels import cell_holder
+
+    with pytest.raises(ValueError, match="label_cell_voxels"):
+        FuseConfig(label_cell_voxels=3)
+    with pytest.raises(ValueError, match="label_cell_voxels"):
+        FuseConfig(block_resolution=4, label_cell_voxels=8)
+    vox = np.array([-3, -2, -1, 0, 1, 2, 3], np.int32)
+    np.testing.assert_array_equal(cell_holder(vox, 2), [-4, -2, -2, 0, 0, 2, 2])
