@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -34,9 +34,9 @@ from cadalign.fuse.inputs import FrameSource, open_source
 from cadalign.fuse.map_io import MapMeta, load_map, new_map, save_map, write_ply
 from cadalign.fuse.views import render_views
 from cadalign.io import prepare_stage_dir, write_json
+from cadalign.types import Progress
 
 log = logging.getLogger(__name__)
-Progress = Callable[[Iterable[int], str, int], Iterable[int]]
 REPORT = "fuse_report.json"
 
 
