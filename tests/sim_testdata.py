@@ -72,6 +72,21 @@ def write_tiny_scene(path: Path, *, effects: list[str], frames: int = 4) -> Path
     return path
 
 
+def write_build_capture(path: Path, *, effects: list[str], frames: int) -> Path:
+    """The tiny scene made a dataset builder's capture: 320x240, a closer orbit round a bigger block (so the
+    structure, not the seabed, holds most SfM points) with the valve and the hot stab on it."""
+    spec = write_tiny_scene(path, effects=effects, frames=frames)
+    text = spec.read_text().replace("width = 160", "width = 320").replace("height = 120", "height = 240")
+    for a, b in (("speed_mps = 0.5", "speed_mps = 0.3"), ("radius_m = 3.2", "radius_m = 3.0"),
+                 ("size_m = [1.2, 0.8, 0.6]", "size_m = [2.0, 1.4, 1.2]"), ("position = [0.0, 0.0, 0.3]",
+                 "position = [0.0, 0.0, 0.0]"), ("center = [0.0, 0.0, 0.5]", "center = [0.0, 0.0, 0.8]"),
+                 ("position = [-1.0, 0.9, 0.0]", "position = [-0.6, 0.0, 1.2]"),
+                 ("position = [0.9, -0.8, 0.1]", "position = [0.6, -0.3, 1.2]")):
+        text = text.replace(a, b)
+    spec.write_text(text)
+    return spec
+
+
 def write_picks_from_truth(sfm_dir: Path, sim: Path, path: Path, noise_m: float = 0.02) -> Path:
     """A picks file (``--init``) of four CAD corners of the tiny block scenes and where the SfM model in
     ``sfm_dir`` puts them, from the simulation's true cameras, with ``noise_m`` of seeded noise on the

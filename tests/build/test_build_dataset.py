@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from sim_testdata import write_picks_from_truth, write_tiny_scene
+from sim_testdata import write_build_capture, write_picks_from_truth
 
 from cadalign.data.bop import BopScene
 from cadalign.errors import AlignmentError
@@ -25,16 +25,7 @@ def capture(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> tupl
     from cadalign.sim.run import simulate
 
     root = tmp_path_factory.mktemp("capture")
-    spec = write_tiny_scene(root / "tiny.toml", effects=["attenuation", "backscatter"], frames=12)
-    # a closer orbit round a bigger block, so the structure (not the seabed) holds most SfM points
-    text = spec.read_text().replace("width = 160", "width = 320").replace("height = 120", "height = 240")
-    for a, b in (("speed_mps = 0.5", "speed_mps = 0.3"), ("radius_m = 3.2", "radius_m = 3.0"),
-                 ("size_m = [1.2, 0.8, 0.6]", "size_m = [2.0, 1.4, 1.2]"), ("position = [0.0, 0.0, 0.3]",
-                 "position = [0.0, 0.0, 0.0]"), ("center = [0.0, 0.0, 0.5]", "center = [0.0, 0.0, 0.8]"),
-                 ("position = [-1.0, 0.9, 0.0]", "position = [-0.6, 0.0, 1.2]"),
-                 ("position = [0.9, -0.8, 0.1]", "position = [0.6, -0.3, 1.2]")):
-        text = text.replace(a, b)
-    spec.write_text(text)
+    spec = write_build_capture(root / "tiny.toml", effects=["attenuation", "backscatter"], frames=12)
     return spec, simulate(spec, root / "sim", video=False, contact_sheet=False)
 
 

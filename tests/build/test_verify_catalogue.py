@@ -14,21 +14,13 @@ pytestmark = pytest.mark.slow
 
 @pytest.fixture(scope="module")
 def tiny_build(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> tuple[Path, Path, Path]:
-    from sim_testdata import write_tiny_scene
+    from sim_testdata import write_build_capture
 
     from cadalign.sfm import PRESETS, run
     from cadalign.sim.run import simulate
 
     root = tmp_path_factory.mktemp("catalogue")
-    spec = write_tiny_scene(root / "tiny.toml", effects=["attenuation", "backscatter"], frames=12)
-    text = spec.read_text().replace("width = 160", "width = 320").replace("height = 120", "height = 240")
-    for a, b in (("speed_mps = 0.5", "speed_mps = 0.3"), ("radius_m = 3.2", "radius_m = 3.0"),
-                 ("size_m = [1.2, 0.8, 0.6]", "size_m = [2.0, 1.4, 1.2]"), ("position = [0.0, 0.0, 0.3]",
-                 "position = [0.0, 0.0, 0.0]"), ("center = [0.0, 0.0, 0.5]", "center = [0.0, 0.0, 0.8]"),
-                 ("position = [-1.0, 0.9, 0.0]", "position = [-0.6, 0.0, 1.2]"),
-                 ("position = [0.9, -0.8, 0.1]", "position = [0.6, -0.3, 1.2]")):
-        text = text.replace(a, b)
-    spec.write_text(text)
+    spec = write_build_capture(root / "tiny.toml", effects=["attenuation", "backscatter"], frames=12)
     sim = simulate(spec, root / "sim", video=False, contact_sheet=False)
     run(PRESETS["fast"], sim / "frames", root / "build" / "sfm")
     return root / "build", spec, sim
