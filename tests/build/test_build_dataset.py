@@ -126,9 +126,9 @@ def test_cad_in_the_wrong_unit_fails_the_gate(capture: tuple[Path, Path], built:
 def test_a_bag_builds_the_same_dataset_as_the_frames_folder(built: Path, capture: tuple[Path, Path],
                                                              tmp_path: Path, ros: int, kw: dict) -> None:
     """The capture's frames recorded as a ROS 1 bag (raw rgb8) or a ROS 2 bag (mcap, png CompressedImage) on
-    /camera/image_raw give the folder's dataset:
-    the same frames, poses within 5 mm / 0.3 deg and depth within 5 mm (SfM runs multi-threaded: ~1 mm
-    apart run to run)."""
+    /camera/image_raw give the folder's dataset: the same frames, poses within 5 mm / 0.3 deg and depth within
+    5 mm. Both builds map with one thread (SfM with two is not repeatable: on this 12-frame capture a rerun
+    once failed the fitness gate)."""
     from bag_testdata import write_bag
 
     from cadalign.build_dataset import build_dataset
@@ -136,9 +136,12 @@ def test_a_bag_builds_the_same_dataset_as_the_frames_folder(built: Path, capture
     spec, sim = capture
     frames = [read_image(p) for p in sorted((sim / "frames").glob("*.png"))]
     bag = write_bag(frames, tmp_path / ("dive.bag" if ros == 1 else "dive"), ros=ros, **kw)
+    one = {"num_threads": 1}
+    folder = build_dataset(sim / "frames", spec, tmp_path / "folder", preset="fast", picks=built / "picks.json",
+                           sfm_set=one)
     out = build_dataset(bag, spec, tmp_path / "out", preset="fast", picks=built / "picks.json",
-                        topic="/camera/image_raw")
-    ref, got = built / "dataset" / "all" / "000000", out / "dataset" / "all" / "000000"
+                        topic="/camera/image_raw", sfm_set=one)
+    ref, got = folder / "dataset" / "all" / "000000", out / "dataset" / "all" / "000000"
     _assert_poses_close(read_json(got / "scene_gt.json"), read_json(ref / "scene_gt.json"))
     names = sorted(p.name for p in (ref / "depth").glob("*.png"))
     assert sorted(p.name for p in (got / "depth").glob("*.png")) == names
