@@ -219,7 +219,7 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
                     fh.write(json.dumps(r.to_json()) + "\n")
                 if cfg.overlay:
                     t0 = time.perf_counter()
-                    writer = writer or _video_writer(tmp_video, cfg.overlay_fps)
+                    writer = writer or video_writer(tmp_video, cfg.overlay_fps)
                     writer.append_data(_draw(vf.image, records, pipeline, K))
                     t["overlay"] = time.perf_counter() - t0
                 for k, v in t.items():
@@ -264,7 +264,7 @@ def _redraw_overlay(path: Path, cfg: InferConfig, records: list[PoseRecord], pip
     by_frame: dict[str, list[PoseRecord]] = {}
     for r in records:
         by_frame.setdefault(r.frame_name, []).append(r)
-    writer = _video_writer(path, cfg.overlay_fps)
+    writer = video_writer(path, cfg.overlay_fps)
     try:
         for vf in calib.frames(source, max_frames, topic):
             writer.append_data(_draw(vf.image, by_frame.get(vf.name, []), pipeline, calib.K(vf.name)))
@@ -318,7 +318,7 @@ def resolve_prep(enhance: str, detector_info: dict) -> dict:
     return prep
 
 
-def _video_writer(path: Path, fps: float):  # -> imageio writer
+def video_writer(path: Path, fps: float):  # -> imageio writer
     import imageio.v2 as imageio
 
     return imageio.get_writer(path, format="FFMPEG", fps=fps, codec="libx264", quality=7, macro_block_size=16,

@@ -74,9 +74,6 @@ class EdgeTrackConfig:
     reuse_px: float = 0.25
     """The quality is read at the last full-resolution level's render when that level moved the contours by less
     than this (pixels, summed RMS over its rounds); otherwise the CAD is rendered once more at the final pose."""
-    min_extent_searches: float = 0.0
-    """A level is skipped when the typical part under its contour samples spans fewer than this many search
-    ranges (its long search would reach across the part to other edges and run off: small objects, clutter)."""
     min_level_width: int = 64
     """A level whose image would be narrower than this (pixels) is skipped: too few pixels to fit a pose."""
     support_px: float = 1.5
@@ -162,9 +159,8 @@ class EdgeTracker:
             f = r.render(T, with_full_masks=False)
             X_cam, _, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, lcfg, f.instance)
             X_w = T.apply(X_cam)
-            if len(X_w) < self.cfg.min_edges or (self.cfg.min_extent_searches > 0 and _part_extent_px(
-                    f.instance, X_cam, r.camera.K) < self.cfg.min_extent_searches * lv.search_px):
-                continue  # too few contours, or parts too small for this level's search: it would run off
+            if len(X_w) < self.cfg.min_edges:
+                continue  # too few contours to fit six degrees of freedom
             last = (r, X_w, n, f, g)
             T_start, s_start, moved_px = T, None, 0.0
             for _ in range(lv.iterations):
@@ -237,23 +233,6 @@ class EdgeTracker:
             per[int(k)] = (int(m.sum()), float(ok[m].mean()), float(near[m].sum() / max(found[m].sum(), 1)))
         res = float(np.median(np.abs(off[ok]))) * to_full if ok.any() else float("nan")
         return EdgeFit(T, len(off), float(ok.mean()), res, per, instance, uv * to_full, ok, off * to_full)
-
-
-def _part_extent_px(instance: np.ndarray, X_cam: np.ndarray, K: np.ndarray) -> float:
-    """The typical contour sample's part size in the image, pixels: the smaller side of the bounding box of
-    the sample's instance, the median over samples (a structure's large frame counts by its many samples)."""
-    ids, counts = np.unique(instance[instance > 0], return_counts=True)
-    if len(ids) == 0:
-        return 0.0
-    uv = _pixels(K, X_cam)
-    H, W = instance.shape
-    inst = instance[np.clip(uv[:, 1].astype(int), 0, H - 1), np.clip(uv[:, 0].astype(int), 0, W - 1)]
-    side = {}
-    for k in ids:
-        ys, xs = np.nonzero(instance == k)
-        side[int(k)] = min(xs.max() - xs.min() + 1, ys.max() - ys.min() + 1)
-    per = np.array([side.get(int(k), 0) for k in inst], dtype=float)
-    return float(np.median(per)) if len(per) else 0.0
 
 
 def _share_within(off: np.ndarray, tol_px: float) -> float:

@@ -29,6 +29,7 @@ from cadalign.build_dataset import Structure
 from cadalign.errors import InputError
 from cadalign.formats.calibration import CameraCalibration, Undistorter
 from cadalign.infer.pipeline import PoseRecord
+from cadalign.infer.run import video_writer
 from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, as_gray, with_levels
 from cadalign.infer.track.tracker import StructureTracker, TrackerConfig, TrackStep
 from cadalign.infer.video import iter_frames
@@ -183,7 +184,7 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                 th.write(json.dumps(_step_json(step, vf.name, missing, structure)) + "\n")
                 if cfg.overlay:
                     t0 = time.perf_counter()
-                    writer = writer or _video_writer(tmp_video, cfg.overlay_fps)
+                    writer = writer or video_writer(tmp_video, cfg.overlay_fps)
                     writer.append_data(_draw(image, step))
                     times["overlay"].append(time.perf_counter() - t0)
                 names.append(vf.name)
@@ -225,11 +226,6 @@ def _timings(times: dict[str, list[float]], n: int, states: dict[str, int]) -> d
             "note": "track: frames continued from the last pose; restart: frames started from a hypothesis "
                     "(init pose, detector) or tried while lost; wall clock; overlay apart"}
 
-
-def _video_writer(path: Path, fps: float):  # -> imageio writer
-    from cadalign.infer.run import _video_writer as writer
-
-    return writer(path, fps)
 
 
 def read_truth_poses(path: Path) -> dict[str, Rigid3]:

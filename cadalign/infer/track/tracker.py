@@ -193,21 +193,14 @@ class StructureTracker:
                 fit = self.edges.fit(gray, self._last)
                 if self.good(fit):
                     return self._accept(k, fit, "track", t0, tried)
-        best: tuple[EdgeFit, str] | None = None
         own = not restarts and self._last is not None
         if own:  # lost with nothing to restart from: the tracker's own hypotheses
             restarts = self._lost_hypotheses()
-        for name, T_cw in restarts:
-            fit, n = self._search(gray, T_cw.inverse())
-            tried += n
-            if fit is not None and (best is None or fit.support > best[0].support):
-                best = (fit, name)
+        best, n = self._best_of(gray, restarts)
+        tried += n
         if best is None and own and self._lost_frames % max(self.cfg.orbit_every, 1) == 0:  # round the structure
-            for name, T_cw in self._orbit_hypotheses(gray):
-                fit, n = self._search(gray, T_cw.inverse())
-                tried += n
-                if fit is not None and (best is None or fit.support > best[0].support):
-                    best = (fit, name)
+            best, n = self._best_of(gray, self._orbit_hypotheses(gray))
+            tried += n
         if best is not None:
             self._prev = None  # a restart has no velocity
             self._supports = []  # nor a history of support
@@ -218,6 +211,19 @@ class StructureTracker:
         self._lost_frames += 1
         self.lost = True
         return TrackStep(k, "lost", None, None, "", time.perf_counter() - t0, tried)
+
+    def _best_of(self, gray: np.ndarray, hypotheses: Sequence[tuple[str, Rigid3]],
+                  ) -> tuple[tuple[EdgeFit, str] | None, int]:
+        """The best-supported passing (fit, name) of searches from (name, ``T_cam_from_world``) hypotheses,
+        and the number of fits tried."""
+        best: tuple[EdgeFit, str] | None = None
+        tried = 0
+        for name, T_cw in hypotheses:
+            fit, n = self._search(gray, T_cw.inverse())
+            tried += n
+            if fit is not None and (best is None or fit.support > best[0].support):
+                best = (fit, name)
+        return best, tried
 
     def _search(self, gray: np.ndarray, T_world_from_cam: Rigid3) -> tuple[EdgeFit | None, int]:
         """The best-supported passing fit from a rough pose: the pose itself and the candidates of the
