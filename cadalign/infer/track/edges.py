@@ -13,7 +13,7 @@ that have an image edge of the right sign within ``support_px`` (edge support), 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -28,6 +28,7 @@ from cadalign.render.edge_refine import (
     moved_camera,
     search_edges,
 )
+from cadalign.infer.track.region import RegionConfig, RegionModel, sample_instances
 from cadalign.render.raycast import RaycastRenderer, RenderMesh
 from cadalign.types import Camera, Rigid3
 
@@ -78,6 +79,11 @@ class EdgeTrackConfig:
     """A level whose image would be narrower than this (pixels) is skipped: too few pixels to fit a pose."""
     support_px: float = 1.5
     """An edge within this many full-resolution pixels of a contour sample supports it (quality)."""
+    region: RegionConfig = field(default_factory=RegionConfig)
+    """Colour-region correspondences beside the edges (:mod:`cadalign.infer.track.region`)."""
+    region_support_px: float = 3.0
+    """A colour boundary within this many full-resolution pixels of a contour sample supports it (the region
+    offset is coarser than the edge's: it rests on whole pixels' colours)."""
     judge_scale: float = 1.0
     """Scale the quality is read at: 1 renders the frame once more at full resolution; otherwise the last
     level's render is reused (it must be that level's scale)."""
@@ -107,6 +113,15 @@ class EdgeFit:
     offsets_px: np.ndarray | None = None
     """(N,) the image edge's offset along the normal within twice ``support_px``, full-resolution pixels; NaN:
     none."""
+    normal: np.ndarray | None = None
+    """(N, 2) the samples' unit normals, towards the far side."""
+    sample_instance: np.ndarray | None = None
+    """(N,) each sample's ray-cast instance (its part)."""
+    region_support: float = float("nan")
+    """Share of the samples whose colour boundary (:mod:`~cadalign.infer.track.region`) lies within
+    ``region_support_px`` of them; NaN before the tracker has learned the parts' colours."""
+    instance_region: dict[int, float] = field(default_factory=dict)
+    """Per ray-cast instance: its samples' region support (empty before the colours are learned)."""
 
 
 class EdgeTracker:
@@ -117,6 +132,10 @@ class EdgeTracker:
         self.camera = camera
         self._meshes = meshes
         self._renderers: dict[float, RaycastRenderer] = {}
+        self.region = RegionModel(cfg.region)
+        """The parts' colours, taught by the tracker on tracked frames."""
+        self.colour_frame: np.ndarray | None = None
+        """(H, W, 3) the frame being fitted, in colour (the region term's input); None: edges only."""
 
     def usable(self, scale: float) -> float:
         """``scale``, or the smallest scale whose image is ``min_level_width`` wide when ``scale``'s is not."""
@@ -157,32 +176,35 @@ class EdgeTracker:
                                                           interpolation=cv2.INTER_AREA)
             lcfg = self._level_cfg(lv.search_px)
             f = r.render(T, with_full_masks=False)
-            X_cam, _, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, lcfg, f.instance)
+            X_cam, uv0, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, lcfg, f.instance)
             X_w = T.apply(X_cam)
             if len(X_w) < self.cfg.min_edges:
                 continue  # too few contours to fit six degrees of freedom
             last = (r, X_w, n, f, g)
+            region = self._region_level(r, uv0, n, f.instance)
             T_start, s_start, moved_px = T, None, 0.0
             for _ in range(lv.iterations):
-                off = self._offsets(T, X_w, n, r, g, lcfg)
-                ok = np.isfinite(off)
+                off, roff = self._both_offsets(T, X_w, n, r, g, lcfg, region, lv.search_px)
+                ok, rok = np.isfinite(off), np.isfinite(roff)
                 if s_start is None:
-                    s_start = _share_within(off, lv.tukey_px / 2)
-                if ok.sum() < self.cfg.min_edges:
+                    s_start = _share_within(off, lv.tukey_px / 2) + _share_within(roff, lv.tukey_px / 2)
+                if ok.sum() + rok.sum() < self.cfg.min_edges:
                     break
                 Xc = T.inverse().apply(X_w)
-                c = X_w[ok].mean(axis=0)
-                J = edge_jacobian(Xc[ok], T.R.T, X_w[ok] - c, r.camera.K, n[ok])
-                xi, w = fit_correction([(J, -off[ok])], lv.tukey_px)
+                c = X_w[ok | rok].mean(axis=0)
+                J = edge_jacobian(Xc, T.R.T, X_w - c, r.camera.K, n)
+                xi, w = fit_correction([(J[ok], -off[ok]), (J[rok], -roff[rok])], lv.tukey_px)
                 T = moved_camera(motion(xi, c), T)
-                moved = J[w > 0] @ xi if np.any(w > 0) else np.zeros(1)
+                Jw = np.concatenate([J[ok], J[rok]])[w > 0]
+                moved = Jw @ xi if len(Jw) else np.zeros(1)
                 moved_px += float(np.sqrt(np.mean(moved**2)))
                 if float(np.sqrt(np.mean(moved**2))) < self.cfg.converged_px:
                     break
-            # a level that leaves fewer contour samples on image edges than it found ran off (a coarse level's
-            # long search caught other parts' edges): keep the pose it started from
+            # a level that leaves fewer contour samples on image edges (and colour boundaries) than it found ran
+            # off (a coarse level's long search caught other parts' edges): keep the pose it started from
             if s_start is not None and T is not T_start:
-                if _share_within(self._offsets(T, X_w, n, r, g, lcfg), lv.tukey_px / 2) < s_start:
+                off, roff = self._both_offsets(T, X_w, n, r, g, lcfg, region, lv.search_px)
+                if _share_within(off, lv.tukey_px / 2) + _share_within(roff, lv.tukey_px / 2) < s_start:
                     T, moved_px = T_start, 0.0
         # judged at the final pose (its instance map gives the parts' masks): the last full-resolution level's
         # render serves when that level moved the contours by less than reuse_px, else one more render
@@ -190,12 +212,28 @@ class EdgeTracker:
             return self._judge_last(T, last)
         return self.judge(gray, T)
 
-    @staticmethod
-    def _offsets(T: Rigid3, X_w: np.ndarray, n: np.ndarray, r: RaycastRenderer, g: np.ndarray,
-                 cfg: EdgeRefineConfig) -> np.ndarray:
-        """Image-edge offsets (pixels of the level, NaN: none) of contour points ``X_w`` seen from ``T``."""
-        uv = _pixels(r.camera.K, T.inverse().apply(X_w)) + 0.5 * n  # the contour: half a pixel past the near pixel
-        return search_edges(g, uv, n, cfg)
+    def _region_level(self, r: RaycastRenderer, uv: np.ndarray, n: np.ndarray, instance: np.ndarray,
+                      ) -> tuple[np.ndarray, np.ndarray] | None:
+        """(the colour frame at the level's size, each contour sample's part) when the region term is on."""
+        if self.colour_frame is None or not self.region.ready:
+            return None
+        import cv2  # lazy: cv2 is only needed once a frame is fitted
+
+        rgb = self.colour_frame
+        if rgb.shape[1] != r.camera.width:
+            rgb = cv2.resize(rgb, (r.camera.width, r.camera.height), interpolation=cv2.INTER_AREA)
+        return rgb, sample_instances(uv, n, instance)
+
+    def _both_offsets(self, T: Rigid3, X_w: np.ndarray, n: np.ndarray, r: RaycastRenderer, g: np.ndarray,
+                      cfg: EdgeRefineConfig, region: tuple[np.ndarray, np.ndarray] | None, search_px: float,
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """(edge offsets, region offsets) of contour points ``X_w`` seen from ``T``, pixels of the level (NaN:
+        none; all NaN region offsets without the region term)."""
+        uv = _pixels(r.camera.K, T.inverse().apply(X_w)) + 0.5 * n
+        off = search_edges(g, uv, n, cfg)
+        if region is None:
+            return off, np.full(len(off), np.nan)
+        return off, self.region.offsets(region[0], uv, n, region[1], search_px)
 
     def _judge_last(self, T: Rigid3, last: tuple) -> EdgeFit:
         """Judge at the last level's render, its contour points moved to the final pose (no render more)."""
@@ -221,10 +259,7 @@ class EdgeTracker:
             return EdgeFit(T, 0, 0.0, float("nan"), {}, instance, uv, np.zeros(0, bool), np.zeros(0))
         off = search_edges(g, uv, n, cfg)
         ok = np.isfinite(off) & (np.abs(np.nan_to_num(off, nan=np.inf)) <= tol_px)
-        H, W = instance.shape
-        # the near pixel of each sample: half a pixel back along the normal from the contour
-        near = np.floor(uv - 0.5 * n + 0.5).astype(int)
-        inst = instance[np.clip(near[:, 1], 0, H - 1), np.clip(near[:, 0], 0, W - 1)]
+        inst = sample_instances(uv, n, instance)  # the part of each sample's near pixel
         found = np.isfinite(off)
         near = found & (np.abs(np.nan_to_num(off, nan=np.inf)) <= tol_px / 1.5)
         per: dict[int, tuple[int, float, float]] = {}
@@ -232,7 +267,16 @@ class EdgeTracker:
             m = inst == k
             per[int(k)] = (int(m.sum()), float(ok[m].mean()), float(near[m].sum() / max(found[m].sum(), 1)))
         res = float(np.median(np.abs(off[ok]))) * to_full if ok.any() else float("nan")
-        return EdgeFit(T, len(off), float(ok.mean()), res, per, instance, uv * to_full, ok, off * to_full)
+        rsup, rper = float("nan"), {}
+        rgb = self.colour_frame
+        if rgb is not None and self.region.ready and rgb.shape[:2] == g.shape[:2]:
+            tol = self.cfg.region_support_px / to_full
+            roff = self.region.offsets(rgb, uv, n, inst, 2 * tol)
+            rok = np.abs(np.nan_to_num(roff, nan=np.inf)) <= tol
+            rsup = float(rok.mean())
+            rper = {int(k): float(rok[inst == k].mean()) for k in np.unique(inst)}
+        return EdgeFit(T, len(off), float(ok.mean()), res, per, instance, uv * to_full, ok, off * to_full, n,
+                       inst, rsup, rper)
 
 
 def _share_within(off: np.ndarray, tol_px: float) -> float:

@@ -174,7 +174,7 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                 if restart_source is not None and tracker.lost:
                     restarts += list(restart_source(image, vf.name))
                     times["detector"].append(time.perf_counter() - t0)
-                step = tracker.step(as_gray(image, cfg.tracker.edges.colour), restarts)
+                step = tracker.step(as_gray(image, cfg.tracker.edges.colour), restarts, image[..., :3] if image.ndim == 3 else None)
                 (times["restart"] if step.source not in ("track",) else times["track"]).append(step.seconds)
                 states[step.state] += 1
                 recs, missing = part_records(step, vf.index, vf.name, structure, cfg)
@@ -211,6 +211,10 @@ def _step_json(step: TrackStep, name: str, missing: list[str], structure: Struct
             "residual_px": None if f is None or not np.isfinite(f.residual_px) else round(float(f.residual_px), 4),
             "contour_samples": None if f is None else int(f.samples), "missing_parts": missing,
             "part_support": parts,
+            "region_support": None if f is None or not np.isfinite(f.region_support)
+            else round(float(f.region_support), 4),
+            "part_region": {} if f is None else {structure.objects[k - 1].name: round(v, 4)
+                                                  for k, v in sorted(f.instance_region.items()) if k > 0},
             "restarts_tried": int(step.restarts_tried), "ms": round(1e3 * step.seconds, 2)}
 
 

@@ -71,6 +71,17 @@ class TrackerConfig:
     """Tracked frames whose median support ``relative_support`` refers to."""
     min_samples: int = 150
     """Lost when the CAD shows fewer contour samples at the pose (the structure left the view)."""
+    min_region_support: float = 0.2
+    """Once the parts' colours are learned, lost below this share of contour samples on a colour boundary
+    (``EdgeFit.region_support``)."""
+    relative_region: float = 0.7
+    """... or below this share of the recent tracked frames' region support. Unlike the edge support's, this
+    history outlives a loss: a restart must look like the parts did (on visp_rbt a restart onto a wrong pose had
+    edge support 0.53 and region support 0.01, right poses 0.75-0.81)."""
+    max_residual_region_px: float = 1.0
+    """The residual allowed when the region term confirms the pose (colours learned, region support passing):
+    motion blur smears a hand-held frame's edges by a pixel (visp_rbt's blurred frames: 0.75-0.87 px at right
+    poses)."""
     max_residual_px: float = 0.7
     """Lost when the supported samples' median offset exceeds this, pixels (a pose near but off the edges)."""
 
@@ -107,6 +118,7 @@ class StructureTracker:
         self.lost = True
         """Whether the last frame was lost (or none was tracked yet)."""
         self._supports: list[float] = []
+        self._regions: list[float] = []  # region support of the last tracked frames (kept over losses)
         self._velocity: Rigid3 | None = None  # the last frame-to-frame motion, in the camera frame
         self._lost_frames = 0
         lo = np.min([m.vertices_m.min(axis=0) for m in meshes], axis=0)
@@ -123,7 +135,12 @@ class StructureTracker:
         ``min_start_support``, a tracked frame also ``relative_support`` of the track's recent support."""
         c = self.cfg
         floor = c.min_start_support if start else max(c.min_support, c.relative_support * self._typical_support())
-        return fit.samples >= c.min_samples and fit.support >= floor and fit.residual_px <= c.max_residual_px
+        if not (fit.samples >= c.min_samples and fit.support >= floor):
+            return False
+        if np.isfinite(fit.region_support) and self._regions:
+            region = max(c.min_region_support, c.relative_region * float(np.median(self._regions)))
+            return fit.region_support >= region and fit.residual_px <= c.max_residual_region_px
+        return fit.residual_px <= c.max_residual_px
 
     def _typical_support(self) -> float:
         return float(np.median(self._supports)) if self._supports else 0.0
@@ -169,10 +186,13 @@ class StructureTracker:
         scored.sort(key=lambda x: -x[0])
         return [(name, T.inverse()) for _, name, T in scored[:self.cfg.orbit_fits]]
 
-    def step(self, gray: np.ndarray, restarts: Sequence[tuple[str, Rigid3]] = ()) -> TrackStep:
+    def step(self, gray: np.ndarray, restarts: Sequence[tuple[str, Rigid3]] = (),
+             rgb: np.ndarray | None = None) -> TrackStep:
         """Track one frame (``gray``: (H, W) float32 0-255). ``restarts``: (name, ``T_cam_from_world``)
-        hypotheses, tried in order when there is no track or the prediction fails."""
+        hypotheses, tried in order when there is no track or the prediction fails. ``rgb``: the frame in colour
+        (H, W, 3), for the region term (``EdgeTrackConfig.region``); None: edges only."""
         t0 = time.perf_counter()
+        self.edges.colour_frame = rgb if self.cfg.edges.region.enabled else None
         k = self._frames
         self._frames += 1
         tried = 0
@@ -257,4 +277,10 @@ class StructureTracker:
         self._lost_frames = 0
         self.lost = False
         self._supports = (self._supports + [fit.support])[-self.cfg.history:]
+        if np.isfinite(fit.region_support):
+            self._regions = (self._regions + [fit.region_support])[-self.cfg.history:]
+        rgb = self.edges.colour_frame
+        if rgb is not None and fit.uv is not None and fit.normal is not None and fit.sample_instance is not None \
+                and fit.instance is not None:
+            self.edges.region.learn(rgb, fit.uv, fit.normal, fit.sample_instance, fit.instance)
         return TrackStep(k, "ok", fit.T_world_from_cam.inverse(), fit, source, time.perf_counter() - t0, tried)

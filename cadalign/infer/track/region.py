@@ -1,0 +1,133 @@
+"""The region term of the contour fit: where along each contour normal the part's colours end.
+
+Edges alone fail where a part hardly differs from its background in brightness (a yellow part on a white
+desk, a grey valve in turbid water) and are fooled by texture next to the outline. As in region-based trackers
+(PWP3D, SRT3D), each part keeps colour histograms of its own pixels (foreground) and of the pixels just beyond
+its outline (background), learned on tracked frames. Along a contour sample's normal the colours give each
+pixel a foreground probability ``pf``; the contour's position ``d`` along the normal is scored by how well
+"foreground before ``d``, background after" explains the line::
+
+    E(d) = sum_{t < d} log pf(t) + sum_{t > d} log(1 - pf(t))
+
+and the mean of ``exp(E)`` over ``d`` is the sample's region offset: a 1-D correspondence along the normal
+like the edge search's, fitted by the same IRLS (:func:`cadalign.render.edge_refine.fit_correction`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class RegionConfig:
+    """Colour histograms per part and the region correspondences along contour normals."""
+
+    enabled: bool = True
+    """Add region correspondences to the contour fit once a tracked frame has taught the colours."""
+    bins: int = 16
+    """Histogram bins per colour channel (16 -> 4096 RGB bins, as SRT3D)."""
+    line_px: int = 8
+    """Pixels inside and beyond each contour sample that teach a part's colours (full resolution)."""
+    learn_rate: float = 0.2
+    """Share of a tracked frame's histograms blended into the kept ones (the first frame sets them)."""
+    min_gain: float = 2.0
+    """A sample's region offset counts when splitting the line at its best position explains the colours
+    better, by this log-likelihood, than calling the whole line foreground or background."""
+    p_clip: float = 0.05
+    """Foreground probabilities are clipped to [p_clip, 1 - p_clip]: one odd pixel cannot decide a line."""
+
+
+class RegionModel:
+    """Per-part (ray-cast instance) colour histograms and the region offsets they give."""
+
+    def __init__(self, cfg: RegionConfig) -> None:
+        self.cfg = cfg
+        self.fg: dict[int, np.ndarray] = {}
+        self.bg: dict[int, np.ndarray] = {}
+
+    @property
+    def ready(self) -> bool:
+        """Whether a tracked frame has taught any part's colours."""
+        return self.cfg.enabled and bool(self.fg)
+
+    def _bin(self, rgb: np.ndarray) -> np.ndarray:
+        """Histogram bin of each colour (..., 3) (0-255)."""
+        q = np.clip(rgb, 0, 255).astype(np.int64) * self.cfg.bins // 256
+        return (q[..., 0] * self.cfg.bins + q[..., 1]) * self.cfg.bins + q[..., 2]
+
+    def learn(self, rgb: np.ndarray, uv: np.ndarray, normal: np.ndarray, sample_instance: np.ndarray,
+              instance: np.ndarray) -> None:
+        """Blend in the colours along the contour samples of a tracked frame: ``rgb`` (H, W, 3), ``uv`` (N, 2)
+        array-convention contour positions and ``normal`` (N, 2) at full resolution, ``sample_instance`` (N,)
+        each sample's part, ``instance`` (H, W) the ray-cast instance map at the pose. A pixel teaches a part's
+        foreground only where the map shows the part, its background only where it does not."""
+        H, W = instance.shape
+        t = np.arange(self.cfg.line_px) + 0.5
+        for side, sign in (("fg", -1.0), ("bg", 1.0)):
+            p = uv[:, None, :] + sign * t[None, :, None] * normal[:, None, :]
+            x, y = np.floor(p[..., 0] + 0.5).astype(int), np.floor(p[..., 1] + 0.5).astype(int)
+            inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
+            x, y = np.clip(x, 0, W - 1), np.clip(y, 0, H - 1)
+            own = instance[y, x] == sample_instance[:, None]
+            keep = inside & (own if side == "fg" else ~own)
+            bins = self._bin(rgb[y, x])
+            store = self.fg if side == "fg" else self.bg
+            for k in np.unique(sample_instance):
+                m = keep & (sample_instance == k)[:, None]
+                if m.sum() < 20:
+                    continue
+                h = np.bincount(bins[m], minlength=self.cfg.bins**3).astype(np.float64)
+                h /= h.sum()
+                k = int(k)
+                a = self.cfg.learn_rate if k in store else 1.0
+                store[k] = (1 - a) * store.get(k, h) + a * h
+
+    def foreground(self, colours: np.ndarray, sample_instance: np.ndarray) -> np.ndarray:
+        """(N, M) foreground probability of colours (N, M, 3) along the lines of samples of parts
+        ``sample_instance`` (N,); 0.5 for a part (or a colour) neither histogram knows."""
+        out = np.full(colours.shape[:2], 0.5)
+        bins = self._bin(colours)
+        for k in np.unique(sample_instance):
+            k = int(k)
+            if k not in self.fg or k not in self.bg:
+                continue
+            m = sample_instance == k
+            f, b = self.fg[k][bins[m]], self.bg[k][bins[m]]
+            s = f + b
+            out[m] = np.where(s > 1e-9, f / np.maximum(s, 1e-12), 0.5)
+        return np.clip(out, self.cfg.p_clip, 1 - self.cfg.p_clip)
+
+    def offsets(self, rgb: np.ndarray, uv: np.ndarray, normal: np.ndarray, sample_instance: np.ndarray,
+                search_px: float) -> np.ndarray:
+        """Region offset (pixels of ``rgb``'s scale, along ``normal``; NaN: the colours do not place the
+        contour) of each contour sample at ``uv`` (array convention, the predicted contour)."""
+        import cv2  # lazy: cv2 is only needed once a frame is fitted
+
+        S = max(int(round(search_px)), 1)
+        t = np.arange(-S, S) + 0.5  # pixel centres along the line, the predicted contour at 0
+        p = uv[:, None, :] + t[None, :, None] * normal[:, None, :]
+        cols = cv2.remap(np.ascontiguousarray(rgb, dtype=np.float32), p[..., 0].astype(np.float32),
+                         p[..., 1].astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        pf = self.foreground(cols, sample_instance)
+        lf, lb = np.log(pf), np.log(1 - pf)
+        # E(d) for d at the 2S + 1 boundaries -S .. S: foreground before d, background after
+        cf = np.concatenate([np.zeros((len(pf), 1)), np.cumsum(lf, axis=1)], axis=1)
+        cb = np.concatenate([np.zeros((len(pf), 1)), np.cumsum(lb, axis=1)], axis=1)
+        E = cf + (cb[:, -1:] - cb)
+        d = np.arange(-S, S + 1, dtype=np.float64)
+        k = np.argmax(E, axis=1)
+        rows = np.arange(len(k))
+        gain = E[rows, k] - np.maximum(E[:, 0], E[:, -1])
+        ok = (gain >= self.cfg.min_gain) & (k > 0) & (k < 2 * S)
+        w = np.exp(E - E[rows, k][:, None])
+        mean = (w * d).sum(axis=1) / w.sum(axis=1)
+        return np.where(ok, mean, np.nan)
+
+
+def sample_instances(uv: np.ndarray, normal: np.ndarray, instance: np.ndarray) -> np.ndarray:
+    """(N,) the ray-cast instance of each contour sample's near pixel (half a pixel back along the normal)."""
+    H, W = instance.shape
+    near = np.floor(uv - 0.5 * normal + 0.5).astype(int)
+    return instance[np.clip(near[:, 1], 0, H - 1), np.clip(near[:, 0], 0, W - 1)]
