@@ -405,3 +405,70 @@ def test_tracker_starts_from_restart_hypotheses_without_an_init_pose(tmp_path: P
     for k in (0, 3):  # (on these clean boxes even the wrong proposal's search may find the right pose)
         T = Rigid3.from_matrix(np.asarray(steps[k]["T_cam_from_world"]))
         assert _reproj_px(meshes, cam, T, _view(k).inverse()) < 0.5
+
+
+class TestRegion:
+    """The colour-region term (:mod:`cadalign.infer.track.region`)."""
+
+    @staticmethod
+    def _two_colours(noise: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """(rgb (40, 80, 3), instance map): columns 0-39 a red part, the rest a blue background of the same
+        grey level (0.299 R + 0.587 G + 0.114 B = 101.8 for both)."""
+        rng = np.random.default_rng(seed)
+        rgb = np.empty((40, 80, 3), np.float32)
+        rgb[:, :40] = (200.0, 60.0, 60.0)
+        rgb[:, 40:] = (60.0, 100.0, 221.0)
+        rgb = np.clip(rgb + rng.uniform(-noise, noise, rgb.shape), 0, 255).astype(np.float32)
+        instance = np.zeros((40, 80), np.int32)
+        instance[:, :40] = 1
+        return rgb, instance
+
+    def test_a_colour_boundary_is_found_where_grey_shows_no_edge(self) -> None:
+        from cadalign.infer.track.region import RegionConfig, RegionModel
+
+        rgb, instance = self._two_colours(noise=0.0)
+        ys = np.arange(5.0, 35.0)
+        n = np.tile([1.0, 0.0], (len(ys), 1))
+        on = np.stack([np.full_like(ys, 39.5), ys], axis=1)  # the contour: between pixel 39 and 40
+        ids = np.ones(len(ys), int)
+        assert np.isnan(search_edges(as_gray(rgb.astype(np.uint8)), on - (3, 0), n, EdgeRefineConfig(search_px=6.0))).all()
+        model = RegionModel(RegionConfig())
+        assert not model.ready
+        noisy, _ = self._two_colours(noise=10.0, seed=1)
+        model.learn(noisy, on, n, ids, instance)
+        assert model.ready
+        test, _ = self._two_colours(noise=10.0, seed=2)
+        for shift in (-3.0, 2.5):
+            off = model.offsets(test, on + (shift, 0.0), n, ids, search_px=6.0)
+            assert np.isfinite(off).all()
+            np.testing.assert_allclose(off, -shift, atol=0.5)
+        # a part the histograms do not know gives no offsets; nor does a line of one colour only
+        assert np.isnan(model.offsets(test, on, n, np.full(len(ys), 7), search_px=6.0)).all()
+        assert np.isnan(model.offsets(test, on - (20.0, 0.0), n, ids, search_px=6.0)).all()
+
+    def test_region_support_refuses_a_pose_the_edges_would_pass(self, boxes) -> None:
+        from dataclasses import replace
+
+        meshes, cam, render = boxes
+        tr = StructureTracker(meshes, cam, BOXES_TRACKER)
+        T = _view(0).inverse()
+        grey = render(T.inverse())
+        f = tr.edges.renderer().render(T.inverse(), with_full_masks=False)
+        palette = np.array([(40, 90, 150), (200, 80, 40), (60, 170, 60), (210, 190, 40), (150, 60, 170),
+                            (200, 200, 200), (90, 90, 90)], np.float32)
+        rgb = palette[f.instance % len(palette)] * (grey[..., None] / 160.0)
+        rgb = np.clip(rgb, 0, 255).astype(np.float32)
+        assert not tr.edges.region.ready
+        first = tr.step(grey, [("init", T)], rgb)
+        # the first frame teaches the colours and is read with them (for the parts' check), but a track's
+        # region history starts with the next frame (a frame judged by its own colours proves little)
+        assert first.state == "ok" and tr.edges.region.ready and first.fit.region_support > 0.8
+        assert tr._regions == []
+        second = tr.step(grey, (), rgb)
+        assert second.state == "ok" and second.fit.region_support > 0.8
+        # 8 px off: the region support collapses; a fit with good edges but such colours is refused
+        off = Rigid3(np.eye(3), np.array([0.16, 0.0, 0.0])) @ T
+        judged = tr.edges.judge(grey, off.inverse())
+        assert judged.region_support < 0.5 * second.fit.region_support
+        assert tr.good(second.fit)
+        assert not tr.good(replace(second.fit, region_support=0.1))

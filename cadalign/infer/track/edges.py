@@ -122,6 +122,8 @@ class EdgeFit:
     ``region_support_px`` of them; NaN before the tracker has learned the parts' colours."""
     instance_region: dict[int, float] = field(default_factory=dict)
     """Per ray-cast instance: its samples' region support (empty before the colours are learned)."""
+    depth_m: np.ndarray | None = None
+    """(H, W) the CAD's z-depth at the pose (0: none), the size of ``instance``."""
 
 
 class EdgeTracker:
@@ -242,7 +244,7 @@ class EdgeTracker:
         cfg = self._level_cfg(2.0 * self.cfg.support_px * s)
         Xc = T.inverse().apply(X_w)
         uv = _pixels(r.camera.K, Xc) + 0.5 * n
-        return self._support(T, uv, n, g, f.instance, cfg, self.cfg.support_px * s, 1.0 / s)
+        return self._support(T, uv, n, g, f.instance, cfg, self.cfg.support_px * s, 1.0 / s, f.depth_m)
 
     def judge(self, gray: np.ndarray, T_world_from_cam: Rigid3) -> EdgeFit:
         """Edge support of the CAD's contours at ``T_world_from_cam`` in ``gray`` (full resolution)."""
@@ -251,12 +253,13 @@ class EdgeTracker:
         cfg = self._level_cfg(2.0 * self.cfg.support_px)
         X_cam, _, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, cfg, f.instance)
         return self._support(T_world_from_cam, _pixels(r.camera.K, X_cam) + 0.5 * n, n, gray, f.instance, cfg,
-                             self.cfg.support_px, 1.0)
+                             self.cfg.support_px, 1.0, f.depth_m)
 
     def _support(self, T: Rigid3, uv: np.ndarray, n: np.ndarray, g: np.ndarray, instance: np.ndarray,
-                 cfg: EdgeRefineConfig, tol_px: float, to_full: float) -> EdgeFit:
+                 cfg: EdgeRefineConfig, tol_px: float, to_full: float, depth_m: np.ndarray | None = None) -> EdgeFit:
         if len(uv) == 0:
-            return EdgeFit(T, 0, 0.0, float("nan"), {}, instance, uv, np.zeros(0, bool), np.zeros(0))
+            return EdgeFit(T, 0, 0.0, float("nan"), {}, instance, uv, np.zeros(0, bool), np.zeros(0),
+                           depth_m=depth_m)
         off = search_edges(g, uv, n, cfg)
         ok = np.isfinite(off) & (np.abs(np.nan_to_num(off, nan=np.inf)) <= tol_px)
         inst = sample_instances(uv, n, instance)  # the part of each sample's near pixel
@@ -267,16 +270,29 @@ class EdgeTracker:
             m = inst == k
             per[int(k)] = (int(m.sum()), float(ok[m].mean()), float(near[m].sum() / max(found[m].sum(), 1)))
         res = float(np.median(np.abs(off[ok]))) * to_full if ok.any() else float("nan")
-        rsup, rper = float("nan"), {}
-        rgb = self.colour_frame
-        if rgb is not None and self.region.ready and rgb.shape[:2] == g.shape[:2]:
-            tol = self.cfg.region_support_px / to_full
-            roff = self.region.offsets(rgb, uv, n, inst, 2 * tol)
-            rok = np.abs(np.nan_to_num(roff, nan=np.inf)) <= tol
-            rsup = float(rok.mean())
-            rper = {int(k): float(rok[inst == k].mean()) for k in np.unique(inst)}
+        rsup, rper = self._region_support(uv, n, inst, g.shape[:2], to_full)
         return EdgeFit(T, len(off), float(ok.mean()), res, per, instance, uv * to_full, ok, off * to_full, n,
-                       inst, rsup, rper)
+                       inst, rsup, rper, depth_m)
+
+
+    def _region_support(self, uv: np.ndarray, n: np.ndarray, inst: np.ndarray, shape: tuple[int, ...],
+                        to_full: float) -> tuple[float, dict[int, float]]:
+        """(share of samples on a colour boundary, the same per instance); NaN, {} without the region term."""
+        rgb = self.colour_frame
+        if rgb is None or not self.region.ready or rgb.shape[:2] != shape:
+            return float("nan"), {}
+        tol = self.cfg.region_support_px / to_full
+        roff = self.region.offsets(rgb, uv, n, inst, 2 * tol)
+        rok = np.abs(np.nan_to_num(roff, nan=np.inf)) <= tol
+        return float(rok.mean()), {int(k): float(rok[inst == k].mean()) for k in np.unique(inst)}
+
+    def with_region(self, fit: EdgeFit) -> EdgeFit:
+        """``fit`` (full resolution) with its region support read again, e.g. once the colours were learned on
+        its own frame (the first frame of a track: an absent part's outline separates nothing even then)."""
+        if fit.uv is None or fit.normal is None or fit.sample_instance is None or fit.instance is None:
+            return fit
+        rsup, rper = self._region_support(fit.uv, fit.normal, fit.sample_instance, fit.instance.shape, 1.0)
+        return replace(fit, region_support=rsup, instance_region=rper)
 
 
 def _share_within(off: np.ndarray, tol_px: float) -> float:

@@ -55,6 +55,14 @@ class TrackRunConfig:
     """A checked part whose found edges lie near its outline less often than this (see
     :attr:`~cadalign.infer.track.edges.EdgeFit.instance_support`) is reported missing: near edges of texture or
     clutter where the part should be do not make it present."""
+    min_part_region: float = 0.02
+    """Once the parts' colours are learned, a part with ``min_region_samples`` whose contour samples find their
+    colour boundary (:attr:`~cadalign.infer.track.edges.EdgeFit.instance_region`) less often than this is
+    reported missing: an absent part's outline separates nothing (0.0 in every frame), a present part's
+    rarely does not (docs/tuning/tracker.md)."""
+    min_region_samples: int = 20
+    """Contour samples a part needs for the region check. A visible part with fewer keeps the verdict of its
+    last check (a part found missing stays missing while too small to check)."""
     overlay: bool = True
     """Write overlay.mp4."""
     overlay_fps: float = 5.0
@@ -85,8 +93,12 @@ def read_init_pose(path: Path) -> Rigid3:
 
 
 def part_records(step: TrackStep, frame_index: int, name: str, structure: Structure, cfg: TrackRunConfig,
-                 ) -> tuple[list[PoseRecord], list[str]]:
-    """The records of one tracked frame's visible parts, and the names of parts found missing."""
+                 missing_before: dict[int, bool] | None = None) -> tuple[list[PoseRecord], list[str]]:
+    """The records of one tracked frame's visible parts, and the names of parts found missing.
+
+    ``missing_before``: instance -> whether the part was found missing when last checked; read for parts too
+    small to check in this frame and updated for those checked (pass the same dict for every frame)."""
+    memory = {} if missing_before is None else missing_before
     if step.T_cam_from_world is None or step.fit is None or step.fit.instance is None:
         return [], []
     inst = step.fit.instance
@@ -97,7 +109,13 @@ def part_records(step: TrackStep, frame_index: int, name: str, structure: Struct
         if counts[k] < cfg.min_visible_px:
             continue
         n, share, conc = step.fit.instance_support.get(k, (0, 0.0, 0.0))
-        if n >= cfg.min_part_samples and (share < cfg.min_part_support or conc < cfg.min_part_concentration):
+        region = step.fit.instance_region.get(k, float("nan"))
+        edges_gone = n >= cfg.min_part_samples and (share < cfg.min_part_support or conc < cfg.min_part_concentration)
+        if n >= cfg.min_region_samples and np.isfinite(region):
+            memory[k] = bool(region < cfg.min_part_region or edges_gone)
+        elif n >= cfg.min_part_samples:
+            memory[k] = bool(edges_gone)
+        if memory.get(k):
             missing.append(o.name)
             continue
         ys, xs = np.nonzero(inst == k)
@@ -155,6 +173,7 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
     names: list[str] = []
     times: dict[str, list[float]] = {"track": [], "restart": [], "detector": [], "overlay": []}
     states = {"ok": 0, "lost": 0}
+    missing_before: dict[int, bool] = {}  # per part: found missing when last checked
     writer = None
     frames = iter_frames(source, max_frames=max_frames, topic=topic)
     video_ctx = atomic_path(out_dir / "overlay.mp4") if cfg.overlay else contextlib.nullcontext(None)
@@ -177,7 +196,7 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                 step = tracker.step(as_gray(image, cfg.tracker.edges.colour), restarts, image[..., :3] if image.ndim == 3 else None)
                 (times["restart"] if step.source not in ("track",) else times["track"]).append(step.seconds)
                 states[step.state] += 1
-                recs, missing = part_records(step, vf.index, vf.name, structure, cfg)
+                recs, missing = part_records(step, vf.index, vf.name, structure, cfg, missing_before)
                 for r in recs:
                     fh.write(json.dumps(r.to_json()) + "\n")
                 records.extend(recs)

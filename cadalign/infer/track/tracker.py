@@ -18,6 +18,7 @@ import numpy as np
 from cadalign.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from cadalign.infer.track.acquire import AcquireConfig, candidates
 from cadalign.infer.track.edges import EdgeFit, EdgeLevel, EdgeTrackConfig, EdgeTracker
+from cadalign.infer.track.flow import FlowConfig, FlowPredictor
 from cadalign.render.raycast import RenderMesh
 from cadalign.types import Camera, Rigid3
 
@@ -32,6 +33,8 @@ class TrackerConfig:
     """Per-frame correction against contours, coarse to fine."""
     acquire: AcquireConfig = field(default_factory=AcquireConfig)
     """The pan/tilt/roll search around a restart hypothesis (a rough pose)."""
+    flow: FlowConfig = field(default_factory=FlowConfig)
+    """The prediction from sparse flow since the last tracked frame (model-based visual odometry)."""
     restart_levels: tuple[EdgeLevel, ...] = (
         EdgeLevel(0.125, 8, 4.0, 3.0),
         EdgeLevel(0.25, 8, 6.0, 4.0),
@@ -112,6 +115,7 @@ class StructureTracker:
     def __init__(self, meshes: list[RenderMesh], camera: Camera, cfg: TrackerConfig | None = None) -> None:
         self.cfg = cfg or TrackerConfig()
         self.edges = EdgeTracker(meshes, camera, self.cfg.edges)
+        self.flow = FlowPredictor(camera.K, self.cfg.flow)
         self._last: Rigid3 | None = None  # T_world_from_cam of the last ok frame
         self._prev: Rigid3 | None = None  # and of the ok frame before it (for the velocity)
         self._frames = 0
@@ -161,7 +165,7 @@ class StructureTracker:
             out = out @ Rigid3(axis_angle_to_matrix(w), t)
         return out
 
-    def _lost_hypotheses(self) -> list[tuple[str, Rigid3]]:
+    def _lost_hypotheses(self, gray: np.ndarray) -> list[tuple[str, Rigid3]]:
         """Restart hypotheses while lost with no other: the last motion carried on over the frames lost, the last
         pose, and the last view turned round the structure's vertical axis (``orbit_step_deg``), the latter
         ranked by the pan/tilt/roll search's score and only the best ``orbit_fits`` kept."""
@@ -169,6 +173,9 @@ class StructureTracker:
         out = [("last_pose", self._last.inverse())]
         if self._velocity is not None:
             out.insert(0, ("motion", (self._last @ self._motion_over(self._lost_frames + 1)).inverse()))
+        flow = self.flow.predict(gray, self._last) if self.flow.ready else None
+        if flow is not None:  # the flow from the last tracked frame, however many frames back
+            out.insert(0, ("flow", flow.inverse()))
         return out
 
     def _orbit_hypotheses(self, gray: np.ndarray) -> list[tuple[str, Rigid3]]:
@@ -197,6 +204,8 @@ class StructureTracker:
         self._frames += 1
         tried = 0
         pred = self._prediction()
+        if pred is not None and self.flow.ready:
+            pred = self.flow.predict(gray, pred) or pred
         if pred is not None:
             fit = self.edges.fit(gray, pred)
             if self.good(fit) and fit.support < self.cfg.doubt_support * self._typical_support():
@@ -207,15 +216,15 @@ class StructureTracker:
                 if other is not None and other.support > fit.support:
                     fit = other
             if self.good(fit):
-                return self._accept(k, fit, "track", t0, tried)
+                return self._accept(gray, k, fit, "track", t0, tried)
             if self._prev is not None:  # the motion changed: from the last pose itself
                 tried += 1
                 fit = self.edges.fit(gray, self._last)
                 if self.good(fit):
-                    return self._accept(k, fit, "track", t0, tried)
+                    return self._accept(gray, k, fit, "track", t0, tried)
         own = not restarts and self._last is not None
         if own:  # lost with nothing to restart from: the tracker's own hypotheses
-            restarts = self._lost_hypotheses()
+            restarts = self._lost_hypotheses(gray)
         best, n = self._best_of(gray, restarts)
         tried += n
         if best is None and own and self._lost_frames % max(self.cfg.orbit_every, 1) == 0:  # round the structure
@@ -224,7 +233,7 @@ class StructureTracker:
         if best is not None:
             self._prev = None  # a restart has no velocity
             self._supports = []  # nor a history of support
-            return self._accept(k, best[0], best[1], t0, tried)
+            return self._accept(gray, k, best[0], best[1], t0, tried)
         if self._prev is not None:
             self._velocity = self._prev.inverse() @ self._last  # kept for the restarts while lost
         self._prev = None  # the last good pose stays the next frame's prediction
@@ -269,7 +278,7 @@ class StructureTracker:
             start = top.T_world_from_cam
         return None, tried
 
-    def _accept(self, k: int, fit: EdgeFit, source: str, t0: float, tried: int) -> TrackStep:
+    def _accept(self, gray: np.ndarray, k: int, fit: EdgeFit, source: str, t0: float, tried: int) -> TrackStep:
         self._prev = self._last if source == "track" else None
         self._last = fit.T_world_from_cam
         if self._prev is not None:
@@ -279,8 +288,12 @@ class StructureTracker:
         self._supports = (self._supports + [fit.support])[-self.cfg.history:]
         if np.isfinite(fit.region_support):
             self._regions = (self._regions + [fit.region_support])[-self.cfg.history:]
+        if fit.depth_m is not None and fit.instance is not None:
+            self.flow.remember(gray, fit.depth_m, fit.instance, fit.T_world_from_cam)
         rgb = self.edges.colour_frame
         if rgb is not None and fit.uv is not None and fit.normal is not None and fit.sample_instance is not None \
                 and fit.instance is not None:
             self.edges.region.learn(rgb, fit.uv, fit.normal, fit.sample_instance, fit.instance)
+            if not np.isfinite(fit.region_support):  # the first frame: read with the colours it just taught
+                fit = self.edges.with_region(fit)  # (for the parts' check only: not in the track's history)
         return TrackStep(k, "ok", fit.T_world_from_cam.inverse(), fit, source, time.perf_counter() - t0, tried)
