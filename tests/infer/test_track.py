@@ -431,7 +431,8 @@ class TestRegion:
         n = np.tile([1.0, 0.0], (len(ys), 1))
         on = np.stack([np.full_like(ys, 39.5), ys], axis=1)  # the contour: between pixel 39 and 40
         ids = np.ones(len(ys), int)
-        assert np.isnan(search_edges(as_gray(rgb.astype(np.uint8)), on - (3, 0), n, EdgeRefineConfig(search_px=6.0))).all()
+        grey = as_gray(rgb.astype(np.uint8))
+        assert np.isnan(search_edges(grey, on - (3, 0), n, EdgeRefineConfig(search_px=6.0))).all()
         model = RegionModel(RegionConfig())
         assert not model.ready
         noisy, _ = self._two_colours(noise=10.0, seed=1)

@@ -60,7 +60,8 @@ def time_tracker(frames: list[np.ndarray], structure: Structure, camera: Camera,
     for k, img in enumerate(frames):
         g = as_gray(img, colour)
         c0 = time.process_time()
-        s = tr.step(g, [("init_pose", init_pose)] if tr.last_pose is None else [], img[..., :3] if img.ndim == 3 else None)
+        rgb = img[..., :3] if img.ndim == 3 else None
+        s = tr.step(g, [("init_pose", init_pose)] if tr.last_pose is None else [], rgb)
         dt = time.process_time() - c0
         ok += s.state == "ok"
         if k == 0:

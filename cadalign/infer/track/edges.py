@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from cadalign.geometry.camera import project
+from cadalign.infer.track.region import RegionConfig, RegionModel, sample_instances
 from cadalign.render.edge_refine import (
     EdgeRefineConfig,
     contour_samples,
@@ -28,7 +29,6 @@ from cadalign.render.edge_refine import (
     moved_camera,
     search_edges,
 )
-from cadalign.infer.track.region import RegionConfig, RegionModel, sample_instances
 from cadalign.render.raycast import RaycastRenderer, RenderMesh
 from cadalign.types import Camera, Rigid3
 

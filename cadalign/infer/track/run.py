@@ -193,7 +193,8 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                 if restart_source is not None and tracker.lost:
                     restarts += list(restart_source(image, vf.name))
                     times["detector"].append(time.perf_counter() - t0)
-                step = tracker.step(as_gray(image, cfg.tracker.edges.colour), restarts, image[..., :3] if image.ndim == 3 else None)
+                rgb = image[..., :3] if image.ndim == 3 else None
+                step = tracker.step(as_gray(image, cfg.tracker.edges.colour), restarts, rgb)
                 (times["restart"] if step.source not in ("track",) else times["track"]).append(step.seconds)
                 states[step.state] += 1
                 recs, missing = part_records(step, vf.index, vf.name, structure, cfg, missing_before)
