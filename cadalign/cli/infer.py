@@ -21,7 +21,8 @@ def command(
         "T_cam_from_world 4x4}}: per-frame errors and their plot (truth_errors.json/.png)."),
     init_pose: Path | None = typer.Option(
         None, "--init-pose", help="Tracker start: JSON {\"T_cam_from_world\": 4x4, metres} of the first frame, "
-        "rough (a navigation pose, ~0.5 m / 10 deg)."),
+        "rough (a navigation pose, ~0.5 m / 10 deg), or points picked in the first frame: {\"picks\": [{\"uv\": "
+        "[col, row], \"xyz\": [x, y, z]}, ...]} (pixels; the same points on the CAD, metres; at least 4)."),
     tracker: bool | None = typer.Option(
         None, "--tracker/--no-tracker", help="Track the whole structure in the RGB frames (default whenever there "
         "is no --depth and no metric camera poses in --calib)."),
@@ -157,7 +158,7 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
         from cadalign.infer.track.start import detector_restarts
 
         restart, info = detector_restarts(network, structure, camera, device)
-    T0 = read_init_pose(init_pose) if init_pose is not None else None
+    T0 = read_init_pose(init_pose, camera) if init_pose is not None else None
     path = track_video(cfg, source, structure, camera, out, init_pose=T0, restart_source=restart, gt_scene=gt_scene,
                        max_frames=max_frames, overwrite=overwrite, progress=track, lens=lens, topic=topic,
                        record={"detector": info, "cad": str(cad)})

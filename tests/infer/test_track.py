@@ -319,6 +319,38 @@ def test_read_init_pose_errors_name_the_file_and_the_fix(tmp_path: Path) -> None
         read_init_pose(p)
 
 
+def test_picked_points_give_the_first_pose(tmp_path: Path) -> None:
+    from cadalign.infer.track.start import pose_from_picks
+
+    cam = Camera(np.array([[500.0, 0, 320], [0, 505.0, 240], [0, 0, 1]]), 640, 480)
+    T = _view(3).inverse()  # T_cam_from_world
+    X = np.array([[-1.2, -1.0, 0.3], [1.0, -1.1, 0.9], [0.0, 0.2, 1.5], [-1.0, 1.1, 0.1], [1.2, 1.0, 0.6],
+                  [0.3, -0.2, 1.9]])
+    uv, ok = project(cam.K, T.apply(X))
+    assert ok.all()
+    picks = uv - 0.5  # as an image viewer shows them: pixel centres at integers
+    got, rms = pose_from_picks(picks, X, cam)
+    assert rms < 1e-6
+    r, t = _errors(got, T, CENTRE)
+    assert r < 1e-6 and t < 1e-6
+    noisy, rms = pose_from_picks(picks + np.random.default_rng(0).normal(0, 1.0, picks.shape), X, cam)
+    r, t = _errors(noisy, T, CENTRE)
+    assert 0.2 < rms < 2.0 and r < 1.0 and t < 0.1  # 1 px picks: well inside the tracker's start basin
+    p = tmp_path / "picks.json"
+    p.write_text(json.dumps({"picks": [{"uv": u.tolist(), "xyz": x.tolist()} for u, x in zip(picks, X, strict=True)]}))
+    assert np.allclose(read_init_pose(p, cam).matrix(), T.matrix(), atol=1e-6)
+    with pytest.raises(InputError, match="picks.json.*intrinsics"):
+        read_init_pose(p)
+    swapped = picks.copy()
+    swapped[[0, 1]] = swapped[[1, 0]]  # two points picked on each other's corners
+    p.write_text(json.dumps({"picks": [{"uv": u.tolist(), "xyz": x.tolist()} for u, x in zip(swapped, X, strict=True)]}))
+    with pytest.raises(InputError, match="disagree"):
+        read_init_pose(p, cam)
+    p.write_text(json.dumps({"picks": [{"uv": u.tolist(), "xyz": x.tolist()} for u, x in zip(picks[:3], X, strict=False)]}))
+    with pytest.raises(InputError, match="at least 4"):
+        read_init_pose(p, cam)
+
+
 def test_infer_tracks_rgb_frames_from_an_init_pose(tmp_path: Path, track_sim: Path) -> None:
     from typer.testing import CliRunner
 

@@ -31,6 +31,7 @@ from cadalign.formats.calibration import CameraCalibration, Undistorter
 from cadalign.infer.pipeline import PoseRecord
 from cadalign.infer.run import video_writer
 from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, as_gray, with_levels
+from cadalign.infer.track.start import pose_from_picks
 from cadalign.infer.track.tracker import StructureTracker, TrackerConfig, TrackStep
 from cadalign.infer.video import iter_frames
 from cadalign.io import atomic_path, prepare_stage_dir, read_json, write_json
@@ -78,18 +79,31 @@ PRESETS: dict[str, TrackRunConfig] = {
 """``none`` is not a tracker preset; the CLI maps the detector pipeline's preset names onto these."""
 
 
-def read_init_pose(path: Path) -> Rigid3:
-    """``T_cam_from_world`` of the first frame from a JSON file ``{"T_cam_from_world": 4x4 nested list}``
-    (metres; a navigation pose good to ~0.5 m / 10 deg serves)."""
+def read_init_pose(path: Path, camera: Camera | None = None) -> Rigid3:
+    """``T_cam_from_world`` of the first frame from a JSON file: either ``{"T_cam_from_world": 4x4 nested list}``
+    (metres; a navigation pose good to ~0.5 m / 10 deg serves) or points picked in the first frame,
+    ``{"picks": [{"uv": [column, row], "xyz": [x, y, z]}, ...]}`` (pixels as an image viewer shows them, the
+    CAD point in the scene frame in metres; at least 4, see :func:`~cadalign.infer.track.start.pose_from_picks`,
+    which needs ``camera``)."""
     try:
         data = read_json(path)
+        if isinstance(data, dict) and "picks" in data:
+            if camera is None:
+                raise ValueError("picked points need the camera's intrinsics")
+            picks = data["picks"]
+            T, rms = pose_from_picks(np.array([p["uv"] for p in picks], dtype=np.float64),
+                                     np.array([p["xyz"] for p in picks], dtype=np.float64), camera)
+            log.info("%s: first-frame pose from %d picked points, %.2f px RMS", path, len(picks), rms)
+            return T
         M = np.asarray(data["T_cam_from_world"], dtype=np.float64)
         if M.shape != (4, 4):
             raise ValueError(f"shape {M.shape}, expected (4, 4)")
         return Rigid3.from_matrix(M)
     except (KeyError, ValueError, TypeError) as exc:
         raise InputError(f"{path}: not an initial pose ({exc}); write {{\"T_cam_from_world\": [[r00, r01, r02, tx], "
-                         f"..., [0, 0, 0, 1]]}} in metres, the structure (scene) frame in the first camera") from exc
+                         f"..., [0, 0, 0, 1]]}} in metres, the structure (scene) frame in the first camera, or "
+                         f"{{\"picks\": [{{\"uv\": [col, row], \"xyz\": [x, y, z]}}, ...]}}: at least 4 points of "
+                         "the first frame and where they are on the CAD (metres)") from exc
 
 
 def part_records(step: TrackStep, frame_index: int, name: str, structure: Structure, cfg: TrackRunConfig,
