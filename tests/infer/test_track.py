@@ -337,16 +337,20 @@ def test_picked_points_give_the_first_pose(tmp_path: Path) -> None:
     r, t = _errors(noisy, T, CENTRE)
     assert 0.2 < rms < 2.0 and r < 1.0 and t < 0.1  # 1 px picks: well inside the tracker's start basin
     p = tmp_path / "picks.json"
-    p.write_text(json.dumps({"picks": [{"uv": u.tolist(), "xyz": x.tolist()} for u, x in zip(picks, X, strict=True)]}))
+
+    def write(uv: np.ndarray, xyz: np.ndarray) -> None:
+        p.write_text(json.dumps({"picks": [{"uv": u.tolist(), "xyz": x.tolist()} for u, x in zip(uv, xyz, strict=True)]}))
+
+    write(picks, X)
     assert np.allclose(read_init_pose(p, cam).matrix(), T.matrix(), atol=1e-6)
     with pytest.raises(InputError, match="picks.json.*intrinsics"):
         read_init_pose(p)
     swapped = picks.copy()
     swapped[[0, 1]] = swapped[[1, 0]]  # two points picked on each other's corners
-    p.write_text(json.dumps({"picks": [{"uv": u.tolist(), "xyz": x.tolist()} for u, x in zip(swapped, X, strict=True)]}))
+    write(swapped, X)
     with pytest.raises(InputError, match="disagree"):
         read_init_pose(p, cam)
-    p.write_text(json.dumps({"picks": [{"uv": u.tolist(), "xyz": x.tolist()} for u, x in zip(picks[:3], X, strict=False)]}))
+    write(picks[:3], X[:3])
     with pytest.raises(InputError, match="at least 4"):
         read_init_pose(p, cam)
 
