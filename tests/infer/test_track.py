@@ -339,7 +339,8 @@ def test_picked_points_give_the_first_pose(tmp_path: Path) -> None:
     p = tmp_path / "picks.json"
 
     def write(uv: np.ndarray, xyz: np.ndarray) -> None:
-        p.write_text(json.dumps({"picks": [{"uv": u.tolist(), "xyz": x.tolist()} for u, x in zip(uv, xyz, strict=True)]}))
+        rows = [{"uv": u.tolist(), "xyz": x.tolist()} for u, x in zip(uv, xyz, strict=True)]
+        p.write_text(json.dumps({"picks": rows}))
 
     write(picks, X)
     assert np.allclose(read_init_pose(p, cam).matrix(), T.matrix(), atol=1e-6)
