@@ -279,7 +279,7 @@ class EdgeTracker:
                         to_full: float) -> tuple[float, dict[int, float]]:
         """(share of samples on a colour boundary, the same per instance); NaN, {} without the region term."""
         rgb = self.colour_frame
-        if rgb is None or not self.region.ready or rgb.shape[:2] != shape:
+        if rgb is None or not self.region.ready or rgb.shape[:2] != shape or len(uv) == 0:
             return float("nan"), {}
         tol = self.cfg.region_support_px / to_full
         roff = self.region.offsets(rgb, uv, n, inst, 2 * tol)

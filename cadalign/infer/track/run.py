@@ -58,12 +58,16 @@ class TrackRunConfig:
     clutter where the part should be do not make it present."""
     min_part_region: float = 0.02
     """Once the parts' colours are learned, a part with ``min_region_samples`` whose contour samples find their
-    colour boundary (:attr:`~cadalign.infer.track.edges.EdgeFit.instance_region`) less often than this is
-    reported missing: an absent part's outline separates nothing (0.0 in every frame), a present part's
-    rarely does not (docs/tuning/tracker.md)."""
+    colour boundary (:attr:`~cadalign.infer.track.edges.EdgeFit.instance_region`) less often than this, and image
+    edges less often than ``missing_part_edges``, is reported missing: an absent part's outline separates no
+    colours (0.0 in every frame of the scene without hot_stab_1), a present part's seldom (docs/tuning/tracker.md)."""
+    missing_part_edges: float = 0.6
+    """See ``min_part_region``: a part whose outline finds image edges this often is not called missing."""
+    present_part_region: float = 0.1
+    """A part found missing stays missing until a check gives it at least this region support (in frames where
+    it has fewer than ``min_region_samples`` it keeps its verdict)."""
     min_region_samples: int = 20
-    """Contour samples a part needs for the region check. A visible part with fewer keeps the verdict of its
-    last check (a part found missing stays missing while too small to check)."""
+    """Contour samples a part needs for the region check."""
     overlay: bool = True
     """Write overlay.mp4."""
     overlay_fps: float = 5.0
@@ -126,7 +130,10 @@ def part_records(step: TrackStep, frame_index: int, name: str, structure: Struct
         region = step.fit.instance_region.get(k, float("nan"))
         edges_gone = n >= cfg.min_part_samples and (share < cfg.min_part_support or conc < cfg.min_part_concentration)
         if n >= cfg.min_region_samples and np.isfinite(region):
-            memory[k] = bool(region < cfg.min_part_region or edges_gone)
+            if memory.get(k):
+                memory[k] = bool(region < cfg.present_part_region or edges_gone)
+            else:
+                memory[k] = bool((region < cfg.min_part_region and share < cfg.missing_part_edges) or edges_gone)
         elif n >= cfg.min_part_samples:
             memory[k] = bool(edges_gone)
         if memory.get(k):

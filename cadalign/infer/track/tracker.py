@@ -141,8 +141,10 @@ class StructureTracker:
         floor = c.min_start_support if start else max(c.min_support, c.relative_support * self._typical_support())
         if not (fit.samples >= c.min_samples and fit.support >= floor):
             return False
-        if np.isfinite(fit.region_support) and self._regions:
-            region = max(c.min_region_support, c.relative_region * float(np.median(self._regions)))
+        if np.isfinite(fit.region_support):  # the colours are learned: they must agree
+            region = c.min_region_support
+            if self._regions:
+                region = max(region, c.relative_region * float(np.median(self._regions)))
             return fit.region_support >= region and fit.residual_px <= c.max_residual_region_px
         return fit.residual_px <= c.max_residual_px
 
@@ -231,8 +233,7 @@ class StructureTracker:
             best, n = self._best_of(gray, self._orbit_hypotheses(gray))
             tried += n
         if best is not None:
-            self._prev = None  # a restart has no velocity
-            self._supports = []  # nor a history of support
+            self._supports = []  # a restart has no history of support
             return self._accept(gray, k, best[0], best[1], t0, tried)
         if self._prev is not None:
             self._velocity = self._prev.inverse() @ self._last  # kept for the restarts while lost
@@ -279,7 +280,9 @@ class StructureTracker:
         return None, tried
 
     def _accept(self, gray: np.ndarray, k: int, fit: EdgeFit, source: str, t0: float, tried: int) -> TrackStep:
-        self._prev = self._last if source == "track" else None
+        # the motion from the frame before is a velocity when that frame was tracked too (also when this one
+        # needed a restart: a survey's 80 px steps outrun the fit's basin, yet its speed is steady)
+        self._prev = self._last if source == "track" or not self.lost else None
         self._last = fit.T_world_from_cam
         if self._prev is not None:
             self._velocity = self._prev.inverse() @ self._last
