@@ -307,6 +307,44 @@ class TestTrackTiny:
         assert sorted(r.track_id for r in recs) == [1, 2, 4, 5, 6]
 
 
+    def test_a_part_whose_outline_separates_no_colours_is_missing(self, boxes) -> None:
+        """With colour frames and the default thresholds: box 3 absent from the video (what lies behind it shows
+        where the CAD puts it) is reported missing from the first frame on; the others are placed."""
+        from cadalign.build_dataset import Structure
+        from cadalign.cad.model import CadModel
+        from cadalign.infer.track.run import part_records
+        from cadalign.render.bop_writer import PosedObject
+        from cadalign.render.raycast import RaycastRenderer
+
+        meshes, cam, _ = boxes
+        palette = np.array([(40, 90, 150), (200, 80, 40), (60, 170, 60), (210, 190, 40), (150, 60, 170),
+                            (200, 200, 200), (90, 90, 90)], np.float32)
+        light = np.array([0.3, -0.5, -0.8]) / np.linalg.norm([0.3, -0.5, -0.8])
+        without = RaycastRenderer([m for m in meshes if m.instance != 3], cam)
+
+        def frame(k: int) -> tuple[np.ndarray, np.ndarray]:
+            T = _view(k).inverse()
+            f = without.render(T.inverse(), with_full_masks=False)
+            shade = np.where(f.instance > 0, 0.5 + 0.5 * np.abs(f.normals_cam @ (T.R @ light)), 1.0)
+            rgb = np.clip(palette[f.instance % len(palette)] * shade[..., None], 0, 255).astype(np.float32)
+            return as_gray(rgb.astype(np.uint8)), rgb
+
+        structure = Structure(
+            tuple(PosedObject(f"box_{m.instance}", m.instance, 1, Rigid3.identity()) for m in meshes),
+            {m.instance: CadModel(f"box_{m.instance}", m.vertices_m, m.faces) for m in meshes},
+            ("background", "structure"))
+        tr = StructureTracker(meshes, cam, BOXES_TRACKER)
+        memory: dict[int, bool] = {}
+        for k in range(3):
+            g, rgb = frame(k)
+            step = tr.step(g, [("init", _perturbed(_view(0).inverse(), 0.03, 1.0, 2))] if k == 0 else [], rgb)
+            assert step.state == "ok"
+            recs, missing = part_records(step, k, "f", structure, TrackRunConfig(), memory)
+            assert missing == ["box_3"], (k, missing, step.fit.instance_region)
+            assert sorted(r.track_id for r in recs) == [1, 2, 4, 5, 6]
+        assert step.fit.instance_region[3] < 0.02 < 0.5 < min(v for i, v in step.fit.instance_region.items() if i != 3)
+
+
 def test_read_init_pose_errors_name_the_file_and_the_fix(tmp_path: Path) -> None:
     p = tmp_path / "init.json"
     p.write_text(json.dumps({"T_cam_from_world": np.eye(4).tolist()}))
