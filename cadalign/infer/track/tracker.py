@@ -42,6 +42,11 @@ class TrackerConfig:
         EdgeLevel(1.0, 3, 2.5, 1.5),
     )
     """The contour fit of a restart hypothesis: a wider basin than a tracked frame's (a 1/8 level, more rounds)."""
+    flow_levels: tuple[EdgeLevel, ...] = (
+        EdgeLevel(0.5, 4, 4.0, 2.5),
+        EdgeLevel(1.0, 3, 2.5, 1.5),
+    )
+    """The contour fit of a frame the flow predicted (within a few pixels): the coarse level is skipped."""
     orbit_step_deg: float = 30.0
     """While lost, with nothing else to restart from, the last view is also tried turned round the structure's
     vertical axis (world z) in steps of this many degrees (a cut to another side of the structure); 0: off."""
@@ -206,10 +211,10 @@ class StructureTracker:
         self._frames += 1
         tried = 0
         pred = self._prediction()
-        if pred is not None and self.flow.ready:
-            pred = self.flow.predict(gray, pred) or pred
+        flow = self.flow.predict(gray, pred) if pred is not None and self.flow.ready else None
         if pred is not None:
-            fit = self.edges.fit(gray, pred)
+            pred = flow or pred
+            fit = self.edges.fit(gray, pred, self.cfg.flow_levels if flow is not None else None)
             if self.good(fit) and fit.support < self.cfg.doubt_support * self._typical_support():
                 # passes, but well below the track's usual support: a wrong nearby pose fits that way too, so
                 # the search round the prediction decides (the better-supported wins)
