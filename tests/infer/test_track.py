@@ -447,6 +447,39 @@ def test_detector_detections_propose_structure_poses() -> None:
     assert np.allclose(hyps[1][1].matrix(), T_cw.matrix())  # the right instance gives the camera pose
 
 
+def test_detected_part_centres_give_the_structure_pose() -> None:
+    """PnP + RANSAC of detected centres against the CAD's part centres of the same class: which of a class's
+    instances a detection is stays open, a wrong detection is outvoted, and fewer than 4 give nothing."""
+    from cadalign.build_dataset import Structure
+    from cadalign.cad.model import CadModel
+    from cadalign.infer.track.start import centre_hypotheses
+    from cadalign.render.bop_writer import PosedObject
+    from cadalign.types import Detection
+
+    tri = CadModel("b", np.array([[-0.1, -0.1, 0], [0.1, -0.1, 0], [0, 0.1, 0.0]]), np.array([[0, 1, 2]]))
+    places = [(-1.5, -1.0, 0.2), (1.2, -0.8, 0.9), (0.1, 0.9, 0.4), (-0.9, 1.2, 1.4), (1.4, 1.1, 0.1), (0.2, -0.3, 1.8)]
+    objs = tuple(PosedObject(f"p{i}", 1, 2 + i % 2, Rigid3(np.eye(3), np.array(p))) for i, p in enumerate(places))
+    names = ("background", "structure", "valve", "hot_stab")
+    structure = Structure(objs, {1: tri}, names)
+    cam = Camera(np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]), 640, 480)
+    T_cw = _view(2).inverse()
+    no_mask = np.zeros((480, 640), bool)
+
+    def det(i: int, shift=(0.0, 0.0)) -> Detection:
+        uv, _ = project(cam.K, T_cw.apply(np.array([places[i]])))
+        c = uv[0] + shift
+        return Detection(np.array([c[0] - 10, c[1] - 10, c[0] + 10, c[1] + 10]), 2 + i % 2, 0.9, no_mask,
+                         np.eye(3), np.zeros(3))
+
+    rng = np.random.default_rng(1)
+    dets = [det(i, rng.normal(0, 1.0, 2)) for i in range(6)] + [det(0, (150.0, 90.0))]  # + one wrong detection
+    (name, T), = centre_hypotheses(dets, structure, names, cam)
+    assert name == "detector:centres"
+    r, t = _errors(T, T_cw, CENTRE)
+    assert r < 2.0 and t < 0.2, (r, t)  # 1 px centres at ~6 m: a start well inside the contour fit's basin
+    assert centre_hypotheses(dets[:3], structure, names, cam) == []
+
+
 def test_tracker_starts_from_restart_hypotheses_without_an_init_pose(tmp_path: Path, boxes) -> None:
     """With no --init-pose, the restart source (a detector's proposals) starts the track, and is asked again
     only while lost."""

@@ -34,6 +34,84 @@ def hypotheses(detections: list, structure: Structure, class_names: tuple[str, .
     return out
 
 
+def centre_hypotheses(detections: list, structure: Structure, class_names: tuple[str, ...], camera: Camera,
+                      iterations: int = 300, inlier_px: float | None = None, seed: int = 0,
+                      ) -> list[tuple[str, Rigid3]]:
+    """A structure pose from where the parts were detected, not from the pose head: PnP with RANSAC of the
+    detections' centres (mask centroid, else box centre) against the CAD's part centres of the same class. A
+    class with several instances makes each detection ambiguous, so each RANSAC sample also draws which
+    instance each of its 4 detections is. Returns ``[("detector:centres", T_cam_from_world)]`` when at least 4
+    detections agree within ``inlier_px`` (default: 4 % of the image width), else ``[]``."""
+    import cv2  # lazy: cv2 is only needed once detections arrive
+
+    tol = 0.04 * camera.width if inlier_px is None else inlier_px
+    uv, cls = [], []
+    for d in detections:
+        name = class_names[d.label] if 0 <= d.label < len(class_names) else None
+        m = np.asarray(d.mask) if d.mask is not None else np.zeros((0, 0), bool)
+        if m.any():
+            ys, xs = np.nonzero(m)
+            c = np.array([xs.mean(), ys.mean()]) + 0.5  # array convention -> the intrinsics'
+        else:
+            b = np.asarray(d.box_xyxy, dtype=np.float64)
+            c = np.array([(b[0] + b[2]) / 2, (b[1] + b[3]) / 2])  # box edges are pixel boundaries already
+        uv.append(c)
+        cls.append(name)
+    centres = {}
+    for o in structure.objects:
+        v = structure.models[o.obj_id].vertices_m
+        centres.setdefault(structure.class_names[o.class_id], []).append(
+            o.T_world_from_obj.apply(((v.min(axis=0) + v.max(axis=0)) / 2)[None])[0])
+    usable = [i for i, c in enumerate(cls) if c in centres]
+    if len(usable) < 4:
+        return []
+    U = np.array([uv[i] for i in usable])
+    C = [np.array(centres[cls[i]]) for i in usable]
+    rng = np.random.default_rng(seed)
+    best: tuple[int, float, Rigid3] | None = None
+    for _ in range(iterations):
+        pick = rng.choice(len(usable), 4, replace=False)
+        X = np.array([C[j][rng.integers(len(C[j]))] for j in pick])
+        if np.linalg.matrix_rank(X - X.mean(axis=0), tol=1e-3) < 2:
+            continue
+        ok, rvec, tvec = cv2.solvePnP(X, U[pick], camera.K, None, flags=cv2.SOLVEPNP_SQPNP)
+        if not ok:
+            continue
+        T = Rigid3(cv2.Rodrigues(rvec)[0], tvec.ravel())
+        n, err, _ = _centre_inliers(T, U, C, camera, tol)
+        if best is None or (n, -err) > (best[0], -best[1]):
+            best = (n, err, T)
+    if best is None or best[0] < 4:
+        return []
+    n, _, T = best
+    _, _, pairs = _centre_inliers(T, U, C, camera, tol)  # refit on every agreeing detection
+    X = np.array([p[1] for p in pairs])
+    if len(pairs) >= 4 and np.linalg.matrix_rank(X - X.mean(axis=0), tol=1e-3) >= 2:
+        ok, rvec, tvec = cv2.solvePnP(X, np.array([p[0] for p in pairs]), camera.K, None, flags=cv2.SOLVEPNP_SQPNP)
+        if ok:
+            T = Rigid3(cv2.Rodrigues(rvec)[0], tvec.ravel())
+    return [("detector:centres", T)]
+
+
+def _centre_inliers(T: Rigid3, U: np.ndarray, C: list[np.ndarray], camera: Camera, tol: float,
+                    ) -> tuple[int, float, list[tuple[np.ndarray, np.ndarray]]]:
+    """(inliers, their mean error in pixels, (image centre, CAD centre) pairs) of a pose: each detection's
+    nearest projected CAD centre of its class in front of the camera."""
+    n, err, pairs = 0, 0.0, []
+    for u, cands in zip(U, C, strict=True):
+        Xc = T.apply(cands)
+        front = Xc[:, 2] > 1e-6
+        if not front.any():
+            continue
+        p = Xc[front, :2] / Xc[front, 2:] * np.diag(camera.K)[:2] + camera.K[:2, 2]
+        d = np.linalg.norm(p - u, axis=1)
+        k = int(np.argmin(d))
+        if d[k] <= tol:
+            n, err = n + 1, err + float(d[k])
+            pairs.append((u, cands[front][k]))
+    return n, err / max(n, 1), pairs
+
+
 def detector_restarts(model: Path | tuple, structure: Structure, camera: Camera, device: str = "cpu",
                       score_thresh: float = 0.7) -> tuple[Callable[[np.ndarray, str], list], dict]:
     """A restart source for :func:`cadalign.infer.track.run.track_video` from a trained pose network (its run
@@ -54,7 +132,7 @@ def detector_restarts(model: Path | tuple, structure: Structure, camera: Camera,
 
     def source(image: np.ndarray, name: str) -> list[tuple[str, Rigid3]]:
         dets = detector.detect(image_prep.apply(image, prep), camera.K)
-        return hypotheses(dets, structure, class_names)
+        return centre_hypotheses(dets, structure, class_names, camera) + hypotheses(dets, structure, class_names)
 
     return source, info
 
