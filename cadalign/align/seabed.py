@@ -136,7 +136,7 @@ def seabed_from_model(rec: Any, cad_from_sfm: Any, cad_vertices_m: np.ndarray, c
     """:func:`fit_seabed` on a ``pycolmap.Reconstruction`` aligned by ``cad_from_sfm`` (a Sim3)."""
     if not cfg.enabled:
         return None
-    from cadalign.render.raycast import MeshQuery
+    from cadalign.raycast.core import MeshQuery
 
     xyz = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
     P = cad_from_sfm.apply(xyz) if len(xyz) else xyz

@@ -22,8 +22,8 @@ def command(
 ) -> None:
     """Align the CAD to the SfM cloud (global + Sim(3) ICP); a failed quality gate writes nothing."""
     from cadalign.align import PRESETS, AlignConfig, run
-    from cadalign.build_dataset import load_structure
     from cadalign.config import resolve
+    from cadalign.sim.structure import load_structure
 
     with user_errors():
         cfg = resolve(AlignConfig, PRESETS, preset, config, {})

@@ -21,7 +21,7 @@ def command(
 ) -> None:
     """Run the whole pipeline on the embedded default scene and write a summary."""
     from cadalign.cli.sim import _resolution
-    from cadalign.demo import run_demo
+    from cadalign.demo.run import run_demo
 
     with user_errors():
         summary = run_demo(out, scene=scene, frames=frames, resolution=_resolution(resolution), progress=track)

@@ -28,7 +28,7 @@ MODEL_SEG_HELP = "Image sources: a 'cadalign train seg' run (or .pt) whose class
 def _predictors(model_depth: Path | None, model_seg: Path | None, device: str, source: Path) -> dict:
     """``run`` keyword arguments using trained networks for an image source's depth / classes.
 
-    The frame is prepared as each network's training images were (:mod:`cadalign.data.image_prep`: a built
+    The frame is prepared as each network's training images were (:mod:`cadalign.sfm.image_prep`: a built
     dataset's frames are already CLAHE-enhanced, a simulator's are raw; an ``.npz`` says nothing and is fed as
     it is).
 
@@ -37,9 +37,9 @@ def _predictors(model_depth: Path | None, model_seg: Path | None, device: str, s
     """
     if model_depth is None and model_seg is None:
         return {}
-    from cadalign.data.image_prep import read_prep
     from cadalign.emulate.sources import image_scene_dir, require_image_source
     from cadalign.fuse.predictors import depth_predictor, seg_predictor
+    from cadalign.sfm.image_prep import read_prep
 
     source = Path(source)  # checked before the networks are built
     require_image_source(source, " and ".join(o for o, m in (("--model-depth", model_depth),

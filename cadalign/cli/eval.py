@@ -27,7 +27,7 @@ def seg(
     flip_tta: bool = typer.Option(False, "--flip-tta", help="Average each frame with its mirror (2x time)."),
 ) -> None:
     """Per-class IoU, mIoU and pixel accuracy of a segmentation model."""
-    from cadalign.eval.dense_eval import evaluate_seg
+    from cadalign.evaluate.dense import evaluate_seg
 
     with user_errors():
         res = evaluate_seg(model, ds, out, split=split, device=device, n_vis=figures, flip_tta=flip_tta)
@@ -50,8 +50,8 @@ def depth(
 ) -> None:
     """Eigen depth metrics (AbsRel, SqRel, RMSE, RMSElog, delta<1.25^k), over all valid pixels and per class."""
     from cadalign.config import from_dict
-    from cadalign.eval.dense_eval import evaluate_depth
-    from cadalign.eval.depth_metrics import DepthEvalConfig
+    from cadalign.evaluate.dense import evaluate_depth
+    from cadalign.metrics.depth import DepthEvalConfig
 
     with user_errors():
         cfg = from_dict(DepthEvalConfig, {"max_depth_m": max_depth, "min_depth_m": min_depth, "alignment": alignment},

@@ -25,10 +25,10 @@ def command(
     short tracks' detections, and their masks are the reported ones, so ``infer --gt``'s ``eval.json`` (all the
     network's detections) may differ in those sections."""
     from cadalign.errors import InputError
-    from cadalign.eval.pose_eval import PoseEvalConfig
     from cadalign.infer.detect import frame_ids, resolve_scene_dir
     from cadalign.infer.run import evaluate_run, read_poses
     from cadalign.io import read_json
+    from cadalign.metrics.pose_eval import PoseEvalConfig
 
     with user_errors():
         path = poses / "poses.jsonl" if poses.is_dir() else poses

@@ -47,12 +47,13 @@ def command(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
 ) -> None:
     """Detect the parts, refine their poses against the CAD, fuse them over time; write poses.jsonl + overlay."""
-    from cadalign.build_dataset import load_structure
     from cadalign.config import resolve
     from cadalign.errors import InputError
     from cadalign.infer import detect as det
     from cadalign.infer.pipeline import PRESETS, InferConfig
     from cadalign.infer.run import calibration_from_scene, load_calibration, run
+    from cadalign.sim.structure import load_structure
+    from cadalign.testing import oracle
 
     with user_errors():
         use_tracker = tracker if tracker is not None else (
@@ -77,8 +78,8 @@ def command(
             info = {"kind": "network", "run": str(model), "step": meta.get("step")}
         else:
             scene = det.resolve_scene_dir(oracle_gt)
-            ocfg = det.OracleConfig(noise_t_m=oracle_noise_t, noise_r_deg=oracle_noise_r, seed=cfg.refine.seed)
-            detector = det.OracleDetector(scene, ocfg)
+            ocfg = oracle.OracleConfig(noise_t_m=oracle_noise_t, noise_r_deg=oracle_noise_r, seed=cfg.refine.seed)
+            detector = oracle.OracleDetector(scene, ocfg)
             class_names = detector.classes.names
             info = {"kind": "oracle", "note": "ground truth + noise, NOT a trained network", "scene": str(scene),
                     "noise_t_m": oracle_noise_t, "noise_r_deg": oracle_noise_r}
@@ -112,12 +113,12 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
            calib: Path | None, max_frames: int | None, cad_unit: str | None, device: str, preset: str,
            config: Path | None, overwrite: bool, topic: str | None, gt_poses: Path | None) -> None:
     """The tracker branch of ``infer`` (:mod:`cadalign.infer.track.run`)."""
-    from cadalign.build_dataset import load_structure
     from cadalign.config import resolve
     from cadalign.errors import InputError
     from cadalign.infer import detect as det
     from cadalign.infer.track.run import PRESETS, TrackRunConfig, read_init_pose, track_video
     from cadalign.infer.video import iter_frames
+    from cadalign.sim.structure import load_structure
 
     if model is None and init_pose is None:
         raise InputError("the tracker needs a start: pass --init-pose FILE (a rough first-frame pose) and/or --model "

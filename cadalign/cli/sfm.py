@@ -67,7 +67,7 @@ def command(
         out_dir = run(cfg, source, out, overwrite=overwrite, progress=track, topic=topic)
         report = out_dir / "sfm_report.json"
         if gt is not None:
-            from cadalign.eval.sfm_metrics import run as evaluate
+            from cadalign.evaluate.sfm import run as evaluate
 
             evaluate(out_dir, gt)
     _summary(report)

@@ -5,7 +5,7 @@ normalised here, so the hit parameter is the Euclidean range in metres) and retu
 range, face index and barycentrics ``(u, v)`` of the hit point ``(1 - u - v) A + u B + v C`` on the face
 ``(A, B, C)``, so every hit can be given the mesh's colour, class, part and pane layers.
 
-Both engines work relative to the mesh's bounding-box centre (like :mod:`cadalign.render.raycast`), so
+Both engines work relative to the mesh's bounding-box centre (like :mod:`cadalign.raycast.core`), so
 worlds far from the origin (UTM coordinates) keep their precision: Open3D casts in float32 on the shifted
 coordinates, the torch engine in float64 by default.
 

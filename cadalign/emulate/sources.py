@@ -201,7 +201,7 @@ def read_image_input(path: Path) -> ImageInput:
             if "class_names" in z.files:
                 opt["class_names"] = tuple(str(n) for n in z["class_names"])
             return ImageInput(z["rgb"], z["depth_m"], z["K"], **opt)
-    from cadalign.data.bop import BopScene
+    from cadalign.formats.bop import BopScene
     from cadalign.io import read_image
 
     bop = BopScene(scene_dir)

@@ -8,7 +8,7 @@ Outputs in ``OUT``::
     OUT/points.ply         labelled point cloud
     OUT/views.png          ray-cast views of the mesh coloured by class and by observed colour
     OUT/fuse_report.json   frames, timings (frames/s), map size and, where the CAD truth is known, the
-                           metrics of cadalign.eval.map_metrics
+                           metrics of cadalign.metrics.map
     OUT/cadalign_stage.json  the resolved config and version
 
 An interrupted run continues from the last map checkpoint; a finished one is reused; a folder made with
@@ -25,15 +25,15 @@ from pathlib import Path
 import numpy as np
 
 from cadalign.config import to_dict
-from cadalign.data.image_prep import read_prep
 from cadalign.errors import InputError
-from cadalign.eval.map_metrics import load_truth, map_metrics, point_truth_labels, sample_surface, visible_mask
 from cadalign.fuse.base import LabelledGeometry, SemanticMap
 from cadalign.fuse.config import FuseConfig
 from cadalign.fuse.inputs import FrameSource, open_source
 from cadalign.fuse.map_io import MapMeta, load_map, new_map, save_map, write_ply
 from cadalign.fuse.views import render_views
 from cadalign.io import prepare_stage_dir, write_json
+from cadalign.metrics.map import load_truth, map_metrics, point_truth_labels, sample_surface, visible_mask
+from cadalign.sfm.image_prep import read_prep
 from cadalign.types import Progress
 
 log = logging.getLogger(__name__)
@@ -79,7 +79,7 @@ def fuse(source: FrameSource, cfg: FuseConfig, *, m: SemanticMap | None = None, 
 
 def evaluate(source: FrameSource, cfg: FuseConfig, mesh: LabelledGeometry, points: LabelledGeometry,
              seed: int = 0) -> dict:
-    """Map metrics against the scene's truth (see :mod:`cadalign.eval.map_metrics`): the CAD for geometry, the
+    """Map metrics against the scene's truth (see :mod:`cadalign.metrics.map`): the CAD for geometry, the
     scene's true depth for visibility and its class maps for the labels of surface points."""
     truth = load_truth(source.scene.dir)
     samples, _ = sample_surface(truth, spacing_m=max(cfg.voxel_m, 0.01), seed=seed)

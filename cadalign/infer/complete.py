@@ -38,10 +38,10 @@ from typing import Any
 import numpy as np
 
 from cadalign.config import bounded
-from cadalign.eval.pose_eval import CroppedMask
 from cadalign.geometry.compare import box_iou
 from cadalign.infer.model_geom import ModelGeometry, project_points, render_depth
 from cadalign.infer.track_fit import RefitConfig
+from cadalign.metrics.pose_eval import CroppedMask
 from cadalign.types import Rigid3
 
 

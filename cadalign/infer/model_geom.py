@@ -92,7 +92,7 @@ def render_silhouette(geom: ModelGeometry, T_cam_from_obj: Rigid3, K: np.ndarray
     """(H, W) bool silhouette of the model, in a window whose top-left pixel is ``offset`` = (x0, y0).
 
     Exact: one ray through each pixel centre, cast against the model (Open3D, one thread), the same rule as
-    the ground-truth masks of :mod:`cadalign.render.raycast`.
+    the ground-truth masks of :mod:`cadalign.raycast.core`.
     """
     return np.isfinite(render_depth(geom, T_cam_from_obj, K, shape, offset))
 

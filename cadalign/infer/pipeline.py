@@ -20,7 +20,6 @@ import numpy as np
 
 from cadalign.cad.model import CadModel
 from cadalign.config import bounded
-from cadalign.eval.pose_metrics import rotation_error_deg
 from cadalign.geometry.compare import box_iou, mask_iou
 from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.infer.complete import CompleteConfig, WorldTrack
@@ -51,6 +50,7 @@ from cadalign.infer.track_fit import (
     refit_world_pose,
     turn_track,
 )
+from cadalign.metrics.pose import rotation_error_deg
 from cadalign.types import Rigid3
 
 log = logging.getLogger(__name__)
@@ -181,7 +181,7 @@ class InferConfig:
     """Surface samples per CAD model for ICP."""
     enhance: Literal["auto", "none", "clahe", "clahe_wb"] = "auto"
     """Pre-processing of each frame before detection, as :func:`cadalign.sfm.frames.enhance`. 'auto': as the
-    network's training images were prepared (:mod:`cadalign.data.image_prep`: a built dataset's images were
+    network's training images were prepared (:mod:`cadalign.sfm.image_prep`: a built dataset's images were
     CLAHE-enhanced by SfM, a simulator's are raw), read from the run folder; the others force one (default CLAHE
     settings). Measured on the default scene's 16 held-out frames: valve F1 0.902 on the dataset's images, 0.676
     on the raw frames. The overlay is drawn on the raw frame."""
@@ -226,7 +226,7 @@ class PoseRecord:
     """After refinement, before temporal fusion."""
     refine_iters: dict[str, int]
     mask: np.ndarray | None = None
-    """(H, W) bool from the detector (a :class:`~cadalign.eval.pose_eval.CroppedMask` once stored for evaluation)."""
+    """(H, W) bool from the detector (a :class:`~cadalign.metrics.pose_eval.CroppedMask` once stored for evaluation)."""
     source: str = "detector"
     """``detector``: a detection of this frame; ``track``: added by track completion (:mod:`cadalign.infer.complete`),
     the track's world pose projected into a frame where the detector missed the part."""
@@ -235,7 +235,7 @@ class PoseRecord:
     same."""
 
     def to_json(self) -> dict:
-        from cadalign.data.coco import mask_to_rle
+        from cadalign.formats.coco import mask_to_rle
 
         return {
             "frame": self.frame, "frame_name": self.frame_name, "obj_id": self.obj_id, "track_id": self.track_id,

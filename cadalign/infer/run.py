@@ -31,9 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from cadalign.cad.model import CadModel
-from cadalign.data import image_prep
 from cadalign.errors import InputError
-from cadalign.eval.pose_eval import CroppedMask, PoseEvalConfig
 from cadalign.formats.calibration import CameraCalibration, Undistorter, read_calibration
 from cadalign.infer.complete import TrackCompleter
 from cadalign.infer.detect import Detector, frame_ids, models_dir_of
@@ -41,6 +39,8 @@ from cadalign.infer.model_geom import draw_wireframe
 from cadalign.infer.pipeline import InferConfig, PosePipeline, PoseRecord
 from cadalign.infer.video import VideoFrame, iter_frames
 from cadalign.io import atomic_path, prepare_stage_dir, read_json, write_json, write_text
+from cadalign.metrics.pose_eval import CroppedMask, PoseEvalConfig
+from cadalign.sfm import image_prep
 from cadalign.types import Progress, Rigid3
 
 log = logging.getLogger(__name__)
@@ -98,7 +98,7 @@ def load_calibration(path: Path, *, use_poses: bool = True) -> Calibration:
 
 def calibration_from_scene(scene_dir: Path, *, use_poses: bool = True) -> Calibration:
     """Intrinsics (and camera poses) of a BOP scene's ``scene_camera.json``, keyed by frame name."""
-    from cadalign.data.bop import BopScene
+    from cadalign.formats.bop import BopScene
 
     scene = BopScene(scene_dir)
     K_of, T_of = {}, {}
@@ -126,7 +126,7 @@ class _DepthSource:
     (``raw_frames``: ``enhance = "auto"``), else the frame as the detector gets it."""
 
     def __init__(self, path: Path | None, *, raw_frames: bool = True, device: str = "cpu") -> None:
-        from cadalign.data.bop import BopScene
+        from cadalign.formats.bop import BopScene
 
         self.scene, self.ids, self.predict, self.raw_frames = None, {}, None, raw_frames
         if path is not None and is_depth_run(path):
@@ -362,10 +362,10 @@ def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, ou
 
     ``fused``: the records the fused section scores (after track completion), ``records`` by default; the other
     sections score ``records`` (the detections). ``eval_cfg`` defaults to
-    :class:`~cadalign.eval.pose_eval.PoseEvalConfig` () (BOP's rules)."""
-    from cadalign.data.torch_datasets import load_class_map
-    from cadalign.eval.pose_eval import PosePrediction, evaluate_scene, load_bop_models, table_markdown
-    from cadalign.eval.pose_symmetry import warn_undeclared
+    :class:`~cadalign.metrics.pose_eval.PoseEvalConfig` () (BOP's rules)."""
+    from cadalign.formats.class_map import load_class_map
+    from cadalign.metrics.pose_eval import PosePrediction, evaluate_scene, load_bop_models, table_markdown
+    from cadalign.metrics.pose_symmetry import warn_undeclared
 
     cmap = load_class_map(gt_scene)
     ids = frame_ids(gt_scene)
@@ -401,7 +401,7 @@ def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, ou
 
 def read_poses(path: Path) -> list[PoseRecord]:
     """The records of a ``poses.jsonl`` (masks decoded when stored)."""
-    from cadalign.data.coco import rle_to_mask
+    from cadalign.formats.coco import rle_to_mask
 
     out = []
     for i, line in enumerate(Path(path).read_text(encoding="utf-8").splitlines()):

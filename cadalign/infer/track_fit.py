@@ -38,13 +38,13 @@ import numpy as np
 
 from cadalign.cad.symmetry import Symmetry
 from cadalign.config import bounded
-from cadalign.eval.pose_metrics import rotation_error_deg
 from cadalign.geometry.rotations import axis_angle_to_matrix, orthonormalize
 from cadalign.infer.depth_icp import FIT_CAP, depth_fit
 from cadalign.infer.half_turn import view_disagreement_parts
 from cadalign.infer.model_geom import ModelGeometry
 from cadalign.infer.pose_math import canonicalize
 from cadalign.infer.refine_math import clamp_step, huber_weights
+from cadalign.metrics.pose import rotation_error_deg
 from cadalign.types import Rigid3
 
 

@@ -249,7 +249,7 @@ def _plot(rec: Any, path: Path) -> None:
 def _finish_report(lay: Layout, keep_gt: bool) -> None:
     """sfm_report.json from the step markers (so a resumed run reports the original timings).
 
-    A ground-truth section written by :mod:`cadalign.eval.sfm_metrics` is kept when nothing was recomputed.
+    A ground-truth section written by :mod:`cadalign.evaluate.sfm` is kept when nothing was recomputed.
     """
     marks = {s: read_json(lay.marker(s)) for s in STEPS}
     frames = read_json(lay.root / "frames.json")

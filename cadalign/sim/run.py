@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from cadalign.data import bop
+from cadalign.formats import bop
 from cadalign.io import prepare_stage_dir, read_json, write_image, write_json
-from cadalign.render.bop_writer import frame_done, write_bop_frame
+from cadalign.raycast.bop_writer import frame_done, write_bop_frame
 from cadalign.sim.effects_chain import build_chain, run_chain
 from cadalign.sim.gt_files import posed_objects, write_models, write_scene_files
 from cadalign.sim.render import FrameGT, GroundTruthCaster, RGBRenderer

@@ -18,8 +18,8 @@ import torch
 from torch import nn
 
 from cadalign.config import bounded
-from cadalign.data.image_prep import read_prep
 from cadalign.models.resunet import ResUNet, ResUNetConfig
+from cadalign.sfm.image_prep import read_prep
 from cadalign.train.augment import AugmentConfig, augment_dense, random_patches
 from cadalign.train.common import write_run_record
 from cadalign.train.data import ScaledDataset, class_pixel_counts, select
@@ -175,7 +175,7 @@ def val_miou(ds: ScaledDataset, classes: tuple[str, ...], device: str, batch: in
     n = len(classes)
 
     def fn(model: nn.Module) -> dict[str, float]:
-        cm = np.zeros(n * n, dtype=np.int64)  # the full metrics live in cadalign.eval; IoU is all we log here
+        cm = np.zeros(n * n, dtype=np.int64)  # the full metrics live in cadalign.evaluate; IoU is all we log here
         for i in range(0, len(ds), batch):
             items = [ds[j] for j in range(i, min(i + batch, len(ds)))]
             pred = model(torch.stack([it["image"] for it in items]).to(device)).argmax(1).cpu()
@@ -229,7 +229,7 @@ def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train",
     ``out/train_config.json`` records the resolved config, class list, class weights and data selection; the
     checkpoint carries the class list and model config, and resuming with other ones is refused.
     """
-    from cadalign.data.torch_datasets import SegmentationDataset
+    from cadalign.train.datasets import SegmentationDataset
 
     sel = select(ds, split)
     base = SegmentationDataset(sel.scene_dir, sel.ids)

@@ -15,9 +15,9 @@ from typer.testing import CliRunner
 
 from cadalign.cad.model import CadModel
 from cadalign.cli.main import app
-from cadalign.eval.pose_eval import CroppedMask
 from cadalign.infer.complete import CompleteConfig, TrackCompleter, WorldTrack, project_visible
 from cadalign.infer.model_geom import ModelGeometry, render_depth
+from cadalign.metrics.pose_eval import CroppedMask
 from cadalign.types import Rigid3
 
 K = np.array([[100.0, 0, 80], [0, 100.0, 60], [0, 0, 1]])
@@ -266,7 +266,7 @@ class _Misses:
     name = "oracle"
 
     def __init__(self, scene: Path, frame: str) -> None:
-        from cadalign.infer.detect import OracleConfig, OracleDetector
+        from cadalign.testing.oracle import OracleConfig, OracleDetector
 
         self.inner, self.frame, self.current = OracleDetector(scene, OracleConfig()), frame, None
 

@@ -9,10 +9,14 @@ import numpy as np
 import pytest
 
 from cadalign.cad.model import CadModel
-from cadalign.data.bop import BopScene
-from cadalign.data.torch_datasets import load_class_map
-from cadalign.eval import pose_metrics as pm
-from cadalign.eval.pose_eval import (
+from cadalign.formats.bop import BopScene
+from cadalign.formats.class_map import load_class_map
+from cadalign.geometry.rotations import axis_angle_to_matrix
+from cadalign.infer.detect import resolve_scene_dir
+from cadalign.infer.pipeline import PRESETS, PosePipeline
+from cadalign.metrics import pose as pm
+from cadalign.metrics.pose import rotation_error_deg
+from cadalign.metrics.pose_eval import (
     PoseEvalConfig,
     PosePrediction,
     evaluate_scene,
@@ -20,10 +24,7 @@ from cadalign.eval.pose_eval import (
     load_bop_models,
     table_markdown,
 )
-from cadalign.eval.pose_metrics import rotation_error_deg
-from cadalign.geometry.rotations import axis_angle_to_matrix
-from cadalign.infer.detect import OracleConfig, OracleDetector, resolve_scene_dir
-from cadalign.infer.pipeline import PRESETS, PosePipeline
+from cadalign.testing.oracle import OracleConfig, OracleDetector
 from cadalign.types import Rigid3
 
 

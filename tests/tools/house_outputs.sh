@@ -23,7 +23,7 @@ rm -rf "$OUT" "$FINAL" && mkdir -p "$OUT"
 "$PY" - "$OUT" <<'PYEOF'
 import sys
 from pathlib import Path
-from sim_testdata import write_build_capture, write_tiny_scene
+from cadalign.testing.tiny_scene import write_build_capture, write_tiny_scene
 out = Path(sys.argv[1])
 write_tiny_scene(out / "tiny.toml", effects=[], frames=4)
 write_build_capture(out / "capture.toml", effects=[], frames=12)
@@ -44,7 +44,7 @@ fi
 "$PY" - "$OUT" <<'PYEOF'
 import sys
 from pathlib import Path
-from sim_testdata import write_picks_from_truth
+from cadalign.testing.tiny_scene import write_picks_from_truth
 out = Path(sys.argv[1])
 write_picks_from_truth(out / "build" / "sfm", out / "capture", out / "picks.json")
 PYEOF

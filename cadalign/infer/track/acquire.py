@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cadalign.align.edge_refine import EdgeRefineConfig, contour_samples
 from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.infer.track.edges import EdgeTracker
-from cadalign.render.edge_refine import EdgeRefineConfig, contour_samples
 from cadalign.types import Rigid3
 
 

@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from cadalign.build_dataset import Structure
 from cadalign.infer.track.edges import as_gray
 from cadalign.infer.track.tracker import StructureTracker, TrackerConfig
 from cadalign.infer.video import iter_frames
+from cadalign.sim.structure import Structure
 from cadalign.types import Camera, Rigid3
 
 

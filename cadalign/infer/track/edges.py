@@ -2,9 +2,9 @@
 
 At each level (a scale of the image) the CAD is ray-cast at the current pose with a camera of that size, its
 occluding contours are sampled with their image-plane normals
-(:func:`cadalign.render.edge_refine.contour_samples`), the image is searched along each normal for the edge of
-the expected contrast sign (:func:`~cadalign.render.edge_refine.search_edges`), and one rigid motion is
-fitted to the offsets by Tukey IRLS (:func:`~cadalign.render.edge_refine.fit_correction`). A coarse level
+(:func:`cadalign.align.edge_refine.contour_samples`), the image is searched along each normal for the edge of
+the expected contrast sign (:func:`~cadalign.align.edge_refine.search_edges`), and one rigid motion is
+fitted to the offsets by Tukey IRLS (:func:`~cadalign.align.edge_refine.fit_correction`). A coarse level
 with a long search range captures motions of tens of pixels; the finer levels finish to sub-pixel.
 
 The quality of the result is read at the finest level with a short search: the share of contour samples
@@ -18,8 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from cadalign.geometry.camera import project
-from cadalign.render.edge_refine import (
+from cadalign.align.edge_refine import (
     EdgeRefineConfig,
     contour_samples,
     edge_jacobian,
@@ -28,7 +27,8 @@ from cadalign.render.edge_refine import (
     moved_camera,
     search_edges,
 )
-from cadalign.render.raycast import RaycastRenderer, RenderMesh
+from cadalign.geometry.camera import project
+from cadalign.raycast.core import RaycastRenderer, RenderMesh
 from cadalign.types import Camera, Rigid3
 
 
@@ -250,7 +250,7 @@ def _pixels(K: np.ndarray, X_cam: np.ndarray) -> np.ndarray:
 def as_gray(image: np.ndarray, colour: bool = False) -> np.ndarray:
     """The frame as the edge search reads it: (H, W) float32 grey levels 0-255 of an RGB uint8 (or already
     grey) image, or with ``colour`` the (H, W, 3) channels as float32 (each edge sample then takes its strongest
-    channel, :func:`~cadalign.render.edge_refine.search_edges`)."""
+    channel, :func:`~cadalign.align.edge_refine.search_edges`)."""
     import cv2
 
     if image.ndim == 3 and colour:

@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numpy as np
 
-from cadalign.build_dataset import Structure
 from cadalign.errors import InputError
 from cadalign.formats.calibration import CameraCalibration, Undistorter
 from cadalign.infer.pipeline import PoseRecord
@@ -34,6 +33,7 @@ from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, as_gray, with
 from cadalign.infer.track.tracker import StructureTracker, TrackerConfig, TrackStep
 from cadalign.infer.video import iter_frames
 from cadalign.io import atomic_path, prepare_stage_dir, read_json, write_json
+from cadalign.sim.structure import Structure
 from cadalign.types import Camera, Progress, Rigid3
 
 log = logging.getLogger(__name__)
