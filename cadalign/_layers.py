@@ -39,6 +39,16 @@ KNOWN_UPWARD_IMPORTS: frozenset[tuple[str, str]] = frozenset()
 """(importer, imported) pairs that break the layer order; a new one fails the architecture test. Empty: keep it so."""
 
 
+HEAVY_DEPENDENCIES: frozenset[str] = frozenset({
+    "torch", "torchvision", "kornia", "open3d", "pycolmap", "ray", "transformers", "safetensors", "OCP", "matplotlib",
+    "cv2", "scipy", "trimesh", "pyrender", "pymeshlab", "rosbags", "cascadio", "imageio",
+})
+"""Third-party packages slow to import (or optional) that a module may import inside a function, with a ``# lazy:``
+reason on the line (or the line above): so a path that does not need them (``cadalign --help``, a CPU-only or
+torch-free command, ``import cadalign.geometry``) does not pay for them. Every other import stands at module top.
+``cv2``, ``scipy`` and ``trimesh`` are lazy only where they would slow ``cadalign --help``."""
+
+
 def layer_of(module: str) -> int | None:
     """Index in :data:`LAYERS` of the room with the longest prefix of ``module`` (None: no room holds it).
 

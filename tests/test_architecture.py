@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 import cadalign
-from cadalign._layers import KNOWN_UPWARD_IMPORTS, LAYERS, layer_of
+from cadalign._layers import HEAVY_DEPENDENCIES, KNOWN_UPWARD_IMPORTS, LAYERS, layer_of
 
 PACKAGE_DIR = Path(cadalign.__file__).resolve().parent
 
@@ -150,6 +150,59 @@ def test_no_new_upward_imports(graph: dict[str, dict[str, int]]) -> None:
 def test_known_upward_imports_still_exist(graph: dict[str, dict[str, int]]) -> None:
     """A fixed violation leaves the allow-list, so the list only shrinks."""
     assert sorted(KNOWN_UPWARD_IMPORTS - set(upward_imports(graph))) == []
+
+
+def imports_inside_functions(path: Path) -> Iterator[ast.Import | ast.ImportFrom]:
+    """Every import statement inside a function (methods and nested functions included)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    for func in ast.walk(tree):
+        if isinstance(func, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            for node in ast.walk(func):
+                if isinstance(node, (ast.Import, ast.ImportFrom)):
+                    yield node
+
+
+def lazy_import_problems(package_dir: Path) -> list[str]:
+    """Imports inside functions without a ``# lazy:`` reason on the line or the line above, or of a third-party
+    package that is not a heavy one (those belong at module top)."""
+    problems = []
+    root = package_dir.name
+    seen: set[tuple[Path, int]] = set()
+    for path in sorted(package_dir.rglob("*.py")):
+        lines = path.read_text(encoding="utf-8").splitlines()
+        for node in imports_inside_functions(path):
+            if (path, node.lineno) in seen:  # a nested function's import is walked once per enclosing function
+                continue
+            seen.add((path, node.lineno))
+            where = f"{path.relative_to(package_dir.parent)}:{node.lineno}"
+            here, above = lines[node.lineno - 1], lines[node.lineno - 2] if node.lineno > 1 else ""
+            if "# lazy:" not in here and not above.strip().startswith("# lazy:"):
+                problems.append(f"{where}: an import inside a function needs a '# lazy: <reason>' comment (an "
+                                "optional or heavy dependency it keeps off a light path), else move it to the top")
+            if isinstance(node, ast.ImportFrom) and node.level:
+                continue
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+            for name in names:
+                top = name.split(".")[0]
+                if top != root and top not in HEAVY_DEPENDENCIES:
+                    problems.append(f"{where}: {name} is not a heavy dependency "
+                                    "(cadalign._layers.HEAVY_DEPENDENCIES); import it at module top")
+    return problems
+
+
+def test_imports_inside_functions_are_lazy_for_a_reason() -> None:
+    problems = lazy_import_problems(PACKAGE_DIR)
+    assert not problems, "\n".join(problems)
+
+
+def test_a_lazy_import_without_a_reason_is_found(tmp_path: Path) -> None:
+    pkg = _write(tmp_path, {
+        "pkg/__init__.py": "",
+        "pkg/a.py": ("def f():\n    import torch  # lazy: heavy dependency (torch)\n    import json\n"
+                     "    # lazy: pulls torch\n    from pkg import b\n    from pkg import c\n"),
+    })
+    found = lazy_import_problems(pkg)
+    assert len(found) == 3 and "a.py:3" in found[0] and "a.py:3" in found[1] and "a.py:6" in found[2]
 
 
 def _write(root: Path, files: dict[str, str]) -> Path:

@@ -24,6 +24,8 @@ import numpy as np
 
 from cadalign.align.edge_refine import EdgeRefineConfig
 from cadalign.geometry import geodesic_angle
+from cadalign.raycast.core import MeshQuery
+from cadalign.sfm.colmap_log import stderr_captured
 from cadalign.types import Rigid3, Sim3
 
 log = logging.getLogger(__name__)
@@ -90,9 +92,7 @@ def refine_cameras(rec: Any, cad_from_sfm: Sim3, vertices_m: np.ndarray, faces: 
                    cfg: CameraRefineConfig) -> RefineResult:
     """Refine the registered cameras of ``rec`` (a ``pycolmap.Reconstruction``, left unchanged) against the
     CAD mesh (world frame, metres); see the module doc."""
-    import pycolmap
-
-    from cadalign.raycast.core import MeshQuery
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     model = pycolmap.Reconstruction(rec)
     ids = list(model.points3D)
@@ -148,7 +148,7 @@ def _anchored_bundle_adjustment(model: Any, opts: Any) -> None:
     """Bundle adjustment with every 3D point held constant and *no* gauge fixing: the CAD-anchored
     points fix position, orientation and scale, so every camera (pycolmap's default would hold two
     cameras or three points fixed) is free to move."""
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     config = pycolmap.BundleAdjustmentConfig()
     for im in model.images.values():
@@ -159,7 +159,6 @@ def _anchored_bundle_adjustment(model: Any, opts: Any) -> None:
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.UNSPECIFIED)
     if config.num_residuals(model) == 0:
         return
-    from cadalign.sfm.colmap_log import stderr_captured
 
     with stderr_captured():  # the adjuster logs at INFO whatever glog's flags say
         pycolmap.create_default_bundle_adjuster(opts, config, model).solve()

@@ -22,6 +22,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import numpy as np
 
 from cadalign.geometry.camera import project_jacobian
@@ -112,7 +113,6 @@ def contour_samples(depth: np.ndarray, rays_unit: np.ndarray, range_m: np.ndarra
     side). A pixel counts once even when several neighbours are far (the normal comes from the inverse-depth
     gradient, not from the neighbour). With ``instance``, only pixels of an object (> 0) are near sides:
     background geometry such as the seabed occludes, but its own outline is no CAD edge."""
-    import cv2
 
     z = np.where(depth > 0, depth, np.inf).astype(np.float64)
     H, W = z.shape
@@ -151,7 +151,6 @@ def search_edges(gray: np.ndarray, uv: np.ndarray, normal: np.ndarray, cfg: Edge
     inside the search range (or the peak lies on the range's end). ``gray`` (H, W) or (H, W, C): with several
     channels each sample takes the channel whose edge is strongest (a yellow part on a white desk differs in
     blue, hardly in grey)."""
-    import cv2
 
     S = float(cfg.search_px)
     s = np.arange(-S - 1.0, S + 1.0 + 1e-9, 0.5)  # half-pixel samples

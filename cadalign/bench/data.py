@@ -15,6 +15,8 @@ from typing import Any
 
 from cadalign.errors import ConfigError
 from cadalign.io import write_text
+from cadalign.sim.run import simulate
+from cadalign.sim.spec import default_scene_path, load_scene
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +62,6 @@ def bench_scene(data_dir: Path, name: str = "scene.yaml") -> Path:
     The file only ``extends`` the default scene (by absolute path, so it loads from any folder; the default
     scene's meshes stay relative to it). Variants are written by :func:`write_scene_variant`.
     """
-    from cadalign.sim.spec import default_scene_path, load_scene
 
     src = default_scene_path()
     if load_scene(src).trajectory.fps != 1.0:
@@ -88,7 +89,6 @@ def write_scene_variant(path: Path, base: Path, changes: dict[str, Any]) -> Path
 
 def simulate_clip(scene: Path, out: Path, resolution: tuple[int, int], frames: int, seed: int = 0) -> Path:
     """Simulate ``frames`` frames of ``scene`` at ``resolution`` into ``out`` (reused when finished)."""
-    from cadalign.sim.run import simulate
 
     log.info("bench data: simulating %d frames at %dx%d into %s", frames, *resolution, out)
     return simulate(scene, out, frames=frames, resolution=resolution, seed=seed, video=False, contact_sheet=False)

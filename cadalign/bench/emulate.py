@@ -23,7 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
+from cadalign.emulate import lidar
+from cadalign.emulate.raycast_engines import BVHEngine, TorchEngine
+from cadalign.emulate.sources import scene_mesh
 from cadalign.io import write_json
+from cadalign.sim.spec import load_scene
+from cadalign.sim.trajectory import frame_poses
+from cadalign.types import Rigid3
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +46,6 @@ def _best(fn, rounds: int) -> tuple[float, float]:  # noqa: ANN001
 
 def agreement(mesh, origins: np.ndarray, dirs: np.ndarray, tol_m: float = 1e-4) -> dict:  # noqa: ANN001
     """Hit/range/class agreement of the BVH and torch engines on rays ``(N, 3)`` from ``origins``."""
-    from cadalign.emulate.raycast_engines import BVHEngine, TorchEngine
 
     a = BVHEngine(mesh.vertices_m, mesh.faces).cast(origins, dirs)
     b = TorchEngine(mesh.vertices_m, mesh.faces).cast(origins, dirs)
@@ -62,14 +67,7 @@ def bench_emulate(scene_path: Path, out_dir: Path, *, rings: int = 256, azimuths
     The timed scan has ``rings x azimuths`` rays (default 1,048,576) over +-45 degrees of elevation.
     The torch engine is timed once per CPU thread count in ``torch_threads`` (torch's setting is restored).
     """
-    import torch
-
-    from cadalign.emulate import lidar
-    from cadalign.emulate.raycast_engines import BVHEngine, TorchEngine
-    from cadalign.emulate.sources import scene_mesh
-    from cadalign.sim.spec import load_scene
-    from cadalign.sim.trajectory import frame_poses
-    from cadalign.types import Rigid3
+    import torch  # lazy: heavy dependency (torch)
 
     spec = load_scene(Path(scene_path))
     mesh = scene_mesh(Path(scene_path))

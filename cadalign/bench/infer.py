@@ -18,6 +18,7 @@ What runs:
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -26,7 +27,12 @@ from typing import Any
 
 from cadalign.bench.data import BenchData
 from cadalign.bench.framework import BenchConfig, Metric, Sweep, SweepPoint
-from cadalign.io import fingerprint
+from cadalign.config import merge_mappings, resolve
+from cadalign.infer.detect import TorchDetector, resolve_scene_dir
+from cadalign.infer.pipeline import PRESETS, InferConfig
+from cadalign.infer.run import calibration_from_scene, run
+from cadalign.io import fingerprint, read_json
+from cadalign.sim.structure import load_structure
 
 BASELINE = "detector only"
 NO_REUSE: dict[str, Any] = {"reuse_box_iou": 0.0, "track_init": "off"}
@@ -71,10 +77,9 @@ def run_folder_name(preset: str, overrides: dict[str, Any]) -> str:
 
 def _train_small(data: BenchData, cfg: BenchConfig) -> Path:
     """A small pose network trained on the bench clip for the size's step budget (reused when finished)."""
-    import dataclasses
 
-    from cadalign.train.loop import LoopConfig
-    from cadalign.train.pose import PRESETS, run
+    from cadalign.train.loop import LoopConfig  # lazy: pulls torch
+    from cadalign.train.pose import PRESETS, run  # lazy: pulls kornia, torch
 
     clip = data.clip()
     w, h = data.size.clip_resolution
@@ -94,10 +99,7 @@ def infer_sweep(data: BenchData, cfg: BenchConfig, source: InferSource | None = 
     """Infer presets (detector only, fast, balanced, ...): ADD(-S) recall vs ms per frame, ratio to the detector."""
 
     def setup() -> dict[str, Any]:
-        from cadalign.infer.detect import resolve_scene_dir
-        from cadalign.infer.run import calibration_from_scene
-        from cadalign.models.maskrcnn.detector import load_pose_model
-        from cadalign.sim.structure import load_structure
+        from cadalign.models.maskrcnn.detector import load_pose_model  # lazy: pulls torch
 
         if source is None:
             run_dir, clip = _train_small(data, cfg), data.clip()
@@ -113,13 +115,7 @@ def infer_sweep(data: BenchData, cfg: BenchConfig, source: InferSource | None = 
                 "calib": calibration_from_scene(gt)}
 
     def measure(s: dict[str, Any], knobs: dict[str, Any], _: Any) -> dict[str, float]:
-        import torch
-
-        from cadalign.config import merge_mappings, resolve
-        from cadalign.infer.detect import TorchDetector
-        from cadalign.infer.pipeline import PRESETS, InferConfig
-        from cadalign.infer.run import run
-        from cadalign.io import read_json
+        import torch  # lazy: heavy dependency (torch)
 
         src: InferSource = s["src"]
         overrides = merge_mappings(merge_mappings({"overlay": False}, src.overrides), knobs["overrides"])

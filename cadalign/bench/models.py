@@ -17,7 +17,16 @@ import numpy as np
 
 from cadalign.bench.data import BenchData
 from cadalign.bench.framework import BenchConfig, Metric, Sweep, SweepPoint
+from cadalign.bench.refine import refine_sweep as sweep
+from cadalign.config import resolve
+from cadalign.errors import InputError
+from cadalign.evaluate.sfm import evaluate
+from cadalign.infer.refine import RefineConfig
 from cadalign.io import fingerprint
+from cadalign.metrics.depth import DepthAccumulator, DepthEvalConfig, frame_depth_errors
+from cadalign.metrics.seg import confusion_matrix, seg_metrics
+from cadalign.sfm import PRESETS, SfMConfig, run
+from cadalign.sim.structure import load_structure
 
 SCENE = Path("gt") / "sim" / "000000"
 
@@ -41,10 +50,6 @@ def sfm_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
     """SfM presets and feature/matcher/mapper variants: rotation error vs seconds, on the simulated SfM clip."""
 
     def measure(sim: Path, knobs: dict[str, Any], _: Any) -> dict[str, float]:
-        from cadalign.config import resolve
-        from cadalign.evaluate.sfm import evaluate
-        from cadalign.sfm import PRESETS, SfMConfig, run
-
         c = resolve(SfMConfig, PRESETS, knobs["preset"], overrides={**knobs["overrides"], "num_threads": 1,
                                                                      "seed": cfg.seed})
         out = data.work("sfm", fingerprint(knobs))
@@ -78,7 +83,7 @@ NET_POINTS = {0: ((0.25, 4), (0.5, 4), (0.5, 8)),
 
 
 def _loop(data: BenchData, cfg: BenchConfig):  # -> LoopConfig
-    from cadalign.train.loop import LoopConfig
+    from cadalign.train.loop import LoopConfig  # lazy: pulls torch
 
     n = data.size.train_steps
     return LoopConfig(steps=n, batch_size=2, lr=3e-3, checkpoint_every=n, log_every=max(1, n // 5), seed=cfg.seed)
@@ -87,8 +92,7 @@ def _loop(data: BenchData, cfg: BenchConfig):  # -> LoopConfig
 def held_out_ids(scene: Path) -> tuple[int, ...]:
     """The image ids of ``scene`` not in its training split: val + test (training here never validates),
     or every frame when the scene is too short to have either."""
-    from cadalign.errors import InputError
-    from cadalign.train.data import select
+    from cadalign.train.data import select  # lazy: pulls torch
 
     ids: list[int] = []
     for split in ("val", "test"):
@@ -106,14 +110,14 @@ def _train(task: str, data: BenchData, cfg: BenchConfig, knobs: dict[str, Any]) 
     shutil.rmtree(out)  # a leftover is from an interrupted run of this setting
     t0 = time.perf_counter()
     if task == "seg":
-        from cadalign.models.resunet import ResUNetConfig
-        from cadalign.train.seg import SegTrainConfig, train_seg
+        from cadalign.models.resunet import ResUNetConfig  # lazy: pulls torch
+        from cadalign.train.seg import SegTrainConfig, train_seg  # lazy: pulls kornia, torch
 
         train_seg(SegTrainConfig(model=ResUNetConfig(base_channels=knobs["width"]), scale=knobs["scale"],
                                  loop=_loop(data, cfg)), scene, out, val_split=None)
     else:
-        from cadalign.models.dispnet import DispNetConfig
-        from cadalign.train.depth import DepthTrainConfig, train_depth
+        from cadalign.models.dispnet import DispNetConfig  # lazy: pulls torch
+        from cadalign.train.depth import DepthTrainConfig, train_depth  # lazy: pulls kornia, torch
 
         train_depth(DepthTrainConfig(model=DispNetConfig(base_channels=knobs["width"]), scale=knobs["scale"],
                                      loop=_loop(data, cfg)), scene, out)
@@ -125,13 +129,11 @@ def score_net(task: str, scene: Path, run: Path, train_s: float = float("nan"),
     """Score the network of training run ``run`` on the frames of ``split`` of the BOP ``scene`` (default:
     :func:`held_out_ids`): mIoU (seg) or delta1/AbsRel (depth), and the
     median over frames of the inference ms (each the faster of two passes)."""
-    import torch
+    import torch  # lazy: heavy dependency (torch)
 
-    from cadalign.infer.dense import load_dense_model, metric_depth, seg_probabilities
-    from cadalign.metrics.depth import DepthAccumulator, DepthEvalConfig, frame_depth_errors
-    from cadalign.metrics.seg import confusion_matrix, seg_metrics
-    from cadalign.train.data import select
-    from cadalign.train.datasets import DepthDataset, SegmentationDataset
+    from cadalign.infer.dense import load_dense_model, metric_depth, seg_probabilities  # lazy: pulls torch
+    from cadalign.train.data import select  # lazy: pulls torch
+    from cadalign.train.datasets import DepthDataset, SegmentationDataset  # lazy: pulls torch
 
     ids = select(scene, split).ids if split else held_out_ids(scene)
     ds = (SegmentationDataset if task == "seg" else DepthDataset)(scene, ids)
@@ -198,14 +200,9 @@ def refine_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
     max_frames = (4, 8, 16)[data.size.level]
 
     def setup() -> dict[str, Any]:
-        from cadalign.sim.structure import load_structure
-
         return {"scene": data.sfm_clip() / SCENE, "models": load_structure(data.scene()).models}
 
     def measure(s: dict[str, Any], knobs: dict[str, Any], _: Any) -> dict[str, float]:
-        from cadalign.bench.refine import refine_sweep as sweep
-        from cadalign.infer.refine import RefineConfig
-
         rows = sweep(s["scene"], s["models"], iters=(knobs["iters"],), cfg=RefineConfig(seed=cfg.seed),
                      max_frames=max_frames)
         r = next(r for r in rows if r.method == knobs["method"])

@@ -19,6 +19,7 @@ Example:
 from __future__ import annotations
 
 import math
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -93,10 +94,9 @@ def plot_pareto(path: Path, names: Sequence[str], costs: Sequence[float], accs: 
     An axis is logarithmic when its (positive) values span more than a factor of 20. Writes a PNG and
     returns its path.
     """
-    import textwrap
 
     # the object API draws without pyplot's backend: matplotlib.use("Agg") here turned a notebook's inline plots off
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # lazy: heavy dependency (matplotlib)
 
     c, a = np.asarray(costs, dtype=float), np.asarray(accs, dtype=float)
     ok = np.isfinite(c) & np.isfinite(a)

@@ -23,11 +23,22 @@ from pathlib import Path
 
 import numpy as np
 
+from cadalign.emulate import lidar
+from cadalign.emulate.layered_mesh import ImageInput, mesh_from_image
+from cadalign.emulate.photo import PhotoConfig, camera_lidar_pose
+from cadalign.emulate.photo_camera import K_from_hfov, fit_point_map
+from cadalign.emulate.photo_eval import compare_with_cad
+from cadalign.emulate.pretrained import load_depth_model, load_seg_model
+from cadalign.emulate.sources import scene_mesh
+from cadalign.emulate.views import render
+from cadalign.geometry import depth_to_points
 from cadalign.io import write_json
+from cadalign.sim.spec import load_scene
+from cadalign.sim.trajectory import pose_at
+from cadalign.types import Camera, Rigid3
 
 
 def _frame(mesh, cam, T):  # noqa: ANN001
-    from cadalign.emulate.views import render
 
     return render(mesh, cam, T)
 
@@ -36,16 +47,6 @@ def bench_photo(scene_path: Path, out_dir: Path, *, frames: int = 4, width: int 
                 hfov_deg: float = 60.0, shift_m: float = 0.8, noise_rel: float = 0.02, offset_m: float = 0.3,
                 depth_model: Path | None = None, seg_model: Path | None = None, seed: int = 0) -> dict:
     """Run the measurements of the module docstring; returns and writes ``out_dir/bench_photo.json``."""
-    from cadalign.emulate import lidar
-    from cadalign.emulate.layered_mesh import ImageInput, mesh_from_image
-    from cadalign.emulate.photo import PhotoConfig, camera_lidar_pose
-    from cadalign.emulate.photo_camera import K_from_hfov, fit_point_map
-    from cadalign.emulate.photo_eval import compare_with_cad
-    from cadalign.emulate.sources import scene_mesh
-    from cadalign.geometry import depth_to_points
-    from cadalign.sim.spec import load_scene
-    from cadalign.sim.trajectory import pose_at
-    from cadalign.types import Camera, Rigid3
 
     spec = load_scene(Path(scene_path))
     cad = scene_mesh(Path(scene_path))
@@ -89,7 +90,6 @@ def bench_photo(scene_path: Path, out_dir: Path, *, frames: int = 4, width: int 
 
 def _networks(depth_model: Path | None, seg_model: Path | None):  # noqa: ANN202
     """A function timing the given checkpoints on one rgb (``{}`` when none is given)."""
-    from cadalign.emulate.pretrained import load_depth_model, load_seg_model
 
     depth_fn = load_depth_model(depth_model) if depth_model is not None else None
     seg = load_seg_model(seg_model) if seg_model is not None else None

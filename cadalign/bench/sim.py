@@ -25,6 +25,12 @@ from pathlib import Path
 import numpy as np
 
 from cadalign.io import write_json
+from cadalign.sim.effects_chain import build_chain, run_chain
+from cadalign.sim.render import GroundTruthCaster, RGBRenderer
+from cadalign.sim.run import _write_frame, apply_overrides, render_frame
+from cadalign.sim.scene import build_scene
+from cadalign.sim.spec import load_scene
+from cadalign.sim.trajectory import pose_at
 
 log = logging.getLogger(__name__)
 ROUNDS = 3
@@ -35,12 +41,6 @@ intrinsic cost (timing noise on a shared 2-core machine is one-sided: it only ad
 def bench_sim(scene_path: Path, out_dir: Path, *, frames: int = 8, resolution: tuple[int, int] | None = None,
               progress=None) -> dict:  # noqa: ANN001
     """Time the simulator on ``frames`` frames of ``scene_path``; writes and returns the result dict."""
-    from cadalign.sim.effects_chain import build_chain, run_chain
-    from cadalign.sim.render import GroundTruthCaster, RGBRenderer
-    from cadalign.sim.run import _write_frame, apply_overrides, render_frame
-    from cadalign.sim.scene import build_scene
-    from cadalign.sim.spec import load_scene
-    from cadalign.sim.trajectory import pose_at
 
     scene_path, out_dir = Path(scene_path), Path(out_dir)
     spec = apply_overrides(load_scene(scene_path), None, resolution, None)
@@ -107,10 +107,10 @@ def _summarise(spec, ids: list[int], t: dict[str, list[float]]) -> dict:  # noqa
 
 def plot_bench_sim(result: dict, path: Path) -> Path:
     """Horizontal bars: median seconds per frame of each variant and each effect alone."""
-    import matplotlib
+    import matplotlib  # lazy: heavy dependency (matplotlib)
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: heavy dependency (matplotlib)
 
     med = result["seconds_per_frame_median"]
     names = list(med)

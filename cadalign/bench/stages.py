@@ -11,9 +11,28 @@ import time
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
+from cadalign.align import RefineConfig, Sim3ICPConfig, refine_point_to_plane, sample_surface, sim3_icp
 from cadalign.bench.data import BenchData
 from cadalign.bench.framework import BenchConfig, Metric, Sweep, SweepPoint
+from cadalign.emulate import lidar
+from cadalign.emulate.lidar import LidarConfig
+from cadalign.emulate.raycast_engines import BVHEngine, TorchEngine
+from cadalign.emulate.sources import scene_mesh
+from cadalign.fuse.bench import OPEN3D, Open3DTSDF, baseline_of, load_average, time_interleaved
+from cadalign.fuse.config import PRESETS
+from cadalign.fuse.inputs import open_source
+from cadalign.fuse.run import evaluate
+from cadalign.geometry import axis_angle_to_matrix, geodesic_angle, random_rotation
+from cadalign.sim.effects_chain import build_chain
+from cadalign.sim.render import GroundTruthCaster, RGBRenderer
+from cadalign.sim.run import apply_overrides, render_frame
+from cadalign.sim.scene import build_scene
+from cadalign.sim.spec import load_scene
+from cadalign.sim.structure import load_structure
+from cadalign.sim.trajectory import frame_poses, pose_at
+from cadalign.types import Rigid3, Sim3
 
 SIM_VARIANTS: dict[str, tuple[str, ...]] = {
     "none": (),
@@ -38,12 +57,6 @@ def sim_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
     n_frames = (2, 4, 8)[data.size.level]
 
     def setup() -> dict[str, Any]:
-        from cadalign.sim.effects_chain import build_chain
-        from cadalign.sim.render import GroundTruthCaster, RGBRenderer
-        from cadalign.sim.run import apply_overrides, render_frame
-        from cadalign.sim.scene import build_scene
-        from cadalign.sim.spec import load_scene
-
         path = data.scene()
         spec = apply_overrides(load_scene(path), None, data.size.clip_resolution, cfg.seed)
         scene = build_scene(spec, path)
@@ -53,9 +66,6 @@ def sim_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
         return {"scene": scene, "renderer": renderer, "caster": caster, "ids": ids, "ref": ref}
 
     def prepare(s: dict[str, Any], knobs: dict[str, Any]) -> tuple[Any, Any]:
-        from cadalign.sim.effects_chain import build_chain
-        from cadalign.sim.run import render_frame
-
         scene = s["scene"]
         effects = tuple(knobs["effects"])
         spec = dataclasses.replace(scene.spec, effects=effects,
@@ -65,8 +75,6 @@ def sim_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
         return variant, chain
 
     def measure(s: dict[str, Any], knobs: dict[str, Any], prep: tuple[Any, Any]) -> dict[str, float]:
-        from cadalign.sim.run import render_frame
-
         variant, chain = prep
         effects = knobs["effects"]
         secs, diffs = [], []
@@ -106,17 +114,11 @@ def render_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
     n_frames = (2, 3, 4)[data.size.level]
 
     def caster_at(width: int, height: int):  # -> GroundTruthCaster
-        from cadalign.sim.render import GroundTruthCaster
-        from cadalign.sim.scene import build_scene
-        from cadalign.sim.spec import load_scene
 
         path = data.scene()
         return GroundTruthCaster(build_scene(load_scene(path), path, width=width, height=height))
 
     def setup() -> dict[str, Any]:
-        from cadalign.sim.spec import load_scene
-        from cadalign.sim.trajectory import frame_poses
-
         spec = load_scene(data.scene())
         poses = [frame_poses(spec.trajectory, spec.trajectory.frames, spec.seed)[k]
                  for k in _frames(spec.trajectory.frames, n_frames)]
@@ -182,11 +184,6 @@ def align_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
     n_points, n_samples = ((3_000, 10_000), (20_000, 60_000), (60_000, 150_000))[data.size.level]
 
     def setup() -> dict[str, Any]:
-        from cadalign.align import sample_surface
-        from cadalign.geometry import axis_angle_to_matrix, random_rotation
-        from cadalign.sim.structure import load_structure
-        from cadalign.types import Rigid3, Sim3
-
         st = load_structure(data.scene())
         parts = [(st.models[o.obj_id], o.T_world_from_obj) for o in st.objects]
         surface = sample_surface(parts, n_samples, cfg.seed)
@@ -204,9 +201,6 @@ def align_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
                 "on": on, "ref": world}
 
     def measure(s: dict[str, Any], knobs: dict[str, Any], _: Any) -> dict[str, float]:
-        from cadalign.align import RefineConfig, Sim3ICPConfig, refine_point_to_plane, sim3_icp
-        from cadalign.geometry import geodesic_angle
-
         icp = Sim3ICPConfig(corr_dist_schedule_rel=SCHEDULE_REL[: knobs["levels"]],
                             iters_per_level=knobs["iters_per_level"], max_points=n_points)
         T, _ = sim3_icp(s["points"], s["surface"], s["init"], icp)
@@ -250,8 +244,6 @@ def fuse_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
     points.append(SweepPoint(f"{100 * finest:g} cm {FUSE_OPEN3D}", {"voxel_m": finest, "open3d_alone": True}))
 
     def setup() -> Any:
-        from cadalign.fuse.inputs import open_source
-
         src = open_source(data.clip())
         return src, [src.frame(i) for i in src.ids]
 
@@ -276,9 +268,6 @@ def fuse_measure(shared: tuple[Any, list[Any]], knobs: dict[str, Any], seed: int
     """One fuse setting: the map and its metrics, and its timing against :func:`~cadalign.fuse.bench.baseline_of`
     and :class:`~cadalign.fuse.bench.Open3DTSDF` on the same frames (``shared`` = (FrameSource, loaded frames));
     with ``open3d_alone`` in ``knobs``, Open3D's grid alone and its mesh's metrics."""
-    from cadalign.fuse.bench import OPEN3D, Open3DTSDF, baseline_of, load_average, time_interleaved
-    from cadalign.fuse.config import PRESETS
-    from cadalign.fuse.run import evaluate
 
     src, frames = shared
     fc = dataclasses.replace(PRESETS[knobs.get("preset", "default")], voxel_m=knobs["voxel_m"])
@@ -331,21 +320,11 @@ def emulate_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
     ref_channels, ref_step = 2 * max(c for _, c, _ in pts), min(a for _, _, a in pts) / 2
 
     def lidar_cfg(channels: int, step: float):  # -> LidarConfig
-        from cadalign.emulate.lidar import LidarConfig
 
         return LidarConfig(channels=channels, vfov_deg=(-45.0, 45.0), horizontal_res_deg=step, max_range_m=1000.0,
                            range_noise_m=0.0, seed=cfg.seed)
 
     def setup() -> dict[str, Any]:
-        from scipy.spatial import cKDTree
-
-        from cadalign.emulate import lidar
-        from cadalign.emulate.raycast_engines import BVHEngine
-        from cadalign.emulate.sources import scene_mesh
-        from cadalign.sim.spec import load_scene
-        from cadalign.sim.trajectory import pose_at
-        from cadalign.types import Rigid3
-
         path = data.scene()
         spec = load_scene(path)
         mesh = scene_mesh(path)
@@ -355,16 +334,11 @@ def emulate_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
         return {"mesh": mesh, "T": T, "ref_pts": pts, "ref_hits": len(ref.xyz_world), "tree": cKDTree}
 
     def prepare(s: dict[str, Any], knobs: dict[str, Any]) -> tuple[Any, Any]:
-        from cadalign.emulate import lidar
-        from cadalign.emulate.raycast_engines import BVHEngine, TorchEngine
-
         eng = (BVHEngine if knobs["engine"] == "bvh" else TorchEngine)(s["mesh"].vertices_m, s["mesh"].faces)
         c = lidar_cfg(knobs["channels"], knobs["azimuth_step_deg"])
         return eng, (c, lidar.scan_directions(c))
 
     def measure(s: dict[str, Any], knobs: dict[str, Any], prep: tuple[Any, Any]) -> dict[str, float]:
-        from cadalign.emulate import lidar
-
         eng, (c, pattern) = prep
         t0 = time.perf_counter()
         sc = lidar.scan(s["mesh"], s["T"], c, engine=eng, pattern=pattern)

@@ -79,7 +79,7 @@ class RayExecutor:
 
     def render(self, jobs: Sequence[FrameJob], shared: FrameShared, progress: Progress | None = None) -> list[int]:
         """Render and write ``jobs``; returns the frame ids written (sorted). Blocks until all are done."""
-        import ray
+        import ray  # lazy: optional dependency (ray)
 
         if not jobs:
             return []
@@ -121,7 +121,7 @@ def ray_map(ray: Any, task: Any, args: Sequence[tuple], window: int) -> Iterator
 
 def ensure_ray(cfg: ExecutorConfig) -> bool:
     """Connect to (or start) Ray; True when this call started it (the caller then shuts it down)."""
-    import ray
+    import ray  # lazy: optional dependency (ray)
 
     if ray.is_initialized():
         return False

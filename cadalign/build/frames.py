@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cadalign.align.camera_refine import rays_of
 from cadalign.formats import bop
 from cadalign.io import write_image
 from cadalign.raycast.bop_writer import PosedObject, frame_done, write_bop_frame
@@ -46,9 +47,7 @@ class CameraModel:
 
     def rays_cam(self) -> np.ndarray:
         """(H, W, 3) camera-frame rays with z = 1 through the pixel centres, distortion included."""
-        import pycolmap
-
-        from cadalign.align.camera_refine import rays_of
+        import pycolmap  # lazy: heavy dependency (pycolmap)
 
         cam = pycolmap.Camera(model=self.model, width=self.width, height=self.height, params=list(self.params))
         return rays_of(cam)

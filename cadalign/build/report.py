@@ -7,16 +7,18 @@ CAD frame is the simulator's world frame. Frames are matched by name (the simula
 from __future__ import annotations
 
 import html
+import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from cadalign.formats.bop import BopScene
+from cadalign.formats.bop import BopScene, decode_depth
 from cadalign.formats.html import CSS, img_tag, table
 from cadalign.geometry import umeyama
 from cadalign.io import read_image, read_json, write_text
 from cadalign.metrics.dataset import boundary_offset_px, depth_errors, mask_iou, pose_errors, sim3_errors
+from cadalign.sfm.report import camera_centres
 from cadalign.types import Sim3
 
 SIM_SCENE = Path("gt") / "sim" / "000000"
@@ -24,7 +26,6 @@ SIM_SCENE = Path("gt") / "sim" / "000000"
 
 def true_cad_from_sfm(cameras_sfm: dict[str, dict], cameras_true: dict[str, dict]) -> Sim3:
     """The Sim3 mapping SfM camera centres onto the true ones (Umeyama with scale over common frames)."""
-    from cadalign.sfm.report import camera_centres
 
     common = sorted(set(cameras_sfm) & set(cameras_true))
     _, src, _ = camera_centres({"frames": {n: cameras_sfm[n] for n in common}})
@@ -110,8 +111,6 @@ def evaluate_against_sim(
 
 
 def _sfm_depth(scene_dir: Path, k: int) -> np.ndarray:
-    from cadalign.formats.bop import decode_depth
-
     p = Path(scene_dir) / "depth_sfm" / f"{k:06d}.png"
     return decode_depth(read_image(p, unchanged=True), 1.0) if p.is_file() else np.zeros((1, 1))
 
@@ -185,6 +184,4 @@ def verification_html(out: Path, ver: dict[str, Any] | None) -> list[str]:
 
 
 def _pretty(obj: Any) -> str:
-    import json
-
     return json.dumps(obj, indent=2, default=float)

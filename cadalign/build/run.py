@@ -24,21 +24,45 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import shutil
 import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import cv2
 import numpy as np
 
+from cadalign.align import PRESETS as ALIGN_PRESETS
+from cadalign.align import read_sim3
+from cadalign.align import run as align_run
 from cadalign.align.camera_refine import CameraRefineConfig, RefinedCamera, rays_of, refine_cameras
-from cadalign.align.seabed import SeabedConfig
+from cadalign.align.edge_refine import edge_align_frames
+from cadalign.align.gates import check_gates, measure, raise_if_failed
+from cadalign.align.roi import read_roi, roi_mask
+from cadalign.align.run import load_points
+from cadalign.align.seabed import SeabedConfig, seabed_from_model
+from cadalign.align.surface import sample_surface
 from cadalign.align.verify.core import VerifyConfig
+from cadalign.align.verify.run import VerificationError, verify_alignment
 from cadalign.build.frames import CameraModel, FrameJob, FrameShared, render_chunk
-from cadalign.errors import InputError
+from cadalign.build.report import evaluate_against_sim, write_build_html
+from cadalign.cad.models_info import write_model_ply_mm, write_models_info
+from cadalign.config import from_dict
+from cadalign.errors import ConfigError, InputError
+from cadalign.formats.bop import BopScene
+from cadalign.formats.coco import coco_annotations, write_coco
+from cadalign.formats.splits import time_block_splits
+from cadalign.geometry import sim3_from_matrix
 from cadalign.io import fingerprint, prepare_stage_dir, read_json, write_json
 from cadalign.raycast.bop_writer import frame_done, merge_scene_files
 from cadalign.raycast.core import RaycastRenderer, RenderMesh
+from cadalign.sfm import PRESETS as SFM_PRESETS
+from cadalign.sfm import SfMConfig
+from cadalign.sfm import run as sfm_run
+from cadalign.sfm.colmap_log import colmap_log
+from cadalign.sfm.image_prep import prep_of_frame_config, write_record
+from cadalign.sfm.known_camera import with_calibration
 from cadalign.sim.structure import Structure, load_structure
 from cadalign.types import Camera, Progress, Rigid3, Sim3
 
@@ -73,7 +97,7 @@ def render_frames(structure: Structure, cameras: dict[str, dict], cad_from_sfm: 
     frames are rendered by its workers, else here by the same loop (:func:`cadalign.build.frames.render_chunk`).
     Returns im_id -> source frame name and im_id -> whether the frame's pose was verified against the CAD.
     """
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     names = sorted(cameras)
     rec = pycolmap.Reconstruction(str(sfm_dir / "sparse" / "0"))
@@ -118,7 +142,6 @@ def _against_cad(structure: Structure, rec: Any, cad_from_sfm: Sim3, sfm_dir: Pa
                  ) -> tuple[list[RenderMesh], Any, dict[str, RefinedCamera], dict[str, Rigid3], dict[str, dict]]:
     """The meshes to render (the CAD, plus the seabed as an occluder when SfM shows one), the model with
     the refined intrinsics, the CAD-anchored cameras and their edge-aligned poses."""
-    from cadalign.align.seabed import seabed_from_model
 
     meshes = structure.render_meshes()
     verts = np.concatenate([m.vertices_m for m in meshes])
@@ -149,9 +172,6 @@ def _edge_align(meshes: list[RenderMesh], rec: Any, refined: dict[str, RefinedCa
         saved = read_json(path)
         return ({n: Rigid3.from_matrix(np.array(M)) for n, M in saved["T_world_from_cam"].items()},
                 saved["frames"])
-    import cv2
-
-    from cadalign.align.edge_refine import edge_align_frames
 
     by_name = {im.name: im for im in rec.images.values()}
     renderers: dict[int, RaycastRenderer] = {}
@@ -182,8 +202,6 @@ def _edge_align(meshes: list[RenderMesh], rec: Any, refined: dict[str, RefinedCa
 
 def _roi_points(model: Path, roi: Path, sfm_dir: Path) -> np.ndarray:
     """The SfM points of ``model`` inside the region of interest ``roi``."""
-    from cadalign.align.roi import read_roi, roi_mask
-    from cadalign.align.run import load_points
 
     pts = load_points(model)
     keep = roi_mask(pts, read_roi(roi), read_json(sfm_dir / "cameras.json")["frames"])
@@ -196,7 +214,6 @@ def _roi_points(model: Path, roi: Path, sfm_dir: Path) -> np.ndarray:
 
 def hypotheses_of(align_json: Path) -> tuple[list[Sim3], list[float]]:
     """The alignment's refined hypotheses and their cloud scores (an older align.json: its result only)."""
-    from cadalign.geometry import sim3_from_matrix
 
     rec = read_json(align_json)
     hyps = rec.get("hypotheses") or [{"matrix": rec["cad_from_sfm"]["matrix"], "score": float("nan")}]
@@ -207,9 +224,6 @@ def hypotheses_of(align_json: Path) -> tuple[list[Sim3], list[float]]:
 def _gate(cfg: Any, points: Path | np.ndarray, parts: list, cad_from_sfm: Sim3) -> None:
     """The alignment's quality gates on another hypothesis (``cfg``: an AlignConfig); raises
     ``AlignmentGateError`` when one fails."""
-    from cadalign.align.gates import check_gates, measure, raise_if_failed
-    from cadalign.align.run import load_points
-    from cadalign.align.surface import sample_surface
 
     pts = load_points(points)
     surface = sample_surface(parts, cfg.cad_samples, cfg.seed)
@@ -222,9 +236,7 @@ def _verify(cfg: VerifyConfig, structure: Structure, align_json: Path, sfm_dir: 
             hypothesis: int | None, report: dict[str, Any]) -> Any:  # -> Verification
     """The image verification of the alignment's hypotheses; unless ok, writes the refusal into
     ``build_report.json/html`` (beside ``out``) and raises ``VerificationError``."""
-    import pycolmap
-
-    from cadalign.align.verify.run import VerificationError, verify_alignment
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     hyps, scores = hypotheses_of(align_json)
     gates = read_json(align_json)["config"]["gates"]
@@ -235,8 +247,6 @@ def _verify(cfg: VerifyConfig, structure: Structure, align_json: Path, sfm_dir: 
         return verify_alignment(cfg, rec, sfm_dir / "images", structure.render_meshes(), hyps, scores, inlier_m,
                                 out, hypothesis)
     except VerificationError as exc:
-        from cadalign.build.report import write_build_html
-
         align_rec = read_json(align_json)
         report = {"refused": str(exc), "verification": exc.verification.summary(), "frames": 0, "splits": {},
                   "alignment": {k: v for k, v in align_rec.items() if k in ("cad_from_sfm", "metrics", "gates")},
@@ -249,10 +259,6 @@ def _verify(cfg: VerifyConfig, structure: Structure, align_json: Path, sfm_dir: 
 def write_dataset_extras(ds: Path, structure: Structure, verified: dict[int, bool] | None = None, block: int = 10,
                          gap: int = 1) -> dict[str, list[int]]:
     """models/ + models_info.json, splits.json and per-split COCO annotations (verified frames only)."""
-    from cadalign.cad.models_info import write_model_ply_mm, write_models_info
-    from cadalign.formats.bop import BopScene
-    from cadalign.formats.coco import coco_annotations, write_coco
-    from cadalign.formats.splits import time_block_splits
 
     for oid, model in structure.models.items():
         write_model_ply_mm(model, ds / "models" / f"obj_{oid:06d}.ply")
@@ -299,14 +305,6 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
             confirm it (no dataset is written; ``OUT/verify/`` holds the evidence and the picture).
         InputError, ConfigError: unusable inputs, or ``out`` holds results of another config.
     """
-    from cadalign.align import PRESETS as ALIGN_PRESETS
-    from cadalign.align import read_sim3
-    from cadalign.align import run as align_run
-    from cadalign.errors import ConfigError
-    from cadalign.sfm import PRESETS as SFM_PRESETS
-    from cadalign.sfm import run as sfm_run
-    from cadalign.sfm.colmap_log import colmap_log
-    from cadalign.sfm.image_prep import prep_of_frame_config, write_record
 
     if preset not in SFM_PRESETS or preset not in ALIGN_PRESETS:
         raise ConfigError(f"unknown preset {preset!r}; allowed values: {', '.join(SFM_PRESETS)}")
@@ -316,13 +314,9 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     t0 = time.perf_counter()
     sfm_cfg = SFM_PRESETS[preset]
     if calib is not None:  # any --calib format; frames are undistorted by its lens distortion at extraction
-        from cadalign.sfm.known_camera import with_calibration
 
         sfm_cfg = with_calibration(sfm_cfg, Path(calib), Path(source))
     if sfm_set:
-        from cadalign.config import from_dict
-        from cadalign.sfm import SfMConfig
-
         sfm_cfg = from_dict(SfMConfig, sfm_set, source="the SfM settings (--sfm-set)", base=sfm_cfg)
     sfm_dir = sfm_run(sfm_cfg, Path(source), out / "sfm", overwrite=overwrite, progress=progress, topic=topic)
     seconds["sfm"] = time.perf_counter() - t0
@@ -345,8 +339,6 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
         seconds["verify"] = time.perf_counter() - t0
     ds = out / "dataset"
     if overwrite and ds.exists():
-        import shutil
-
         shutil.rmtree(ds)
     refine_cfg = DEFAULT_REFINE if calib is None else dataclasses.replace(DEFAULT_REFINE, intrinsics=False)
     # the pose used: the verification may choose another hypothesis and moves it to the image contours
@@ -378,12 +370,9 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     if (ds / "edge_align.json").is_file():
         report["edge_alignment"] = read_json(ds / "edge_align.json")["summary"]
     if gt is not None:
-        from cadalign.build.report import evaluate_against_sim
-
         report["vs_truth"] = evaluate_against_sim(ds / SCENE, Path(gt), frame_names, cad_from_sfm, cameras,
                                                   structure, sfm_dir)
     write_json(out / "build_report.json", report)
-    from cadalign.build.report import write_build_html
 
     write_build_html(out, report)
     return out

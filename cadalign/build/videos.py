@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from cadalign.build.executor import ExecutorConfig, ensure_ray, ray_map
+from cadalign.build.run import build_dataset
 from cadalign.config import read_mapping
 from cadalign.errors import CadalignError, ConfigError
 from cadalign.io import read_json, write_json
@@ -111,7 +112,6 @@ def read_jobs(path: Path, *, cad: Path | None = None, calib: Path | None = None,
 
 def build_one(job: VideoJob, root: Path, preset: str, overwrite: bool) -> VideoResult:
     """Build ``job`` into ``root/<name>`` (rendering in this process); the project's errors become a result."""
-    from cadalign.build.run import build_dataset
 
     out = Path(root) / job.name
     try:
@@ -133,7 +133,7 @@ def build_videos(jobs: Sequence[VideoJob], root: Path, cfg: ExecutorConfig, *, p
         items = progress(args, "videos", len(args)) if progress else args
         results = [build_fn(*a) for a in items]
     else:
-        import ray
+        import ray  # lazy: optional dependency (ray)
 
         started = ensure_ray(cfg)
         try:

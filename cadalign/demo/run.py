@@ -11,10 +11,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+from cadalign.build.run import build_dataset
 from cadalign.demo import stages as st
 from cadalign.demo.stages import DemoConfig, DemoContext
+from cadalign.errors import AlignmentError, CadalignError
 from cadalign.evaluate.report import write_report
 from cadalign.io import read_json, write_json
+from cadalign.sim.run import simulate
 from cadalign.sim.spec import default_scene_path
 
 log = logging.getLogger(__name__)
@@ -37,7 +40,6 @@ def run_demo(out: Path, *, scene: Path | None = None, frames: int | None = None,
     build fails its gate, or passes it with a dataset the learning stages cannot use (:func:`untrusted_build`),
     they use the simulator's exact ground truth instead, and the summary says so (and ``ok`` is False).
     """
-    from cadalign.sim.run import simulate
 
     out = Path(out)
     scene = Path(scene) if scene is not None else default_scene_path()
@@ -71,8 +73,6 @@ def _build_stage(sim_dir: Path, scene: Path, out: Path, progress: Any) -> dict:
 
     A failed alignment gate is a result, not a crash: the report shows why no dataset was written.
     """
-    from cadalign.build.run import build_dataset
-    from cadalign.errors import AlignmentError, CadalignError
 
     t0 = time.perf_counter()
     try:

@@ -17,9 +17,18 @@ from typing import Any
 
 import numpy as np
 
-from cadalign.config import bounded
+from cadalign.config import bounded, resolve
+from cadalign.emulate import run as emulate_run
+from cadalign.fuse.config import PRESETS, FuseConfig
+from cadalign.fuse.run import run
+from cadalign.geometry.rotations import axis_angle_to_matrix
+from cadalign.infer import detect as det
+from cadalign.infer.run import calibration_from_scene
+from cadalign.infer.track.run import TrackRunConfig, track_video
+from cadalign.infer.track.start import detector_restarts
 from cadalign.io import read_image, read_json
-from cadalign.types import Rigid3
+from cadalign.sim.structure import load_structure
+from cadalign.types import Camera, Rigid3
 
 log = logging.getLogger(__name__)
 
@@ -92,8 +101,8 @@ def _with_steps(preset: Any, steps: int) -> Any:
 
 
 def train_seg_stage(ctx: DemoContext) -> dict:
-    from cadalign.evaluate.dense import evaluate_seg
-    from cadalign.train.seg import PRESETS, train_seg
+    from cadalign.evaluate.dense import evaluate_seg  # lazy: pulls torch
+    from cadalign.train.seg import PRESETS, train_seg  # lazy: pulls kornia, torch
 
     run = ctx.out / "train" / "seg"
     r = train_seg(_with_steps(PRESETS["fast"], ctx.cfg.seg_steps), ctx.dataset, run, resume=_has_ckpt(run),
@@ -105,8 +114,8 @@ def train_seg_stage(ctx: DemoContext) -> dict:
 
 
 def train_depth_stage(ctx: DemoContext) -> dict:
-    from cadalign.evaluate.dense import evaluate_depth
-    from cadalign.train.depth import PRESETS, train_depth
+    from cadalign.evaluate.dense import evaluate_depth  # lazy: pulls torch
+    from cadalign.train.depth import PRESETS, train_depth  # lazy: pulls kornia, torch
 
     run = ctx.out / "train" / "depth"
     r = train_depth(_with_steps(PRESETS["fast"], ctx.cfg.depth_steps), ctx.dataset, run, resume=_has_ckpt(run),
@@ -118,7 +127,7 @@ def train_depth_stage(ctx: DemoContext) -> dict:
 
 
 def train_pose_stage(ctx: DemoContext) -> dict:
-    from cadalign.train.pose import PRESETS, run
+    from cadalign.train.pose import PRESETS, run  # lazy: pulls kornia, torch
 
     out = ctx.out / "train" / "pose"
     r = run(_with_steps(PRESETS["fast"], ctx.cfg.pose_steps), ctx.dataset, out, resume=_has_ckpt(out),
@@ -134,13 +143,7 @@ def infer_stage(ctx: DemoContext) -> dict:
     (:mod:`cadalign.infer.track`) with the camera's intrinsics only (no depth, no camera poses), started from a
     simulated navigation pose (the first frame's true pose turned 10 deg and moved 0.5 m, as a USBL/DVL fix is
     off) and restarted by the trained detector."""
-    from cadalign.infer import detect as det
-    from cadalign.infer.run import calibration_from_scene
-    from cadalign.infer.track.run import TrackRunConfig, track_video
-    from cadalign.infer.track.start import detector_restarts
-    from cadalign.sim.structure import load_structure
-    from cadalign.train.data import select
-    from cadalign.types import Camera
+    from cadalign.train.data import select  # lazy: pulls torch
 
     sel = select(ctx.dataset, "test")
     scene = sel.scene_dir
@@ -173,7 +176,6 @@ def simulated_navigation_pose(sim_dir: Path, frame: str, seed: int = 0, turn_deg
                               shift_m: float = 0.5) -> Rigid3:
     """``T_cam_from_world`` of a frame as a navigation fix gives it: the simulator's true pose turned by exactly
     ``turn_deg`` about a random axis and moved by exactly ``shift_m`` (seeded)."""
-    from cadalign.geometry.rotations import axis_angle_to_matrix
 
     e = read_json(Path(sim_dir) / "gt" / "sim" / "000000" / "cameras.json")["frames"][frame]
     T = Rigid3(np.reshape(e["R_cam_from_world"], (3, 3)), np.asarray(e["t_cam_from_world_m"]))
@@ -185,9 +187,6 @@ def simulated_navigation_pose(sim_dir: Path, frame: str, seed: int = 0, turn_deg
 
 def fuse_stage(ctx: DemoContext) -> dict:
     """Semantic TSDF from the simulator's exact depth and labels, and from the trained networks' predictions."""
-    from cadalign.config import resolve
-    from cadalign.fuse.config import PRESETS, FuseConfig
-    from cadalign.fuse.run import run
 
     cfg = resolve(FuseConfig, PRESETS, "default", overrides={"voxel_m": ctx.cfg.fuse_voxel_m})
     res: dict[str, Any] = {"dir": "fuse"}
@@ -203,14 +202,11 @@ def fuse_stage(ctx: DemoContext) -> dict:
 
 def emulate_stage(ctx: DemoContext) -> dict:
     """A LiDAR scan and a sonar image of the CAD scene from the ROV's first pose."""
-    from cadalign.config import resolve
-    from cadalign.emulate.run import CONFIGS, run
-
     res: dict[str, Any] = {"dir": "emulate"}
     for sensor, preset in (("lidar", ctx.cfg.lidar_preset), ("sonar", None)):
-        cls, presets, default = CONFIGS[sensor]
+        cls, presets, default = emulate_run.CONFIGS[sensor]
         cfg = resolve(cls, presets, preset or default)
-        out = run(sensor, cfg, ctx.scene, ctx.out / "emulate" / sensor)
+        out = emulate_run.run(sensor, cfg, ctx.scene, ctx.out / "emulate" / sensor)
         res[sensor] = read_json(out / "emulate.json")
     return res
 

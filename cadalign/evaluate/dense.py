@@ -19,6 +19,7 @@ from cadalign.io import write_image, write_json
 from cadalign.metrics.depth import DepthAccumulator, DepthEvalConfig, frame_depth_errors
 from cadalign.metrics.seg import confusion_matrix, seg_metrics
 from cadalign.train.data import select
+from cadalign.train.datasets import DepthDataset, SegmentationDataset
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +46,7 @@ def colour_labels(label: np.ndarray) -> np.ndarray:
 
 def colour_depth(depth: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """(H, W) metres -> (H, W, 3) uint8 (turbo colour map over [lo, hi]; invalid <= 0 black)."""
-    from matplotlib import colormaps
+    from matplotlib import colormaps  # lazy: heavy dependency (matplotlib)
 
     t = np.clip((depth - lo) / max(hi - lo, 1e-9), 0, 1)
     rgb = (colormaps["turbo"](t)[..., :3] * 255).astype(np.uint8)
@@ -63,7 +64,6 @@ def evaluate_seg(run: Path, ds: Path, out: Path, *, split: str = "test", device:
 
     ``flip_tta`` averages each frame's probabilities with those of its mirror image (stated in the protocol).
     """
-    from cadalign.train.datasets import SegmentationDataset
 
     sel = select(ds, split)
     data = SegmentationDataset(sel.scene_dir, sel.ids)
@@ -103,7 +103,6 @@ def evaluate_depth(run: Path, ds: Path, out: Path, *, split: str = "test", devic
     Per-class rows restrict the pixels to those the ground-truth class map gives that class (e.g. structure).
     A model with a mask input gets the ground-truth foreground mask (stated in the protocol).
     """
-    from cadalign.train.datasets import DepthDataset, SegmentationDataset
 
     cfg = cfg or DepthEvalConfig()
     sel = select(ds, split)
@@ -143,7 +142,7 @@ def _depth_panel(path: Path, image: torch.Tensor, gt: np.ndarray, pred: np.ndarr
     valid = gt > 0
     lo, hi = (float(np.percentile(gt[valid], 1)), float(np.percentile(gt[valid], 99))) if valid.any() else (0, 1)
     err = np.where(valid, np.abs(pred - gt) / np.where(valid, gt, 1), 0.0)
-    from matplotlib import colormaps
+    from matplotlib import colormaps  # lazy: heavy dependency (matplotlib)
 
     err_rgb = (colormaps["magma"](np.clip(err / 0.3, 0, 1))[..., :3] * 255).astype(np.uint8)
     err_rgb[~valid] = 0

@@ -30,8 +30,19 @@ import numpy as np
 
 from cadalign.bench.data import bench_scene, simulate_clip, size_spec, write_scene_variant
 from cadalign.bench.framework import json_safe, num
+from cadalign.bench.models import score_net
+from cadalign.config import resolve, to_dict
 from cadalign.errors import ConfigError
+from cadalign.evaluate.sfm import evaluate
+from cadalign.infer import detect as det
+from cadalign.infer.pipeline import PRESETS as INFER_PRESETS
+from cadalign.infer.pipeline import InferConfig
+from cadalign.infer.run import calibration_from_scene
+from cadalign.infer.run import run as infer_run
 from cadalign.io import fingerprint, read_image, read_json, write_json
+from cadalign.sfm import PRESETS, SfMConfig, run
+from cadalign.sim.spec import load_scene
+from cadalign.sim.structure import load_structure
 from cadalign.types import Progress
 
 log = logging.getLogger(__name__)
@@ -53,8 +64,6 @@ def condition_scene(base: Path, effect: str, value: Any) -> dict[str, Any]:
     Raises:
         ConfigError: an unknown effect, or a base scene whose factor is not the baseline's (``BASELINE``).
     """
-    from cadalign.config import to_dict
-    from cadalign.sim.spec import load_scene
 
     spec = load_scene(base)
     if effect == "turbidity":
@@ -108,10 +117,6 @@ def clip_contrast(sim_dir: Path) -> dict[str, float]:
 
 
 def _sfm_scores(sim: Path, work: Path, seed: int) -> dict[str, Any]:
-    from cadalign.config import resolve
-    from cadalign.evaluate.sfm import evaluate
-    from cadalign.sfm import PRESETS, SfMConfig, run
-
     cfg = resolve(SfMConfig, PRESETS, "fast", overrides={"num_threads": 1, "seed": seed})
     t0 = time.perf_counter()
     try:
@@ -177,7 +182,6 @@ def _model_scores(sim: Path, scene_toml: Path, models: Path | None) -> dict[str,
     """mIoU / delta1 / pose errors of the networks in ``models/{seg,depth,pose}`` (those present) on ``sim``."""
     if models is None:
         return {}
-    from cadalign.bench.models import score_net
 
     scene = sim / "gt" / "sim" / "000000"
     out: dict[str, float] = {}
@@ -192,20 +196,15 @@ def _model_scores(sim: Path, scene_toml: Path, models: Path | None) -> dict[str,
 def pose_scores(sim: Path, scene_toml: Path, run_dir: Path) -> dict[str, float]:
     """Run ``cadalign infer`` (fast preset, detector = the pose network in ``run_dir``, the clip's exact depth
     for ICP) on a simulation folder and return the fused poses' mean errors and ADD(-S) < 0.1 d recall."""
-    from cadalign.config import resolve
-    from cadalign.infer import detect as det
-    from cadalign.infer.pipeline import PRESETS, InferConfig
-    from cadalign.infer.run import calibration_from_scene, run
-    from cadalign.models.maskrcnn.detector import load_pose_model
-    from cadalign.sim.structure import load_structure
+    from cadalign.models.maskrcnn.detector import load_pose_model  # lazy: pulls torch
 
     scene = sim / "gt" / "sim" / "000000"
-    cfg = resolve(InferConfig, PRESETS, "fast", overrides={"overlay": False})
+    cfg = resolve(InferConfig, INFER_PRESETS, "fast", overrides={"overlay": False})
     structure = load_structure(scene_toml)
     net, meta = load_pose_model(run_dir, "cpu")
     detector = det.TorchDetector(net, cfg.detector_score_thresh, "cpu", cfg.tiles, cfg.nms_iou)
     out = sim.parent / f"{sim.name}_pose"
-    run(cfg, sim / "frames", detector, structure.models, tuple(meta.get("classes", structure.class_names)), out,
+    infer_run(cfg, sim / "frames", detector, structure.models, tuple(meta.get("classes", structure.class_names)), out,
         calib=calibration_from_scene(scene), detector_info={"kind": "network", "run": str(run_dir)},
         depth_scene=scene, gt_scene=scene, overwrite=True)
     ov = read_json(out / "eval.json")["fused"]["overall"]
@@ -230,7 +229,7 @@ def _save(path: Path, config: dict, rows: list[dict], out_dir: Path, plots: bool
 def plot_robustness(result: dict[str, Any], out_dir: Path) -> dict[str, str]:
     """One PNG per effect: each metric against severity (0 = the unchanged scene); returns effect -> file name."""
     # the object API draws without pyplot's backend: matplotlib.use("Agg") here turned a notebook's inline plots off
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # lazy: heavy dependency (matplotlib)
 
     rows = result["rows"]
     base = next((r for r in rows if r["effect"] == "baseline"), None)

@@ -34,7 +34,7 @@ def seg_predictor(run: Path, classes: Sequence[str] | None, device: str = "cpu",
     scene); raw frames are then prepared as the network's training images were. The last result is remembered
     (keyed by the image object), so the depth mask and the labels of one frame share one network pass.
     """
-    from cadalign.infer.dense import load_dense_model, seg_probabilities
+    from cadalign.infer.dense import load_dense_model, seg_probabilities  # lazy: pulls torch
 
     dm = load_dense_model(Path(run), task="seg", classes=classes, device=device)
     prep = _feed(run, source_prep)
@@ -57,7 +57,7 @@ def depth_predictor(run: Path, seg: SegPredictor | None = None, device: str = "c
     ``foreground_only`` zeroes (invalidates) the depth wherever ``seg`` predicts background: depth networks
     predict a depth for open water too, which would otherwise be fused as surfaces.
     """
-    from cadalign.infer.dense import load_dense_model, metric_depth
+    from cadalign.infer.dense import load_dense_model, metric_depth  # lazy: pulls torch
 
     dm = load_dense_model(Path(run), task="depth", device=device)
     prep = _feed(run, source_prep)

@@ -30,6 +30,7 @@ from cadalign.fuse.base import LabelledGeometry, SemanticMap
 from cadalign.fuse.config import FuseConfig
 from cadalign.fuse.inputs import FrameSource, open_source
 from cadalign.fuse.map_io import MapMeta, load_map, new_map, save_map, write_ply
+from cadalign.fuse.predictors import depth_predictor, seg_predictor
 from cadalign.fuse.views import render_views
 from cadalign.io import prepare_stage_dir, write_json
 from cadalign.metrics.map import load_truth, map_metrics, point_truth_labels, sample_surface, visible_mask
@@ -162,14 +163,12 @@ def _open(cfg: FuseConfig, source: Path, depth: str, labels: str, seg_model: Pat
         if seg_model is None:
             raise InputError("--labels pred needs a segmentation model: pass --model-seg RUN "
                              "(a `cadalign train seg` run folder or checkpoint)")
-        from cadalign.fuse.predictors import seg_predictor
 
         seg = seg_predictor(seg_model, src.classes.names, source_prep=prep)
     if depth == "pred":
         if depth_model is None:
             raise InputError("--depth pred needs a depth model: pass --model-depth RUN "
                              "(a `cadalign train depth` run folder or checkpoint)")
-        from cadalign.fuse.predictors import depth_predictor
 
         dep = depth_predictor(depth_model, seg, foreground_only=cfg.pred_depth_foreground_only and seg is not None,
                               source_prep=prep)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from cadalign.geometry.compare import mask_iou
@@ -36,8 +37,6 @@ class SignedDistance:
 
     @staticmethod
     def of(mask: np.ndarray, margin: int) -> SignedDistance:
-        import cv2
-
         m = np.asarray(mask, bool)
         rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
         x0, x1 = cols[0] - margin, cols[-1] + 1 + margin

@@ -18,7 +18,9 @@ from typing import Any, Protocol
 import numpy as np
 
 from cadalign.config import bounded
+from cadalign.errors import InputError
 from cadalign.formats.bop import BopScene
+from cadalign.io import read_json
 
 log = logging.getLogger(__name__)
 
@@ -82,9 +84,9 @@ def merge_detections(dets: list[Any], iou: float) -> list[Any]:
     """Per-class greedy NMS over detections (any objects with ``box_xyxy``, ``label``, ``score``), by score."""
     if len(dets) <= 1:
         return list(dets)
-    import torch
+    import torch  # lazy: heavy dependency (torch)
 
-    from cadalign.models.ops import batched_nms
+    from cadalign.models.ops import batched_nms  # lazy: pulls torch
 
     boxes = torch.as_tensor(np.stack([np.asarray(d.box_xyxy, np.float64) for d in dets]))
     keep = batched_nms(boxes, torch.as_tensor([float(d.score) for d in dets], dtype=torch.float64),
@@ -108,7 +110,7 @@ class TorchDetector:
         self.last_timings: dict[str, float] = {}
 
     def _pass(self, image: np.ndarray, K: np.ndarray) -> list[Any]:
-        import torch
+        import torch  # lazy: heavy dependency (torch)
 
         img = torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))).float().div(255.0).to(self.device)
         Kt = torch.as_tensor(np.asarray(K, dtype=np.float32), device=self.device)
@@ -143,7 +145,6 @@ class TorchDetector:
 
 def frame_ids(scene_dir: Path) -> dict[str, int]:
     """Frame name -> BOP image id of a scene: ``frame_names.json`` (dataset builder) or ``NNNNNN.png``."""
-    from cadalign.io import read_json
 
     scene_dir = Path(scene_dir)
     names = scene_dir / "frame_names.json"
@@ -158,7 +159,6 @@ def resolve_scene_dir(path: Path) -> Path:
     for cand in (path, path / "gt" / "sim" / "000000", path / "dataset" / "all" / "000000", path / "all" / "000000"):
         if (cand / "scene_gt.json").is_file():
             return cand
-    from cadalign.errors import InputError
 
     raise InputError(f"{path} holds no BOP scene (looked for scene_gt.json in it, gt/sim/000000, "
                      "dataset/all/000000); pass a 'cadalign sim' output folder or a BOP scene folder")

@@ -20,6 +20,7 @@ import numpy as np
 
 from cadalign.cad.model import CadModel
 from cadalign.config import bounded
+from cadalign.formats.coco import mask_to_rle
 from cadalign.geometry.compare import box_iou, mask_iou
 from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.infer.complete import CompleteConfig, WorldTrack
@@ -235,8 +236,6 @@ class PoseRecord:
     same."""
 
     def to_json(self) -> dict:
-        from cadalign.formats.coco import mask_to_rle
-
         return {
             "frame": self.frame, "frame_name": self.frame_name, "obj_id": self.obj_id, "track_id": self.track_id,
             "class": self.class_name, "label": self.label, "score": round(float(self.score), 6),

@@ -28,20 +28,33 @@ from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from cadalign.cad.model import CadModel
 from cadalign.errors import InputError
+from cadalign.formats.bop import BopScene
 from cadalign.formats.calibration import CameraCalibration, Undistorter, read_calibration
+from cadalign.formats.class_map import load_class_map
+from cadalign.formats.coco import rle_to_mask
+from cadalign.fuse.predictors import depth_predictor
 from cadalign.infer.complete import TrackCompleter
 from cadalign.infer.detect import Detector, frame_ids, models_dir_of
 from cadalign.infer.model_geom import draw_wireframe
 from cadalign.infer.pipeline import InferConfig, PosePipeline, PoseRecord
 from cadalign.infer.video import VideoFrame, iter_frames
 from cadalign.io import atomic_path, prepare_stage_dir, read_json, write_json, write_text
-from cadalign.metrics.pose_eval import CroppedMask, PoseEvalConfig
+from cadalign.metrics.pose_eval import (
+    CroppedMask,
+    PoseEvalConfig,
+    PosePrediction,
+    evaluate_scene,
+    load_bop_models,
+    table_markdown,
+)
+from cadalign.metrics.pose_symmetry import warn_undeclared
 from cadalign.sfm import image_prep
-from cadalign.types import Progress, Rigid3
+from cadalign.types import Camera, Progress, Rigid3
 
 log = logging.getLogger(__name__)
 COLORS = ((255, 80, 80), (80, 255, 80), (80, 160, 255), (255, 220, 60), (255, 80, 255), (60, 255, 255))
@@ -98,7 +111,6 @@ def load_calibration(path: Path, *, use_poses: bool = True) -> Calibration:
 
 def calibration_from_scene(scene_dir: Path, *, use_poses: bool = True) -> Calibration:
     """Intrinsics (and camera poses) of a BOP scene's ``scene_camera.json``, keyed by frame name."""
-    from cadalign.formats.bop import BopScene
 
     scene = BopScene(scene_dir)
     K_of, T_of = {}, {}
@@ -126,12 +138,8 @@ class _DepthSource:
     (``raw_frames``: ``enhance = "auto"``), else the frame as the detector gets it."""
 
     def __init__(self, path: Path | None, *, raw_frames: bool = True, device: str = "cpu") -> None:
-        from cadalign.formats.bop import BopScene
-
         self.scene, self.ids, self.predict, self.raw_frames = None, {}, None, raw_frames
         if path is not None and is_depth_run(path):
-            from cadalign.fuse.predictors import depth_predictor
-
             self.predict = depth_predictor(Path(path), device=device,
                                            source_prep=dict(image_prep.RAW) if raw_frames else None)
         elif path is not None:
@@ -145,8 +153,6 @@ class _DepthSource:
     def get(self, name: str, raw: np.ndarray, prepared: np.ndarray, K: np.ndarray) -> np.ndarray | None:
         """(H, W) depth in metres of frame ``name`` (``raw`` as read, ``prepared`` as the detector sees it)."""
         if self.predict is not None:
-            from cadalign.types import Camera
-
             rgb = raw if self.raw_frames else prepared
             return np.asarray(self.predict(rgb, Camera(K, rgb.shape[1], rgb.shape[0])), dtype=np.float64)
         if self.scene is None or name not in self.ids:
@@ -155,8 +161,6 @@ class _DepthSource:
 
 
 def _draw(image: np.ndarray, records: list[PoseRecord], pipeline: PosePipeline, K: np.ndarray) -> np.ndarray:
-    import cv2
-
     img = image.copy()
     for r in records:
         if r.obj_id is None:
@@ -319,7 +323,7 @@ def resolve_prep(enhance: str, detector_info: dict) -> dict:
 
 
 def video_writer(path: Path, fps: float):  # -> imageio writer
-    import imageio.v2 as imageio
+    import imageio.v2 as imageio  # lazy: heavy dependency (imageio)
 
     return imageio.get_writer(path, format="FFMPEG", fps=fps, codec="libx264", quality=7, macro_block_size=16,
                               ffmpeg_log_level="error")
@@ -363,9 +367,6 @@ def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, ou
     ``fused``: the records the fused section scores (after track completion), ``records`` by default; the other
     sections score ``records`` (the detections). ``eval_cfg`` defaults to
     :class:`~cadalign.metrics.pose_eval.PoseEvalConfig` () (BOP's rules)."""
-    from cadalign.formats.class_map import load_class_map
-    from cadalign.metrics.pose_eval import PosePrediction, evaluate_scene, load_bop_models, table_markdown
-    from cadalign.metrics.pose_symmetry import warn_undeclared
 
     cmap = load_class_map(gt_scene)
     ids = frame_ids(gt_scene)
@@ -401,7 +402,6 @@ def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, ou
 
 def read_poses(path: Path) -> list[PoseRecord]:
     """The records of a ``poses.jsonl`` (masks decoded when stored)."""
-    from cadalign.formats.coco import rle_to_mask
 
     out = []
     for i, line in enumerate(Path(path).read_text(encoding="utf-8").splitlines()):

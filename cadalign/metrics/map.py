@@ -27,6 +27,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
 
 from cadalign.errors import InputError
 from cadalign.io import read_json
@@ -43,7 +45,6 @@ class CadTruth:
 
 def load_truth(scene_dir: Path) -> CadTruth:
     """The posed CAD parts of a sim or dataset scene (``../../models`` + ``objects.json``)."""
-    import trimesh
 
     scene_dir = Path(scene_dir)
     objects = read_json(scene_dir / "objects.json")
@@ -120,7 +121,7 @@ def point_truth_labels(points: np.ndarray, views: Iterable[tuple[Camera, Rigid3,
 def _distance_to_mesh(query: np.ndarray,
                       parts: Sequence[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
     """Exact distance of each query point to the union of triangle meshes, and the index of the nearest one."""
-    import open3d as o3d
+    import open3d as o3d  # lazy: heavy dependency (open3d)
 
     centre = np.mean([v.mean(axis=0) for v, _ in parts], axis=0)
     scene = o3d.t.geometry.RaycastingScene()
@@ -140,8 +141,6 @@ def _distance_to_mesh(query: np.ndarray,
 
 
 def _distance_to_points(query: np.ndarray, points: np.ndarray) -> np.ndarray:
-    from scipy.spatial import cKDTree
-
     return cKDTree(points).query(query, k=1, workers=1)[0]
 
 

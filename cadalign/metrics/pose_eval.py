@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from cadalign.cad.models_info import symmetry_from_entry
 from cadalign.cad.symmetry import Symmetry
@@ -101,7 +102,6 @@ def load_bop_models(models_dir: Path, *, max_points: int = 20000) -> dict[int, E
 
     Uses the mesh vertices as the metric's points (as BOP does), subsampled evenly to ``max_points``.
     """
-    import trimesh
 
     models_dir = Path(models_dir)
     info = read_json(models_dir / "models_info.json")

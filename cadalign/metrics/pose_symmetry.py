@@ -14,6 +14,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from cadalign.cad.symmetry import Symmetry, axis_angle_matrix
 
@@ -39,7 +40,6 @@ def symmetry_deviation(points_m: np.ndarray, R: np.ndarray, diameter_m: float) -
 
     With dense surface samples this is the MSSD between the identity and ``R`` (plus the sampling spacing).
     """
-    from scipy.spatial import cKDTree
 
     pts = np.asarray(points_m, dtype=np.float64)
     return float(cKDTree(pts).query(pts @ np.asarray(R, float).T)[0].max() / max(diameter_m, 1e-12))

@@ -50,7 +50,7 @@ def pixel_rays_cam(camera: Camera) -> np.ndarray:
 
 
 def _o3d_mesh(vertices: np.ndarray, faces: np.ndarray):  # -> o3d.t.geometry.TriangleMesh
-    import open3d as o3d
+    import open3d as o3d  # lazy: heavy dependency (open3d)
 
     m = o3d.t.geometry.TriangleMesh()
     m.vertex.positions = o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32))
@@ -66,7 +66,7 @@ class MeshQuery:
     """
 
     def __init__(self, vertices_m: np.ndarray, faces: np.ndarray, origin: np.ndarray | None = None) -> None:
-        import open3d as o3d
+        import open3d as o3d  # lazy: heavy dependency (open3d)
 
         vertices_m = np.asarray(vertices_m, dtype=np.float64)
         self.origin = vertices_m.mean(axis=0) if origin is None else np.asarray(origin, dtype=np.float64)
@@ -74,7 +74,7 @@ class MeshQuery:
         self._scene.add_triangles(_o3d_mesh(vertices_m - self.origin, faces))
 
     def _query(self, points_m: np.ndarray):  # -> o3d.core.Tensor
-        import open3d as o3d
+        import open3d as o3d  # lazy: heavy dependency (open3d)
 
         q = (np.asarray(points_m, dtype=np.float64).reshape(-1, 3) - self.origin).astype(np.float32)
         return o3d.core.Tensor(q)
@@ -117,7 +117,7 @@ class RaycastRenderer:
     def __init__(self, meshes: Sequence[RenderMesh], camera: Camera, rays_cam: np.ndarray | None = None) -> None:
         """``rays_cam``: optional (H, W, 3) camera-frame ray directions with z = 1 through the pixel centres,
         for lens models beyond the pinhole ``camera.K`` (e.g. SfM's radial distortion); default: from K."""
-        import open3d as o3d
+        import open3d as o3d  # lazy: heavy dependency (open3d)
 
         if not meshes:
             raise InputError("nothing to render: the mesh list is empty")
@@ -165,7 +165,7 @@ class RaycastRenderer:
 
     def render(self, T_world_from_cam: Rigid3, *, with_full_masks: bool = True) -> RaycastFrame:
         """Ground truth of the view from ``T_world_from_cam`` (camera: x right, y down, z forward)."""
-        import open3d as o3d
+        import open3d as o3d  # lazy: heavy dependency (open3d)
 
         H, W = self.camera.height, self.camera.width
         rays = self._rays(T_world_from_cam, slice(None), slice(None))
@@ -194,7 +194,7 @@ class RaycastRenderer:
         )
 
     def _full_masks(self, T_world_from_cam: Rigid3) -> dict[int, np.ndarray]:
-        import open3d as o3d
+        import open3d as o3d  # lazy: heavy dependency (open3d)
 
         H, W = self.camera.height, self.camera.width
         T_cam_from_world = T_world_from_cam.inverse() @ Rigid3(np.eye(3), self._origin)  # cam from local

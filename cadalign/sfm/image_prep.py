@@ -20,6 +20,8 @@ import numpy as np
 
 from cadalign.errors import InputError
 from cadalign.io import read_json, write_json
+from cadalign.sfm.config import FrameConfig
+from cadalign.sfm.frames import enhance
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +40,6 @@ def prep_of_frame_config(frames: Any) -> dict[str, Any]:
 
 def prep_named(enhance: str) -> dict[str, Any]:
     """The record of one enhancement with SfM's default settings (``FrameConfig``'s CLAHE clip and tiles)."""
-    from cadalign.sfm.config import FrameConfig
 
     return prep_of_frame_config(FrameConfig(enhance=enhance))
 
@@ -117,8 +118,6 @@ def apply(rgb: np.ndarray, prep: dict[str, Any]) -> np.ndarray:
     """An (H, W, 3) uint8 RGB frame prepared as ``prep`` says (:func:`cadalign.sfm.frames.enhance`)."""
     if prep["enhance"] == "none":
         return rgb
-    from cadalign.sfm.config import FrameConfig
-    from cadalign.sfm.frames import enhance
 
     return enhance(rgb, FrameConfig(enhance=prep["enhance"], clahe_clip=prep["clahe_clip"],
                                     clahe_tiles=prep["clahe_tiles"]))

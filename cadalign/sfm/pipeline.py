@@ -199,7 +199,7 @@ def _step_mapping(cfg: SfMConfig, lay: Layout, progress: Progress | None) -> dic
 
 
 def _step_refine(cfg: SfMConfig, lay: Layout) -> dict[str, Any]:
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     rec = pycolmap.Reconstruction(str(lay.model))
     info = refine(rec, cfg)
@@ -208,7 +208,7 @@ def _step_refine(cfg: SfMConfig, lay: Layout) -> dict[str, Any]:
 
 
 def _step_export(cfg: SfMConfig, source: Path, lay: Layout, progress: Progress | None) -> dict[str, Any]:
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     rec = pycolmap.Reconstruction(str(lay.model))
     cams = cameras_json(rec)

@@ -50,7 +50,7 @@ class RGBRenderer:
 
     def __init__(self, scene: SimScene) -> None:
         os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-        import pyrender
+        import pyrender  # lazy: heavy dependency (pyrender)
 
         self._pr = pyrender
         cam = scene.camera

@@ -18,8 +18,10 @@ import torch.nn.functional as F
 from torch.utils.data import Dataset
 
 from cadalign.errors import InputError
+from cadalign.formats.bop import BopScene
 from cadalign.formats.splits import SPLITS, time_block_splits
 from cadalign.io import read_json
+from cadalign.train.datasets import SegmentationDataset
 
 log = logging.getLogger(__name__)
 
@@ -37,8 +39,6 @@ class DataSelection:
 
 
 def _scene_ids(scene_dir: Path) -> list[int]:
-    from cadalign.formats.bop import BopScene
-
     return list(BopScene(scene_dir).ids)
 
 
@@ -90,8 +90,6 @@ class ScaledDataset(Dataset):
         self._items: dict[int, dict] = {}
         self._labels = None
         if with_fg:
-            from cadalign.train.datasets import SegmentationDataset
-
             self._labels = SegmentationDataset(base.scene.dir, base.ids)
 
     def __len__(self) -> int:

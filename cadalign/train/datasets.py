@@ -19,6 +19,7 @@ from torch.utils.data import Dataset
 from cadalign.errors import InputError
 from cadalign.formats.bop import BopScene, mask_bbox
 from cadalign.formats.class_map import ClassMap, load_class_map
+from cadalign.io import read_image
 
 
 def _image(scene: BopScene, im_id: int) -> torch.Tensor:
@@ -29,8 +30,6 @@ def _label_map(scene: BopScene, im_id: int, classes: ClassMap) -> np.ndarray:
     """(H, W) class indices: the extras' ``class/`` PNG if present, else painted from the visible masks."""
     png = scene.dir / "class" / f"{im_id:06d}.png"
     if png.is_file():
-        from cadalign.io import read_image
-
         return read_image(png, unchanged=True).astype(np.int64)
     frame = scene.frame(im_id)
     if frame.instances and not (scene.dir / "mask_visib").is_dir():

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+import trimesh
 from torch import nn
 from torch.utils.data import Dataset
 
@@ -39,6 +40,7 @@ from cadalign.train.data import select
 from cadalign.train.datasets import DetectionPoseDataset, detection_collate
 from cadalign.train.loop import LoopConfig, TrainResult, is_main_rank, train_loop
 from cadalign.train.pose_crop import crop_batch
+from cadalign.train.pose_eval import evaluate
 from cadalign.train.pose_losses import ObjectGeometry, PoseLoss, PoseLossConfig
 
 log = logging.getLogger(__name__)
@@ -167,7 +169,6 @@ symmetry_from_bop = symmetry_from_entry
 
 def load_object_geometry(models_dir: Path, n_points: int, seed: int = 0) -> dict[int, ObjectGeometry]:
     """Surface samples (metres), diameters and symmetries of every BOP model in ``models_dir`` (files in mm)."""
-    import trimesh
 
     info = read_json(Path(models_dir) / "models_info.json")
     out = {}
@@ -302,7 +303,6 @@ def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = Fa
                         extra_state=identity)
     held_out = sorted((ds.splits.get("val") or []) + (ds.splits.get("test") or []))
     if held_out and not result.interrupted and is_main_rank():  # under DDP rank 0 scores and writes
-        from cadalign.train.pose_eval import evaluate
 
         model.eval()
         report = evaluate(model, ds.scene_dir, held_out, ds.models_dir, cfg.eval_score_thresh)

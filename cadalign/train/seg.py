@@ -15,6 +15,7 @@ from typing import Literal
 
 import numpy as np
 import torch
+import torch.distributed as dist
 from torch import nn
 
 from cadalign.config import bounded
@@ -23,6 +24,7 @@ from cadalign.sfm.image_prep import read_prep
 from cadalign.train.augment import AugmentConfig, augment_dense, random_patches
 from cadalign.train.common import write_run_record
 from cadalign.train.data import ScaledDataset, class_pixel_counts, select
+from cadalign.train.datasets import SegmentationDataset
 from cadalign.train.loop import LoopConfig, TrainResult, augment_seed, train_loop
 from cadalign.train.losses import boundary_weights, cross_entropy, median_frequency_weights, soft_dice
 
@@ -195,7 +197,6 @@ def val_miou(ds: ScaledDataset, classes: tuple[str, ...], device: str, batch: in
 def augment_step(g: torch.Generator, seed: int) -> int:
     """The loop step whose augmentation generator ``g`` is (inverts :func:`cadalign.train.loop.augment_seed`,
     which is linear in the step), so a resumed run switches phases at the same step as an uninterrupted one."""
-    import torch.distributed as dist
 
     rank = dist.get_rank() if dist.is_available() and dist.is_initialized() else 0
     base = augment_seed(seed, 0, rank)
@@ -229,7 +230,6 @@ def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train",
     ``out/train_config.json`` records the resolved config, class list, class weights and data selection; the
     checkpoint carries the class list and model config, and resuming with other ones is refused.
     """
-    from cadalign.train.datasets import SegmentationDataset
 
     sel = select(ds, split)
     base = SegmentationDataset(sel.scene_dir, sel.ids)

@@ -27,10 +27,11 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from cadalign.align.verify.config import VerifyConfig
 from cadalign.align.verify.evidence import (
@@ -45,6 +46,8 @@ from cadalign.align.verify.evidence import (
     refine_locally,
     surface_samples,
 )
+from cadalign.config import to_dict
+from cadalign.errors import InputError
 from cadalign.raycast.core import RaycastRenderer, RenderMesh
 from cadalign.types import Sim3
 
@@ -112,8 +115,6 @@ class Verification:
     """Every hypothesis as scored (moved by the local contour fit), by index."""
 
     def summary(self) -> dict[str, Any]:
-        from cadalign.config import to_dict
-
         return {"outcome": self.outcome, "chosen": self.chosen, "user_choice": self.user_choice,
                 "margin": self.margin, "runner_up": self.runner_up, "reasons": list(self.reasons), "fix": self.fix,
                 "cad_from_sfm": self.cad_from_sfm.matrix().tolist(), "frames": list(self.frames),
@@ -122,7 +123,6 @@ class Verification:
 
 def _look_alikes(hyps: Sequence[Sim3], cad_points_m: np.ndarray, tol_m: float) -> list[list[bool]]:
     """same[i][j]: hypotheses i and j put the CAD samples on (nearly) the same SfM-frame points."""
-    from scipy.spatial import cKDTree
 
     placed = [T.inverse().apply(cad_points_m) * T.s for T in hyps]  # SfM frame, scaled to metres
     trees = [cKDTree(p) for p in placed]
@@ -179,8 +179,6 @@ def score_hypotheses(views: Sequence[View], meshes: Sequence[RenderMesh], hyps: 
 
 
 def _with_same(e: HypothesisEvidence, j: int) -> HypothesisEvidence:
-    from dataclasses import replace
-
     return replace(e, same_as=j)
 
 
@@ -229,8 +227,6 @@ def verify(views: Sequence[View], meshes: Sequence[RenderMesh], hyps: Sequence[S
            rays: FreeSpaceRays, cfg: VerifyConfig, inlier_m: float, choice: int | None = None) -> Verification:
     """Score every hypothesis by the images and decide (see the module doc)."""
     if choice is not None and not 0 <= choice < len(hyps):
-        from cadalign.errors import InputError
-
         raise InputError(f"--hypothesis {choice}: the alignment has hypotheses 0..{len(hyps) - 1}; see "
                          "verify/verify.json or verify/hypotheses.png")
     t0 = time.perf_counter()

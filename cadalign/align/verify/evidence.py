@@ -16,7 +16,7 @@ from cadalign.align.edge_refine import (
     moved_camera,
     search_edges,
 )
-from cadalign.raycast.core import RaycastRenderer, RenderMesh
+from cadalign.raycast.core import RaycastRenderer, RenderMesh, _o3d_mesh
 from cadalign.types import Camera, Rigid3, Sim3
 
 if TYPE_CHECKING:
@@ -126,7 +126,7 @@ def free_space_evidence(scene: Any, origin_m: np.ndarray, rays: FreeSpaceRays, c
     """(rays meeting the CAD at or before their point, of which meet it clearly before: violations).
 
     ``scene``: an Open3D ``RaycastingScene`` of the CAD with coordinates relative to ``origin_m``."""
-    import open3d as o3d
+    import open3d as o3d  # lazy: heavy dependency (open3d)
 
     if len(rays.points_sfm) == 0:
         return 0, 0
@@ -150,7 +150,7 @@ def photo_consistency(views: Sequence[View], scene: Any, origin_m: np.ndarray, T
     the CAD first at it) and its grey value read; the score is ``1 - mean per-point std / std of all values``
     over samples seen in ``min_views`` views or more: near 0 when the CAD lies over unrelated image content in
     each view, towards 1 on a textured surface at the right pose (a uniform surface gives no evidence)."""
-    import open3d as o3d
+    import open3d as o3d  # lazy: heavy dependency (open3d)
 
     vals = np.full((len(surface_m), len(views)), np.nan)
     for j, v in enumerate(views):
@@ -178,9 +178,7 @@ def photo_consistency(views: Sequence[View], scene: Any, origin_m: np.ndarray, T
 
 
 def cad_scene(meshes: Sequence[RenderMesh]) -> tuple[Any, np.ndarray]:
-    import open3d as o3d
-
-    from cadalign.raycast.core import _o3d_mesh
+    import open3d as o3d  # lazy: heavy dependency (open3d)
 
     parts = [m for m in meshes if m.instance > 0]
     origin = np.concatenate([m.vertices_m for m in parts]).mean(axis=0)

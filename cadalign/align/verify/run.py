@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from cadalign.align.camera_refine import rays_of
@@ -34,7 +35,6 @@ VERIFY_PNG = "hypotheses.png"
 
 def load_views(rec: Any, images_dir: Path, n: int) -> list[View]:
     """``n`` evenly spaced registered frames of ``rec`` (a ``pycolmap.Reconstruction``) with grey images."""
-    import cv2
 
     ims = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
     pick = [ims[int(i)] for i in np.unique(np.linspace(0, len(ims) - 1, min(n, len(ims))).round())] if ims else []
@@ -58,7 +58,6 @@ def load_views(rec: Any, images_dir: Path, n: int) -> list[View]:
 def hypotheses_png(views: Sequence[View], meshes: Sequence[RenderMesh], ver: Verification, n_frames: int) -> bytes:
     """A grid of frames (columns) with the chosen (green) and the next best (red: the runner-up, else the best
     other hypothesis, a look-alike) hypotheses' contours drawn."""
-    import cv2
 
     hyps = ver.hypotheses
     second = ver.runner_up

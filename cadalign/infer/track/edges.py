@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Any
 
+import cv2
 import numpy as np
 
 from cadalign.align.edge_refine import (
@@ -145,7 +146,6 @@ class EdgeTracker:
         Each level renders the CAD once, at the pose it starts from; its rounds move the contour samples' 3-D
         points with the pose and search again (the contour generator hardly moves within a level's
         correction), as model-based edge trackers do."""
-        import cv2
 
         T = T_world_from_cam
         last: tuple[Any, np.ndarray, Any] | None = None
@@ -251,7 +251,6 @@ def as_gray(image: np.ndarray, colour: bool = False) -> np.ndarray:
     """The frame as the edge search reads it: (H, W) float32 grey levels 0-255 of an RGB uint8 (or already
     grey) image, or with ``colour`` the (H, W, 3) channels as float32 (each edge sample then takes its strongest
     channel, :func:`~cadalign.align.edge_refine.search_edges`)."""
-    import cv2
 
     if image.ndim == 3 and colour:
         return np.ascontiguousarray(image[..., :3], dtype=np.float32)

@@ -13,6 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from cadalign.infer import detect as det
+from cadalign.infer.run import resolve_prep
+from cadalign.sfm import image_prep
 from cadalign.sim.structure import Structure
 from cadalign.types import Camera, Rigid3
 
@@ -38,10 +41,7 @@ def detector_restarts(model: Path | tuple, structure: Structure, camera: Camera,
     """A restart source for :func:`cadalign.infer.track.run.track_video` from a trained pose network (its run
     folder, or ``(network, meta)`` as :func:`~cadalign.models.maskrcnn.detector.load_pose_model` returns them),
     and the record of what it is."""
-    from cadalign.infer import detect as det
-    from cadalign.infer.run import resolve_prep
-    from cadalign.models.maskrcnn.detector import load_pose_model
-    from cadalign.sfm import image_prep
+    from cadalign.models.maskrcnn.detector import load_pose_model  # lazy: pulls torch
 
     net, meta = load_pose_model(model, device) if isinstance(model, Path) else model
     class_names = tuple(meta.get("classes", structure.class_names))
