@@ -232,3 +232,39 @@ def test_cycle_through_an_import_inside_a_function_is_found(tmp_path: Path) -> N
 def test_upward_import_is_found() -> None:
     g = {"cadalign.geometry.camera": {"cadalign.infer.run": 3}, "cadalign.infer.run": {"cadalign.types": 1}}
     assert upward_imports(g) == {("cadalign.geometry.camera", "cadalign.infer.run"): 3}
+
+
+MAX_MODULE_LINES = 500
+MAX_FUNCTION_LINES = 80
+SIZE_EXCEPTIONS: dict[str, str] = {}
+"""module or ``module:function`` -> why it may be longer (issue 48: each exception justified). Empty."""
+
+
+def size_problems(package_dir: Path) -> list[str]:
+    """Modules over :data:`MAX_MODULE_LINES` lines and functions (decorators to last line) over
+    :data:`MAX_FUNCTION_LINES`, not in :data:`SIZE_EXCEPTIONS`."""
+    problems = []
+    for module, path in module_files(package_dir).items():
+        text = path.read_text(encoding="utf-8")
+        n = len(text.splitlines())
+        if n > MAX_MODULE_LINES and module not in SIZE_EXCEPTIONS:
+            problems.append(f"{module}: {n} lines (split it by what its parts do)")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                start = min([node.lineno] + [d.lineno for d in node.decorator_list])
+                length = (node.end_lineno or start) - start + 1
+                if length > MAX_FUNCTION_LINES and f"{module}:{node.name}" not in SIZE_EXCEPTIONS:
+                    problems.append(f"{module}:{node.name} (line {node.lineno}): {length} lines")
+    return problems
+
+
+def test_modules_and_functions_are_small() -> None:
+    problems = size_problems(PACKAGE_DIR)
+    assert not problems, (f"over {MAX_MODULE_LINES} lines a module or {MAX_FUNCTION_LINES} a function:\n"
+                          + "\n".join(problems))
+
+
+def test_an_oversized_function_is_found(tmp_path: Path) -> None:
+    body = "".join(f"    x{i} = {i}\n" for i in range(MAX_FUNCTION_LINES))
+    pkg = _write(tmp_path, {"pkg/__init__.py": "", "pkg/a.py": f"def f():\n{body}"})
+    assert size_problems(pkg) == [f"pkg.a:f (line 1): {MAX_FUNCTION_LINES + 1} lines"]

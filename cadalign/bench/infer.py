@@ -28,8 +28,8 @@ from typing import Any
 from cadalign.bench.data import BenchData
 from cadalign.bench.framework import BenchConfig, Metric, Sweep, SweepPoint
 from cadalign.config import merge_mappings, resolve
+from cadalign.infer.config import PRESETS, InferConfig
 from cadalign.infer.detect import TorchDetector, resolve_scene_dir
-from cadalign.infer.pipeline import PRESETS, InferConfig
 from cadalign.infer.run import calibration_from_scene, run
 from cadalign.io import fingerprint, read_json
 from cadalign.sim.structure import load_structure

@@ -21,7 +21,7 @@ from cadalign.bench.refine import refine_sweep as sweep
 from cadalign.config import resolve
 from cadalign.errors import InputError
 from cadalign.evaluate.sfm import evaluate
-from cadalign.infer.refine import RefineConfig
+from cadalign.infer.config import RefineConfig
 from cadalign.io import fingerprint
 from cadalign.metrics.depth import DepthAccumulator, DepthEvalConfig, frame_depth_errors
 from cadalign.metrics.seg import confusion_matrix, seg_metrics

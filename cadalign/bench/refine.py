@@ -14,9 +14,10 @@ import numpy as np
 
 from cadalign.cad.model import CadModel
 from cadalign.formats.bop import BopScene
+from cadalign.infer.config import RefineConfig
 from cadalign.infer.detect import frame_ids
 from cadalign.infer.model_geom import ModelGeometry
-from cadalign.infer.refine import RefineConfig, icp_points, refine_depth_icp, refine_silhouette
+from cadalign.infer.refine import icp_points, refine_depth_icp, refine_silhouette
 from cadalign.metrics.pose import add, rotation_error_deg, translation_error_m
 from cadalign.testing.oracle import OracleConfig, OracleDetector
 from cadalign.types import Rigid3

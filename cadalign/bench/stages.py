@@ -114,7 +114,6 @@ def render_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
     n_frames = (2, 3, 4)[data.size.level]
 
     def caster_at(width: int, height: int):  # -> GroundTruthCaster
-
         path = data.scene()
         return GroundTruthCaster(build_scene(load_scene(path), path, width=width, height=height))
 
@@ -320,7 +319,6 @@ def emulate_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
     ref_channels, ref_step = 2 * max(c for _, c, _ in pts), min(a for _, _, a in pts) / 2
 
     def lidar_cfg(channels: int, step: float):  # -> LidarConfig
-
         return LidarConfig(channels=channels, vfov_deg=(-45.0, 45.0), horizontal_res_deg=step, max_range_m=1000.0,
                            range_noise_m=0.0, seed=cfg.seed)
 

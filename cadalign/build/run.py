@@ -305,38 +305,16 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
             confirm it (no dataset is written; ``OUT/verify/`` holds the evidence and the picture).
         InputError, ConfigError: unusable inputs, or ``out`` holds results of another config.
     """
-
     if preset not in SFM_PRESETS or preset not in ALIGN_PRESETS:
         raise ConfigError(f"unknown preset {preset!r}; allowed values: {', '.join(SFM_PRESETS)}")
     out = Path(out)
     structure = load_structure(cad, cad_unit)
     seconds: dict[str, float] = {}
-    t0 = time.perf_counter()
-    sfm_cfg = SFM_PRESETS[preset]
-    if calib is not None:  # any --calib format; frames are undistorted by its lens distortion at extraction
-
-        sfm_cfg = with_calibration(sfm_cfg, Path(calib), Path(source))
-    if sfm_set:
-        sfm_cfg = from_dict(SfMConfig, sfm_set, source="the SfM settings (--sfm-set)", base=sfm_cfg)
-    sfm_dir = sfm_run(sfm_cfg, Path(source), out / "sfm", overwrite=overwrite, progress=progress, topic=topic)
-    seconds["sfm"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    parts = [(structure.models[o.obj_id], o.T_world_from_obj) for o in structure.objects]
-    points: Path | np.ndarray = sfm_dir / "sparse" / "0"
-    if roi is not None:
-        points = _roi_points(points, Path(roi), sfm_dir)
-    align_json = align_run(ALIGN_PRESETS[preset], points, parts, out / "align", picks=picks, overwrite=overwrite)
-    seconds["align"] = time.perf_counter() - t0
-    cad_from_sfm = read_sim3(align_json)
-    verification = None
-    if verify is not None and verify.enabled:
-        t0 = time.perf_counter()
-        verification = _verify(verify, structure, align_json, sfm_dir, out / "verify", hypothesis,
-                               {"seconds": seconds, "sfm_report": read_json(sfm_dir / "sfm_report.json")})
-        if verification.chosen != 0:  # the cloud gates judged hypothesis 0: judge the chosen one too
-            _gate(ALIGN_PRESETS[preset], points, parts, verification.cad_from_sfm)
-        cad_from_sfm = verification.cad_from_sfm
-        seconds["verify"] = time.perf_counter() - t0
+    sfm_cfg, sfm_dir = _sfm(preset, source, out, calib=calib, sfm_set=sfm_set, overwrite=overwrite,
+                            progress=progress, topic=topic, seconds=seconds)
+    align_json, cad_from_sfm, verification = _align_and_verify(
+        preset, structure, sfm_dir, out, picks=picks, roi=roi, verify=verify, hypothesis=hypothesis,
+        overwrite=overwrite, seconds=seconds)
     ds = out / "dataset"
     if overwrite and ds.exists():
         shutil.rmtree(ds)
@@ -363,16 +341,60 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
         "seconds": seconds, "sfm_report": read_json(sfm_dir / "sfm_report.json"),
         "colmap_log": colmap_said.to_json(),
     }
+    _add_findings(report, ds, verification)
+    if gt is not None:
+        report["vs_truth"] = evaluate_against_sim(ds / SCENE, Path(gt), frame_names, cad_from_sfm, cameras,
+                                                  structure, sfm_dir)
+    write_json(out / "build_report.json", report)
+    write_build_html(out, report)
+    return out
+
+
+def _sfm(preset: str, source: Path, out: Path, *, calib: Path | None, sfm_set: Mapping[str, Any] | None,
+         overwrite: bool, progress: Progress | None, topic: str | None, seconds: dict[str, float]) -> tuple[Any, Path]:
+    """SfM of ``source`` into ``OUT/sfm`` with the preset, the known calibration and the ``--sfm-set`` overrides:
+    (the SfM config used, ``OUT/sfm``). Adds its seconds."""
+    t0 = time.perf_counter()
+    sfm_cfg = SFM_PRESETS[preset]
+    if calib is not None:  # any --calib format; frames are undistorted by its lens distortion at extraction
+        sfm_cfg = with_calibration(sfm_cfg, Path(calib), Path(source))
+    if sfm_set:
+        sfm_cfg = from_dict(SfMConfig, sfm_set, source="the SfM settings (--sfm-set)", base=sfm_cfg)
+    sfm_dir = sfm_run(sfm_cfg, Path(source), out / "sfm", overwrite=overwrite, progress=progress, topic=topic)
+    seconds["sfm"] = time.perf_counter() - t0
+    return sfm_cfg, sfm_dir
+
+
+def _align_and_verify(preset: str, structure: Structure, sfm_dir: Path, out: Path, *, picks: Path | None,
+                      roi: Path | None, verify: VerifyConfig | None, hypothesis: int | None, overwrite: bool,
+                      seconds: dict[str, float]) -> tuple[Path, Sim3, Any]:
+    """The CAD aligned to the SfM cloud (``OUT/align``) and, unless ``verify`` is off, judged by the images
+    (``OUT/verify``): (align.json, the ``cad_from_sfm`` used, the verification or None). Adds the steps' seconds."""
+    t0 = time.perf_counter()
+    parts = [(structure.models[o.obj_id], o.T_world_from_obj) for o in structure.objects]
+    points: Path | np.ndarray = sfm_dir / "sparse" / "0"
+    if roi is not None:
+        points = _roi_points(points, Path(roi), sfm_dir)
+    align_json = align_run(ALIGN_PRESETS[preset], points, parts, out / "align", picks=picks, overwrite=overwrite)
+    seconds["align"] = time.perf_counter() - t0
+    cad_from_sfm = read_sim3(align_json)
+    verification = None
+    if verify is not None and verify.enabled:
+        t0 = time.perf_counter()
+        verification = _verify(verify, structure, align_json, sfm_dir, out / "verify", hypothesis,
+                               {"seconds": seconds, "sfm_report": read_json(sfm_dir / "sfm_report.json")})
+        if verification.chosen != 0:  # the cloud gates judged hypothesis 0: judge the chosen one too
+            _gate(ALIGN_PRESETS[preset], points, parts, verification.cad_from_sfm)
+        cad_from_sfm = verification.cad_from_sfm
+        seconds["verify"] = time.perf_counter() - t0
+    return align_json, cad_from_sfm, verification
+
+
+def _add_findings(report: dict[str, Any], ds: Path, verification: Any) -> None:
+    """The verification's summary, the seabed and the edge alignment found, into the build report."""
     if verification is not None:
         report["verification"] = verification.summary()
     if (ds / "seabed.json").is_file():
         report["seabed"] = read_json(ds / "seabed.json")
     if (ds / "edge_align.json").is_file():
         report["edge_alignment"] = read_json(ds / "edge_align.json")["summary"]
-    if gt is not None:
-        report["vs_truth"] = evaluate_against_sim(ds / SCENE, Path(gt), frame_names, cad_from_sfm, cameras,
-                                                  structure, sfm_dir)
-    write_json(out / "build_report.json", report)
-
-    write_build_html(out, report)
-    return out

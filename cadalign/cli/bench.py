@@ -96,7 +96,7 @@ def infer(
     over the detector alone measured in the same run; per-stage ms and frames/s in bench.json."""
     from cadalign.bench.infer import InferSource, infer_sweep  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.bench.registry import run_bench  # lazy: pulls cv2; keeps `cadalign --help` light
-    from cadalign.infer.pipeline import PRESETS, InferConfig  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.infer.config import PRESETS, InferConfig  # lazy: pulls cv2; keeps `cadalign --help` light
 
     with user_errors():
         sweeps = None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
@@ -13,6 +14,9 @@ from cadalign.infer import detect as det
 from cadalign.io import read_json
 from cadalign.testing import oracle
 from cadalign.types import Camera
+
+if TYPE_CHECKING:
+    from cadalign.infer.config import InferConfig
 
 
 def command(
@@ -53,10 +57,8 @@ def command(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
 ) -> None:
     """Detect the parts, refine their poses against the CAD, fuse them over time; write poses.jsonl + overlay."""
-    from cadalign.infer.pipeline import PRESETS, InferConfig  # lazy: pulls cv2; keeps `cadalign --help` light
-
-    # lazy: pulls cv2; keeps `cadalign --help` light
-    from cadalign.infer.run import calibration_from_scene, load_calibration, run
+    from cadalign.infer.config import PRESETS, InferConfig  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.infer.run import run  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.sim.structure import load_structure  # lazy: pulls cv2; keeps `cadalign --help` light
 
     with user_errors():
@@ -72,39 +74,52 @@ def command(
                                                                 "depth_iters": refine_iters}}
         cfg = resolve(InferConfig, PRESETS, preset, config, overrides)
         structure = load_structure(cad, cad_unit)
-        class_names = structure.class_names
-        if model is not None:
-            from cadalign.models.maskrcnn.detector import load_pose_model  # lazy: pulls torch
-
-            net, meta = load_pose_model(model, device)
-            class_names = tuple(meta.get("classes", class_names))
-            detector = det.TorchDetector(net, cfg.detector_score_thresh, device, cfg.tiles, cfg.nms_iou)
-            info = {"kind": "network", "run": str(model), "step": meta.get("step")}
-        else:
-            scene = det.resolve_scene_dir(oracle_gt)
-            ocfg = oracle.OracleConfig(noise_t_m=oracle_noise_t, noise_r_deg=oracle_noise_r, seed=cfg.refine.seed)
-            detector = oracle.OracleDetector(scene, ocfg)
-            class_names = detector.classes.names
-            info = {"kind": "oracle", "note": "ground truth + noise, NOT a trained network", "scene": str(scene),
-                    "noise_t_m": oracle_noise_t, "noise_r_deg": oracle_noise_r}
-            console.print("[yellow]detector: ORACLE (ground-truth detections with noisy poses) - for tests and "
-                          "demos of refinement/fusion only, not a trained network[/]")
+        detector, class_names, info = _detector(model, oracle_gt, cfg, structure.class_names, device,
+                                                (oracle_noise_t, oracle_noise_r))
         gt_scene = det.resolve_scene_dir(gt) if gt is not None else None
         from cadalign.infer.run import is_depth_run  # lazy: pulls cv2; keeps `cadalign --help` light
 
         depth_scene = None if depth is None else depth if is_depth_run(depth) else det.resolve_scene_dir(depth)
-        if calib is not None:
-            cal = load_calibration(calib)
-        elif oracle_gt is not None or gt_scene is not None:
-            cal = calibration_from_scene(det.resolve_scene_dir(oracle_gt) if oracle_gt is not None else gt_scene)
-        else:
-            raise InputError("no camera intrinsics: pass --calib with the camera's calibration (a {\"K\": [...]} JSON, "
-                             "OpenCV/ROS YAML, COLMAP cameras.txt, or a cameras.json from 'cadalign sfm')")
+        cal = _calibration(calib, det.resolve_scene_dir(oracle_gt) if oracle_gt is not None else gt_scene)
         path = run(cfg, source, detector, structure.models, class_names, out, calib=cal, detector_info=info,
                    depth_scene=depth_scene, gt_scene=gt_scene, max_frames=max_frames, overwrite=overwrite,
                    progress=track, device=device, topic=topic)
     console.print(f"[green]poses written to {path}[/]")
     _print_summary(out)
+
+
+def _detector(model: Path | None, oracle_gt: Path | None, cfg: InferConfig, class_names: tuple[str, ...], device: str,
+              oracle_noise: tuple[float, float]) -> tuple[object, tuple[str, ...], dict]:
+    """(detector, its class names, its description for the outputs): the trained network in ``model``, or the
+    ground-truth oracle of ``oracle_gt`` with ``oracle_noise`` (translation m, rotation deg RMS)."""
+    if model is not None:
+        from cadalign.models.maskrcnn.detector import load_pose_model  # lazy: pulls torch
+
+        net, meta = load_pose_model(model, device)
+        detector = det.TorchDetector(net, cfg.detector_score_thresh, device, cfg.tiles, cfg.nms_iou)
+        return detector, tuple(meta.get("classes", class_names)), {"kind": "network", "run": str(model),
+                                                                  "step": meta.get("step")}
+    scene = det.resolve_scene_dir(oracle_gt)
+    ocfg = oracle.OracleConfig(noise_t_m=oracle_noise[0], noise_r_deg=oracle_noise[1], seed=cfg.refine.seed)
+    detector = oracle.OracleDetector(scene, ocfg)
+    info = {"kind": "oracle", "note": "ground truth + noise, NOT a trained network", "scene": str(scene),
+            "noise_t_m": oracle_noise[0], "noise_r_deg": oracle_noise[1]}
+    console.print("[yellow]detector: ORACLE (ground-truth detections with noisy poses) - for tests and "
+                  "demos of refinement/fusion only, not a trained network[/]")
+    return detector, detector.classes.names, info
+
+
+def _calibration(calib: Path | None, scene: Path | None) -> object:
+    """The camera of ``--calib``, else that of the oracle's or the ground truth's BOP ``scene``."""
+    # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.infer.run import calibration_from_scene, load_calibration
+
+    if calib is not None:
+        return load_calibration(calib)
+    if scene is not None:
+        return calibration_from_scene(scene)
+    raise InputError("no camera intrinsics: pass --calib with the camera's calibration (a {\"K\": [...]} JSON, "
+                     "OpenCV/ROS YAML, COLMAP cameras.txt, or a cameras.json from 'cadalign sfm')")
 
 
 def _has_metric_poses(calib: Path) -> bool:

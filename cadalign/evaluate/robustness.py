@@ -35,8 +35,8 @@ from cadalign.config import resolve, to_dict
 from cadalign.errors import ConfigError
 from cadalign.evaluate.sfm import evaluate
 from cadalign.infer import detect as det
-from cadalign.infer.pipeline import PRESETS as INFER_PRESETS
-from cadalign.infer.pipeline import InferConfig
+from cadalign.infer.config import PRESETS as INFER_PRESETS
+from cadalign.infer.config import InferConfig
 from cadalign.infer.run import calibration_from_scene
 from cadalign.infer.run import run as infer_run
 from cadalign.io import fingerprint, read_image, read_json, write_json

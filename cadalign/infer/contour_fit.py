@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 
 from cadalign.geometry.compare import mask_iou
+from cadalign.infer.config import RefineConfig
 from cadalign.infer.model_geom import ModelGeometry, contour_points, project_points, render_silhouette
-from cadalign.infer.refine_config import RefineConfig
 from cadalign.infer.refine_math import apply_twist, huber_weights, pose_prior, proj_jacobian, small_step, solve_step
 from cadalign.types import Rigid3
 

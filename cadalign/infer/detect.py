@@ -11,15 +11,15 @@ The ground-truth oracle, for tests and demos only, is :class:`cadalign.testing.o
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
-from cadalign.config import bounded
 from cadalign.errors import InputError
 from cadalign.formats.bop import BopScene
+from cadalign.infer.config import TileConfig
 from cadalign.io import read_json
 
 log = logging.getLogger(__name__)
@@ -27,41 +27,6 @@ log = logging.getLogger(__name__)
 
 class Detector(Protocol):
     def detect(self, image: np.ndarray, K: np.ndarray) -> list[Any]: ...
-
-
-@dataclass(frozen=True)
-class TileConfig:
-    """Zoomed windows of each frame (test-time): parts a few pixels across are seen as the network sees nearer ones.
-
-    With ``zoom`` > 1 the network also runs on overlapping windows ``1 / zoom`` of the frame, each upsampled to
-    its input (``K`` moves with the window, so poses stay in the frame's camera); a window's detection that
-    touches an inner window edge is cut and left to the whole-frame pass or a neighbour; the union is
-    non-maximum suppressed per class (:class:`TorchDetector`'s ``nms_iou``). Each window costs a whole detector
-    pass."""
-
-    zoom: float = bounded(1.0, ge=1)
-    """Window size as a fraction ``1 / zoom`` of the frame (1 = off: the whole frame only)."""
-    overlap: float = bounded(0.25, ge=0, lt=1)
-    """Least fraction of a window shared with its neighbour (parts up to ``overlap / zoom`` of the frame are
-    whole in some window)."""
-    border_px: float = bounded(2.0, ge=0)
-    """A window's detection within this many frame pixels of an inner window edge counts as cut."""
-    score_thresh: float = bounded(0.5, ge=0, le=1)
-    """A window's detections scoring below this are dropped (the whole-frame pass keeps the detector's threshold):
-    the windows add recall and, at the same threshold, false positives."""
-    max_box_px: float = bounded(0.0, ge=0)
-    """A window's detection whose box is longer than this (frame pixels) on either side is dropped (0 = keep all):
-    the windows then add only parts too small for the whole frame, and larger parts come from the whole frame alone.
-    Default orbit, 33 held-out frames, zoom 2 (9 windows), windows' detections from 0.5, merged across windows: with
-    a 24 px cap the windows add 144-192 false valve boxes over the 33 frames (two 3700-step networks, ``improved``
-    seeds 0 and 2), with 8 px 13; the two 87 mm panel valves (3-6 px boxes) are then found from 0.5 in 13 of 24
-    frames against 5 on the whole frame alone (seed 0). Through ``infer --preset accurate`` (true depth, hot stabs
-    from 0.3; valve / hot stab F1, fused valve t / R): seed 2 0.951 / 0.984, 0.001 m / 1.87 deg -> 0.986 / 0.984,
-    0.001 m / 0.16 deg; seed 0 0.917 -> 0.907 (its 87 mm valve misses halve, 22 -> 11, but its boxes there stay ~2 px
-    off and 17 false valves are added); seed 1 0.970 -> 0.947 (misses 11 -> 6, background false valves 1 -> 17);
-    ``thesis`` seed 2 0.946 -> 0.881 (35 background false valves). Hot stab F1 moves by at most 0.036. Without the
-    cap (zoom 2) 0.917 / 0.984 -> 0.785 / 0.927 (seed 0), 0.970 / 0.737 -> 0.814 / 0.695 (seed 1). Mixed, so off:
-    the windows find the small valves, and small false ones with them."""
 
 
 def tile_windows(height: int, width: int, cfg: TileConfig) -> list[tuple[int, int, int, int]]:

@@ -27,6 +27,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -39,9 +40,10 @@ from cadalign.formats.class_map import load_class_map
 from cadalign.formats.coco import rle_to_mask
 from cadalign.fuse.predictors import depth_predictor
 from cadalign.infer.complete import TrackCompleter
+from cadalign.infer.config import InferConfig
 from cadalign.infer.detect import Detector, frame_ids, models_dir_of
 from cadalign.infer.model_geom import draw_wireframe
-from cadalign.infer.pipeline import InferConfig, PosePipeline, PoseRecord
+from cadalign.infer.pipeline import PosePipeline, PoseRecord
 from cadalign.infer.video import VideoFrame, iter_frames
 from cadalign.io import atomic_path, prepare_stage_dir, read_json, write_json, write_text
 from cadalign.metrics.pose_eval import (
@@ -174,6 +176,34 @@ def _draw(image: np.ndarray, records: list[PoseRecord], pipeline: PosePipeline, 
     return img
 
 
+def _infer_frame(pipeline: PosePipeline, vf: Any, K: np.ndarray, prep: dict[str, Any], depth: _DepthSource,
+                 calib: Calibration) -> tuple[list[PoseRecord], dict[str, float]]:
+    """One frame through the pipeline: its poses and its timings (with ``depth_net`` when depth is predicted, and
+    ``pipeline_cpu``, the process time, which a busy machine inflates less than the wall times)."""
+    cpu0 = time.process_time()
+    prepared = image_prep.apply(vf.image, prep)
+    t0, c0 = time.perf_counter(), time.process_time()
+    d_m = depth.get(vf.name, vf.image, prepared, K)
+    t_depth, c_depth = time.perf_counter() - t0, time.process_time() - c0
+    records, t = pipeline.process(vf.index, vf.name, prepared, K, d_m, calib.T_world_from_cam_of.get(vf.name))
+    if depth.predicted:  # a depth network is a stage; reading a scene's depth map is not
+        t["depth_net"] = t_depth
+    # wall times above inflate on a busy machine
+    t["pipeline_cpu"] = time.process_time() - cpu0 - (0.0 if depth.predicted else c_depth)
+    return records, t
+
+
+def _write_run_files(out_dir: Path, names: list[str], calib: Calibration, stamps: dict[str, int],
+                     timings: dict[str, Any]) -> None:
+    """frames.json, calibration.json (an undistorted lens), frame_stamps.json (a bag's) and timings.json."""
+    write_json(out_dir / "frames.json", names)
+    if calib.lens is not None:
+        write_json(out_dir / "calibration.json", {**calib.lens.record(), "undistorted": calib.lens.distorted})
+    if stamps:
+        write_json(out_dir / "frame_stamps.json", stamps)
+    write_json(out_dir / "timings.json", timings)
+
+
 def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, CadModel], class_names: tuple[str, ...],
         out_dir: Path, *, calib: Calibration, detector_info: dict, depth_scene: Path | None = None,
         gt_scene: Path | None = None, max_frames: int | None = None, overwrite: bool = False,
@@ -208,17 +238,7 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
         with open(tmp_poses, "w", encoding="utf-8") as fh:
             for vf in progress(frames, "infer", max_frames) if progress else frames:
                 K = calib.K(vf.name)
-                cpu0 = time.process_time()
-                prepared = image_prep.apply(vf.image, prep)
-                t0, c0 = time.perf_counter(), time.process_time()
-                d_m = depth.get(vf.name, vf.image, prepared, K)
-                t_depth, c_depth = time.perf_counter() - t0, time.process_time() - c0
-                records, t = pipeline.process(vf.index, vf.name, prepared, K, d_m,
-                                              calib.T_world_from_cam_of.get(vf.name))
-                if depth.predicted:  # a depth network is a stage; reading a scene's depth map is not
-                    t["depth_net"] = t_depth
-                # wall times above inflate on a busy machine
-                t["pipeline_cpu"] = time.process_time() - cpu0 - (0.0 if depth.predicted else c_depth)
+                records, t = _infer_frame(pipeline, vf, K, prep, depth, calib)
                 for r in records:
                     fh.write(json.dumps(r.to_json()) + "\n")
                 if cfg.overlay:
@@ -250,12 +270,7 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
                         fh.write(json.dumps(replace(r, mask=mask).to_json()) + "\n")
                 if cfg.overlay and writer is not None:
                     _redraw_overlay(tmp_video, cfg, final, pipeline, source, calib, max_frames, topic)
-    write_json(out_dir / "frames.json", names)
-    if calib.lens is not None:
-        write_json(out_dir / "calibration.json", {**calib.lens.record(), "undistorted": calib.lens.distorted})
-    if stamps:
-        write_json(out_dir / "frame_stamps.json", stamps)
-    write_json(out_dir / "timings.json", _timing_summary(times, len(names), len(final), detector_info))
+    _write_run_files(out_dir, names, calib, stamps, _timing_summary(times, len(names), len(final), detector_info))
     log.info("infer: %d frames, %d poses -> %s", len(names), len(final), poses_path)
     if gt_scene is not None:
         evaluate_run(all_records, names, gt_scene, out_dir, fused=final)

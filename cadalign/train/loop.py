@@ -310,7 +310,6 @@ def train_loop(model: nn.Module, step_fn: StepFn, dataset: Dataset, cfg: LoopCon
     run.save(numbered=False)
     run.write_metrics(plot=True)
     if world > 1:  # no rank returns (and may resume) before rank 0 has written the last checkpoint
-
         dist.barrier()
     return TrainResult(Path(run_dir), run.step, loss_v, time.perf_counter() - t0, interrupted)
 

@@ -303,7 +303,6 @@ def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = Fa
                         extra_state=identity)
     held_out = sorted((ds.splits.get("val") or []) + (ds.splits.get("test") or []))
     if held_out and not result.interrupted and is_main_rank():  # under DDP rank 0 scores and writes
-
         model.eval()
         report = evaluate(model, ds.scene_dir, held_out, ds.models_dir, cfg.eval_score_thresh)
         write_json(Path(out_dir) / "eval_heldout.json", report)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cadalign.config import ConfigError, from_dict
-from cadalign.infer.pipeline import PRESETS, InferConfig
+from cadalign.infer.config import PRESETS, InferConfig
 from cadalign.infer.run import calibration_from_scene, run
 from cadalign.infer.video import iter_frames
 from cadalign.sfm.config import FrameConfig
