@@ -268,3 +268,12 @@ def test_an_oversized_function_is_found(tmp_path: Path) -> None:
     body = "".join(f"    x{i} = {i}\n" for i in range(MAX_FUNCTION_LINES))
     pkg = _write(tmp_path, {"pkg/__init__.py": "", "pkg/a.py": f"def f():\n{body}"})
     assert size_problems(pkg) == [f"pkg.a:f (line 1): {MAX_FUNCTION_LINES + 1} lines"]
+
+
+def test_docs_architecture_lists_the_layers() -> None:
+    """docs/architecture.md's table of layers is LAYERS, in order (the one place the order is written is _layers)."""
+    doc = PACKAGE_DIR.parent / "docs" / "architecture.md"
+    rows = [line.split("|")[1:3] for line in doc.read_text(encoding="utf-8").splitlines()
+            if line.startswith("| ") and not line.startswith("| layer")]
+    table = [(name.strip(), tuple(r.strip().strip("`") for r in rooms.split(","))) for name, rooms in rows]
+    assert table == [(name, rooms) for name, rooms in LAYERS]
