@@ -1,6 +1,7 @@
 """``cadalign bench STAGE|all --out DIR``: every stage's sweep by name (:func:`make_sweep`) and the run over stages
 (:func:`run_bench`). The framework (settings, timing, storage, Pareto front) is :mod:`cadalign.bench.framework`,
-re-exported here; the sweeps (one module per group of stages) import the framework, not this registry.
+re-exported here; the sweeps (:mod:`cadalign.bench.sweeps`, one module per stage) import the framework, not this
+registry.
 """
 
 from __future__ import annotations
@@ -9,9 +10,6 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
-from cadalign.bench import infer as bench_infer
-from cadalign.bench import models as bench_models
-from cadalign.bench import stages as bench_stages
 from cadalign.bench.data import BenchData, size_spec
 from cadalign.bench.framework import (
     BENCH_JSON,
@@ -37,6 +35,7 @@ from cadalign.bench.framework import (
     summarise_stage,
 )
 from cadalign.bench.report import write_bench_report
+from cadalign.bench.sweeps import align, emulate, fuse, infer, refine, render, sfm, sim, train
 from cadalign.errors import ConfigError
 
 __all__ = [
@@ -48,10 +47,9 @@ __all__ = [
 
 def make_sweep(stage: str, data: Any, cfg: BenchConfig) -> Sweep:
     """The :class:`Sweep` of ``stage`` on ``data`` (a :class:`~cadalign.bench.data.BenchData`)."""
-    makers = {"infer": bench_infer.infer_sweep,
-              "sim": bench_stages.sim_sweep, "render": bench_stages.render_sweep, "align": bench_stages.align_sweep,
-              "fuse": bench_stages.fuse_sweep, "emulate": bench_stages.emulate_sweep, "sfm": bench_models.sfm_sweep,
-              "seg": bench_models.seg_sweep, "depth": bench_models.depth_sweep, "refine": bench_models.refine_sweep}
+    makers = {"infer": infer.infer_sweep, "sim": sim.sim_sweep, "render": render.render_sweep,
+              "align": align.align_sweep, "fuse": fuse.fuse_sweep, "emulate": emulate.emulate_sweep,
+              "sfm": sfm.sfm_sweep, "seg": train.seg_sweep, "depth": train.depth_sweep, "refine": refine.refine_sweep}
     if stage not in makers:
         raise ConfigError(f"unknown bench stage {stage!r}; allowed: {', '.join(STAGES)} or all")
     return makers[stage](data, cfg)

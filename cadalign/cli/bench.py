@@ -94,8 +94,8 @@ def infer(
 ) -> None:
     """Infer presets (detector only, fast, balanced ...): ADD(-S) recall vs ms per frame, and each preset's cost
     over the detector alone measured in the same run; per-stage ms and frames/s in bench.json."""
-    from cadalign.bench.infer import InferSource, infer_sweep  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.bench.registry import run_bench  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.bench.sweeps.infer import InferSource, infer_sweep  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.infer.config import PRESETS, InferConfig  # lazy: pulls cv2; keeps `cadalign --help` light
 
     with user_errors():

@@ -30,7 +30,7 @@ import numpy as np
 
 from cadalign.bench.data import bench_scene, simulate_clip, size_spec, write_scene_variant
 from cadalign.bench.framework import json_safe, num
-from cadalign.bench.models import score_net
+from cadalign.bench.sweeps.train import score_net
 from cadalign.config import resolve, to_dict
 from cadalign.errors import ConfigError
 from cadalign.evaluate.sfm import evaluate

@@ -1,11 +1,7 @@
-"""Sweeps of SfM, the dense networks (segmentation, depth) and pose refinement.
-
-SfM runs on the size's SfM clip and is scored against the simulator's exact cameras
-(:mod:`cadalign.evaluate.sfm`). Each network setting trains a small model for the size's step budget
-(``prepare``, not timed: the benchmark asks what an input resolution / width costs at inference) and is
-scored on the clip's held-out time blocks. Refinement uses :func:`cadalign.bench.refine.refine_sweep`.
+"""The dense networks' sweeps (segmentation, depth): each setting trains a small model for the size's step budget
+(``prepare``, not timed: the benchmark asks what an input resolution / width costs at inference) and is scored on
+the clip's held-out time blocks.
 """
-
 from __future__ import annotations
 
 import shutil
@@ -17,69 +13,16 @@ import numpy as np
 
 from cadalign.bench.data import BenchData
 from cadalign.bench.framework import BenchConfig, Metric, Sweep, SweepPoint
-from cadalign.bench.refine import refine_sweep as sweep
-from cadalign.config import resolve
 from cadalign.errors import InputError
-from cadalign.evaluate.sfm import evaluate
-from cadalign.infer.config import RefineConfig
-from cadalign.io import fingerprint
 from cadalign.metrics.depth import DepthAccumulator, DepthEvalConfig, frame_depth_errors
 from cadalign.metrics.seg import confusion_matrix, seg_metrics
-from cadalign.sfm import PRESETS, SfMConfig, run
-from cadalign.sim.structure import load_structure
-
-SCENE = Path("gt") / "sim" / "000000"
-
-_NO_REFINE = ("balanced, no refinement", {"mapper": {"refine_iterations": 0}})
-_GLOBAL = ("balanced, global mapper", {"mapper": {"kind": "global"}})
-SFM_POINTS = {
-    0: (("fast", {}), ("balanced", {}), ("accurate", {})),
-    1: (("fast", {}), ("balanced", {}), ("accurate", {}), _NO_REFINE, _GLOBAL),
-    2: (("fast", {}), ("balanced", {}), ("accurate", {}), _NO_REFINE, _GLOBAL,
-        ("balanced, exhaustive", {"matching": {"pairing": "exhaustive"}})),
-}
-"""Presets and one-knob variants (features: the presets' SIFT budgets; matcher: pairing; mapper: kind and
-refinement)."""
-
-
-def _preset_of(name: str) -> str:
-    return name.split(",")[0]
-
-
-def sfm_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
-    """SfM presets and feature/matcher/mapper variants: rotation error vs seconds, on the simulated SfM clip."""
-
-    def measure(sim: Path, knobs: dict[str, Any], _: Any) -> dict[str, float]:
-        c = resolve(SfMConfig, PRESETS, knobs["preset"], overrides={**knobs["overrides"], "num_threads": 1,
-                                                                     "seed": cfg.seed})
-        out = data.work("sfm", fingerprint(knobs))
-        t0 = time.perf_counter()
-        run(c, sim / "frames", out, overwrite=True)
-        sec = time.perf_counter() - t0
-        g = evaluate(out, sim)
-        return {"sfm_s": sec, "rot_err_deg": g["rot_err_deg_mean"], "centre_rmse_m": g["centre_rmse_m"],
-                "centre_rmse_rel": g["centre_rmse_rel"], "registration_rate": g["registration_rate"],
-                "rel_rot_err_deg": g["rel_rot_err_deg_mean"]}
-
-    w, h = data.size.sfm_resolution
-    pts = tuple(SweepPoint(n, {"preset": _preset_of(n), "overrides": o}) for n, o in SFM_POINTS[data.size.level])
-    return Sweep(
-        "sfm", pts, Metric("rel_rot_err_deg", "relative rotation error of consecutive frames, mean (deg)"),
-        Metric("sfm_s", "seconds per SfM run (1 thread)"), measure, data.sfm_clip,
-        description=(f"SfM (pycolmap, 1 thread) on {data.size.sfm_frames} simulated frames at {w}x{h} of the default "
-                     "scene, presets and single-knob variants, against the simulator's exact cameras. Accuracy: "
-                     "the gauge-free rotation error between consecutive frames (the absolute rotation error after "
-                     "a Sim(3) fit of the centres, rot_err_deg, is in the record: on a short arc the fit cannot pin "
-                     "the roll about the path and that error mostly measures the gauge), with centre RMSE and "
-                     "registration rate."),
-        repeats=1 if data.size.level < 2 else 2)  # 1 thread + fixed seed: repeats only re-measure the time
-
-
-# ---- dense networks ------------------------------------------------------------------------------------
 
 NET_POINTS = {0: ((0.25, 4), (0.5, 4), (0.5, 8)),
               1: ((0.25, 8), (0.5, 8), (0.5, 16), (1.0, 8)),
               2: ((0.25, 12), (0.5, 12), (0.5, 24), (1.0, 12))}
+
+
+SCENE = Path("gt") / "sim" / "000000"
 
 
 def _loop(data: BenchData, cfg: BenchConfig):  # -> LoopConfig
@@ -188,33 +131,3 @@ def seg_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
 def depth_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
     """DispNet input scale x width: delta1 vs ms per frame."""
     return _net_sweep("depth", data, cfg)
-
-
-# ---- pose refinement -----------------------------------------------------------------------------------
-
-REFINE_ITERS = {0: (0, 1, 3), 1: (0, 1, 2, 5, 10), 2: (0, 1, 2, 3, 5, 10, 20)}
-
-
-def refine_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
-    """Silhouette + depth refinement iterations from oracle-noisy poses: ADD vs ms per instance."""
-    max_frames = (4, 8, 16)[data.size.level]
-
-    def setup() -> dict[str, Any]:
-        return {"scene": data.sfm_clip() / SCENE, "models": load_structure(data.scene()).models}
-
-    def measure(s: dict[str, Any], knobs: dict[str, Any], _: Any) -> dict[str, float]:
-        rows = sweep(s["scene"], s["models"], iters=(knobs["iters"],), cfg=RefineConfig(seed=cfg.seed),
-                     max_frames=max_frames)
-        r = next(r for r in rows if r.method == knobs["method"])
-        return {"add_m": r.add_m, "r_err_deg": r.r_err_deg, "t_err_m": r.t_err_m, "ms_per_instance": r.ms,
-                "instances": float(r.n), "eligible": float(r.n_eligible), "mean_iters": r.mean_iters}
-
-    return Sweep(
-        "refine", tuple(SweepPoint(f"{n} it", {"iters": n, "method": "both"}) for n in REFINE_ITERS[data.size.level]),
-        Metric("add_m", "ADD pose error, mean (m)"), Metric("ms_per_instance", "ms per instance"), measure, setup,
-        description=(f"Pose refinement (silhouette then depth ICP) of valves and hot stabs from the oracle "
-                     f"detector's noisy poses with true masks, first {max_frames} frames of the SfM clip (the default "
-                     "refinement skips masks under 400 px, so the small clip would refine nothing); ADD over all "
-                     "instances, refined or not. The iteration budget is the knob (infer.bench.refine_sweep; it "
-                     "averages over instances, so one repeat)."),
-        repeats=1)
