@@ -23,15 +23,15 @@ import numpy as np
 from cadalign.align import PRESETS, align
 from cadalign.align.run import load_points
 from cadalign.align.surface import sample_surface
-from cadalign.build_dataset import load_structure
+from cadalign.align.verify.core import VerifyConfig, free_space_rays, verify
+from cadalign.align.verify.run import load_views
+from cadalign.build.report import true_cad_from_sfm
 from cadalign.cad.model import CadModel
 from cadalign.errors import AlignmentError
-from cadalign.eval.dataset_eval import true_cad_from_sfm
 from cadalign.geometry import geodesic_angle
 from cadalign.io import read_json
-from cadalign.render.raycast import RenderMesh
-from cadalign.render.verify import VerifyConfig, free_space_rays, verify
-from cadalign.render.verify_run import load_views
+from cadalign.raycast.core import RenderMesh
+from cadalign.sim.structure import load_structure
 from cadalign.types import Sim3
 
 CASES = ("baseline", "from_truth", "baseline_lax_gates", "turned_180", "mirrored", "twice_as_large", "clutter_70",

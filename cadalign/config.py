@@ -22,6 +22,7 @@ import dataclasses
 import difflib
 import json
 import math
+import tomllib
 import types
 import typing
 from collections.abc import Mapping
@@ -29,6 +30,7 @@ from pathlib import Path
 from typing import Any, Literal, TypeVar, get_args, get_origin
 
 import numpy as np
+import yaml
 
 from cadalign.errors import ConfigError
 
@@ -73,12 +75,8 @@ def read_mapping(path: Path) -> dict[str, Any]:
                           "text") from exc
     try:
         if suffix == ".toml":
-            import tomllib
-
             data = tomllib.loads(text)
         elif suffix in (".yaml", ".yml"):
-            import yaml
-
             data = yaml.safe_load(text) or {}
         elif suffix == ".json":
             data = json.loads(text)

@@ -46,7 +46,7 @@ class AlignmentError(CadalignError):
 
 class VerificationError(AlignmentError):
     """The images do not confirm the alignment (outcome ``wrong``) or cannot decide it (``uncertain``); no dataset
-    was written. ``verification`` holds the evidence (a :class:`cadalign.render.verify.Verification`)."""
+    was written. ``verification`` holds the evidence (a :class:`cadalign.align.verify.core.Verification`)."""
 
     def __init__(self, message: str, verification: object = None):
         super().__init__(message)

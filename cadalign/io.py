@@ -94,7 +94,7 @@ def write_image(path: Path, image: np.ndarray, *, atomic: bool = True) -> Path:
     ``atomic=False`` skips the temp-file + rename, for callers that mark completion with a later
     atomic file of their own (a rename costs ~2 ms on some file systems; a frame has dozens of masks).
     """
-    import cv2
+    import cv2  # lazy: heavy dependency (cv2); keeps `cadalign --help` light
 
     img = image
     if img.ndim == 3 and img.shape[2] == 3:
@@ -111,7 +111,7 @@ def write_image(path: Path, image: np.ndarray, *, atomic: bool = True) -> Path:
 
 def read_image(path: Path, *, unchanged: bool = False) -> np.ndarray:
     """Read an image as RGB uint8 (or unchanged depth, e.g. uint16), naming the file on failure."""
-    import cv2
+    import cv2  # lazy: heavy dependency (cv2); keeps `cadalign --help` light
 
     path = Path(path)
     if not path.is_file():

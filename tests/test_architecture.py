@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 import cadalign
-from cadalign._layers import KNOWN_UPWARD_IMPORTS, LAYERS, layer_of
+from cadalign._layers import HEAVY_DEPENDENCIES, KNOWN_UPWARD_IMPORTS, LAYERS, layer_of
 
 PACKAGE_DIR = Path(cadalign.__file__).resolve().parent
 
@@ -152,6 +152,59 @@ def test_known_upward_imports_still_exist(graph: dict[str, dict[str, int]]) -> N
     assert sorted(KNOWN_UPWARD_IMPORTS - set(upward_imports(graph))) == []
 
 
+def imports_inside_functions(path: Path) -> Iterator[ast.Import | ast.ImportFrom]:
+    """Every import statement inside a function (methods and nested functions included)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    for func in ast.walk(tree):
+        if isinstance(func, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            for node in ast.walk(func):
+                if isinstance(node, (ast.Import, ast.ImportFrom)):
+                    yield node
+
+
+def lazy_import_problems(package_dir: Path) -> list[str]:
+    """Imports inside functions without a ``# lazy:`` reason on the line or the line above, or of a third-party
+    package that is not a heavy one (those belong at module top)."""
+    problems = []
+    root = package_dir.name
+    seen: set[tuple[Path, int]] = set()
+    for path in sorted(package_dir.rglob("*.py")):
+        lines = path.read_text(encoding="utf-8").splitlines()
+        for node in imports_inside_functions(path):
+            if (path, node.lineno) in seen:  # a nested function's import is walked once per enclosing function
+                continue
+            seen.add((path, node.lineno))
+            where = f"{path.relative_to(package_dir.parent)}:{node.lineno}"
+            here, above = lines[node.lineno - 1], lines[node.lineno - 2] if node.lineno > 1 else ""
+            if "# lazy:" not in here and not above.strip().startswith("# lazy:"):
+                problems.append(f"{where}: an import inside a function needs a '# lazy: <reason>' comment (an "
+                                "optional or heavy dependency it keeps off a light path), else move it to the top")
+            if isinstance(node, ast.ImportFrom) and node.level:
+                continue
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+            for name in names:
+                top = name.split(".")[0]
+                if top != root and top not in HEAVY_DEPENDENCIES:
+                    problems.append(f"{where}: {name} is not a heavy dependency "
+                                    "(cadalign._layers.HEAVY_DEPENDENCIES); import it at module top")
+    return problems
+
+
+def test_imports_inside_functions_are_lazy_for_a_reason() -> None:
+    problems = lazy_import_problems(PACKAGE_DIR)
+    assert not problems, "\n".join(problems)
+
+
+def test_a_lazy_import_without_a_reason_is_found(tmp_path: Path) -> None:
+    pkg = _write(tmp_path, {
+        "pkg/__init__.py": "",
+        "pkg/a.py": ("def f():\n    import torch  # lazy: heavy dependency (torch)\n    import json\n"
+                     "    # lazy: pulls torch\n    from pkg import b\n    from pkg import c\n"),
+    })
+    found = lazy_import_problems(pkg)
+    assert len(found) == 3 and "a.py:3" in found[0] and "a.py:3" in found[1] and "a.py:6" in found[2]
+
+
 def _write(root: Path, files: dict[str, str]) -> Path:
     for rel, text in files.items():
         p = root / rel
@@ -179,3 +232,48 @@ def test_cycle_through_an_import_inside_a_function_is_found(tmp_path: Path) -> N
 def test_upward_import_is_found() -> None:
     g = {"cadalign.geometry.camera": {"cadalign.infer.run": 3}, "cadalign.infer.run": {"cadalign.types": 1}}
     assert upward_imports(g) == {("cadalign.geometry.camera", "cadalign.infer.run"): 3}
+
+
+MAX_MODULE_LINES = 500
+MAX_FUNCTION_LINES = 80
+SIZE_EXCEPTIONS: dict[str, str] = {}
+"""module or ``module:function`` -> why it may be longer (issue 48: each exception justified). Empty."""
+
+
+def size_problems(package_dir: Path) -> list[str]:
+    """Modules over :data:`MAX_MODULE_LINES` lines and functions (decorators to last line) over
+    :data:`MAX_FUNCTION_LINES`, not in :data:`SIZE_EXCEPTIONS`."""
+    problems = []
+    for module, path in module_files(package_dir).items():
+        text = path.read_text(encoding="utf-8")
+        n = len(text.splitlines())
+        if n > MAX_MODULE_LINES and module not in SIZE_EXCEPTIONS:
+            problems.append(f"{module}: {n} lines (split it by what its parts do)")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                start = min([node.lineno] + [d.lineno for d in node.decorator_list])
+                length = (node.end_lineno or start) - start + 1
+                if length > MAX_FUNCTION_LINES and f"{module}:{node.name}" not in SIZE_EXCEPTIONS:
+                    problems.append(f"{module}:{node.name} (line {node.lineno}): {length} lines")
+    return problems
+
+
+def test_modules_and_functions_are_small() -> None:
+    problems = size_problems(PACKAGE_DIR)
+    assert not problems, (f"over {MAX_MODULE_LINES} lines a module or {MAX_FUNCTION_LINES} a function:\n"
+                          + "\n".join(problems))
+
+
+def test_an_oversized_function_is_found(tmp_path: Path) -> None:
+    body = "".join(f"    x{i} = {i}\n" for i in range(MAX_FUNCTION_LINES))
+    pkg = _write(tmp_path, {"pkg/__init__.py": "", "pkg/a.py": f"def f():\n{body}"})
+    assert size_problems(pkg) == [f"pkg.a:f (line 1): {MAX_FUNCTION_LINES + 1} lines"]
+
+
+def test_docs_architecture_lists_the_layers() -> None:
+    """docs/architecture.md's table of layers is LAYERS, in order (the one place the order is written is _layers)."""
+    doc = PACKAGE_DIR.parent / "docs" / "architecture.md"
+    rows = [line.split("|")[1:3] for line in doc.read_text(encoding="utf-8").splitlines()
+            if line.startswith("| ") and not line.startswith("| layer")]
+    table = [(name.strip(), tuple(r.strip().strip("`") for r in rooms.split(","))) for name, rooms in rows]
+    assert table == [(name, rooms) for name, rooms in LAYERS]

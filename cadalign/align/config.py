@@ -66,7 +66,7 @@ class GlobalRegConfig:
     look-alikes is taken on all points at full resolution."""
     hypotheses: int = bounded(4, ge=1)
     """This many best distinct candidates (the refined ones first, then the next ones after their short ICP
-    only) are kept as hypotheses for the image verification (:mod:`cadalign.render.verify`), which moves each
+    only) are kept as hypotheses for the image verification (:mod:`cadalign.align.verify.core`), which moves each
     to the image contours and decides between them: near a small CAD the cloud's ranking can be wrong."""
 
 

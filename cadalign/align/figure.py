@@ -25,8 +25,8 @@ def render_png(points_sfm: np.ndarray, surface: CadSurface, result: AlignResult,
     points are coloured by their distance to the CAD surface (dark blue on it, red at ``3 * inlier_dist_m``)
     and points further away (clutter, seabed) are small dark-grey dots.
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # lazy: heavy dependency (matplotlib)
+    from matplotlib.figure import Figure  # lazy: heavy dependency (matplotlib)
 
     y = result.cad_from_sfm.apply(points_sfm[_subset(len(points_sfm), MAX_DRAWN, seed)])
     d = surface.distances(y)

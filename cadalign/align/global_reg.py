@@ -20,10 +20,13 @@ CAD near SfM points): precision alone prefers a shrunken cloud, coverage alone a
 
 from __future__ import annotations
 
+import itertools
 import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
 
 from cadalign.align.config import GlobalRegConfig, Sim3ICPConfig
 from cadalign.align.icp import sim3_icp, subsample
@@ -63,7 +66,7 @@ def robust_centre_radius(points: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def _pcd(points: np.ndarray, voxel: float, normal_radius: float):  # -> open3d PointCloud
-    import open3d as o3d
+    import open3d as o3d  # lazy: heavy dependency (open3d)
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(voxel)
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(normal_radius, 30))
@@ -71,7 +74,7 @@ def _pcd(points: np.ndarray, voxel: float, normal_radius: float):  # -> open3d P
 
 
 def _fpfh(pcd, radius: float):  # -> open3d Feature
-    import open3d as o3d
+    import open3d as o3d  # lazy: heavy dependency (open3d)
 
     return o3d.pipelines.registration.compute_fpfh_feature(pcd, o3d.geometry.KDTreeSearchParamHybrid(radius, 100))
 
@@ -83,7 +86,6 @@ def _correspondences(f_src: np.ndarray, f_dst: np.ndarray, min_count: int = 50) 
     all share one feature; when it leaves fewer than ``min_count`` pairs, the plain nearest neighbours of
     the most distinctive source points (Lowe ratio) are added.
     """
-    from scipy.spatial import cKDTree
 
     d, j = cKDTree(f_dst).query(f_src, k=2, workers=-1)
     back = cKDTree(f_src).query(f_dst, workers=-1)[1]
@@ -116,7 +118,7 @@ def _ransac(src, dst, pairs: np.ndarray, voxel: float, cfg: GlobalRegConfig, see
     left by the hypothesis is then corrected by a similarity (Umeyama) refit on RANSAC's inlier pairs,
     and the short Sim(3) ICP that follows corrects the rest.
     """
-    import open3d as o3d
+    import open3d as o3d  # lazy: heavy dependency (open3d)
 
     reg = o3d.pipelines.registration
     o3d.utility.random.seed(seed)
@@ -150,7 +152,6 @@ def score_alignment(points_sfm: np.ndarray, surface: CadSurface, T: Sim3, dist_m
         dist_m: a point (sample) within this distance of the other set counts.
         cad_subset: indices of the CAD samples used for coverage.
     """
-    from scipy.spatial import cKDTree
 
     y = T.apply(points_sfm)
     d, _ = surface.tree.query(y, distance_upper_bound=dist_m, workers=query_workers(len(y)))
@@ -167,7 +168,6 @@ def _box_frames(surface: CadSurface) -> list[tuple[np.ndarray, np.ndarray]]:
 
     Not principal axes: those are arbitrary within the plane of a square-ish footprint.
     """
-    import trimesh
 
     lo, hi = surface.vertices_m.min(axis=0), surface.vertices_m.max(axis=0)
     frames = [(np.eye(3), 0.5 * (lo + hi))]
@@ -190,7 +190,6 @@ def axis_turns(surface: CadSurface) -> list[Sim3]:
     Frames and skids are symmetric about their box centre, while their area centroid is pulled towards
     whatever asymmetric equipment sits inside. The identity comes first.
     """
-    import itertools
 
     out: list[Sim3] = []
     seen: set[tuple[float, ...]] = set()

@@ -143,7 +143,7 @@ def refine_point_to_plane(
         ``(cad_from_sfm, summary step)``; the summary is ``None`` when no correspondence was found
         (``init`` is returned unchanged).
     """
-    import open3d as o3d
+    import open3d as o3d  # lazy: heavy dependency (open3d)
 
     reg = o3d.pipelines.registration
     cap = cfg.max_corr_dist_rel * surface.diameter_m

@@ -94,7 +94,7 @@ class AlignResult:
             5 degrees away (0 if none); close values mean a near-symmetric, ambiguous structure.
         hypotheses: ``(cad_from_sfm, final fit score)`` of every refined pose, best fit first (the result is
             the first), then of the next distinct global candidates after their short ICP only (up to
-            ``global_reg.hypotheses`` in all): what the image verification (:mod:`cadalign.render.verify`)
+            ``global_reg.hypotheses`` in all): what the image verification (:mod:`cadalign.align.verify.core`)
             judges again.
     """
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from cadalign.errors import InputError
@@ -67,7 +68,6 @@ def roi_mask(points_sfm: np.ndarray, roi: Roi, cameras: dict[str, dict]) -> np.n
     pts = np.asarray(points_sfm, dtype=np.float64)
     if roi.box_sfm is not None:
         return np.all((pts >= roi.box_sfm[0]) & (pts <= roi.box_sfm[1]), axis=1)
-    import cv2
 
     keep = np.ones(len(pts), dtype=bool)
     assert roi.clicks is not None

@@ -26,6 +26,7 @@ import numpy as np
 from cadalign._version import __version__
 from cadalign.align.config import AlignConfig
 from cadalign.align.core import align
+from cadalign.align.figure import render_png
 from cadalign.align.gates import gate_distances
 from cadalign.align.picks import Picks, read_picks
 from cadalign.align.result import AlignResult
@@ -65,7 +66,7 @@ def load_points(source: str | Path | np.ndarray) -> np.ndarray:
     elif path.suffix.lower() == ".npy":
         pts = np.load(path, allow_pickle=False)
     elif path.suffix.lower() in POINT_CLOUD_SUFFIXES:
-        import open3d as o3d
+        import open3d as o3d  # lazy: heavy dependency (open3d)
 
         pts = np.asarray(o3d.io.read_point_cloud(str(path)).points)
     else:
@@ -77,7 +78,7 @@ def load_points(source: str | Path | np.ndarray) -> np.ndarray:
 
 
 def _colmap_points(folder: Path) -> np.ndarray:
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     if not ((folder / "points3D.bin").is_file() or (folder / "points3D.txt").is_file()):
         raise InputError(f"{folder} is not a COLMAP sparse model (no points3D.bin or points3D.txt)")
@@ -212,8 +213,6 @@ def run(
         (out_dir / MANIFEST_NAME).unlink(missing_ok=True)  # nothing was written: free the directory
         raise
     if cfg.figure:
-        from cadalign.align.figure import render_png
-
         inlier_m = gate_distances(surface, cfg.gates)[0]
         png = render_png(points, surface, result, inlier_dist_m=inlier_m, title=context, seed=cfg.seed)
         write_bytes(out_dir / ALIGN_PNG, png)

@@ -19,6 +19,7 @@ import numpy as np
 
 from cadalign.errors import DegenerateGeometryError
 from cadalign.geometry.plane import fit_plane
+from cadalign.raycast.core import MeshQuery
 
 log = logging.getLogger(__name__)
 
@@ -136,7 +137,6 @@ def seabed_from_model(rec: Any, cad_from_sfm: Any, cad_vertices_m: np.ndarray, c
     """:func:`fit_seabed` on a ``pycolmap.Reconstruction`` aligned by ``cad_from_sfm`` (a Sim3)."""
     if not cfg.enabled:
         return None
-    from cadalign.render.raycast import MeshQuery
 
     xyz = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
     P = cad_from_sfm.apply(xyz) if len(xyz) else xyz

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 
 from cadalign.cad import CadModel
 from cadalign.errors import InputError
-from cadalign.render.raycast import MeshQuery
+from cadalign.raycast.core import MeshQuery
 from cadalign.types import Rigid3
 
 CadPart = CadModel | tuple[CadModel, Rigid3]

@@ -12,6 +12,7 @@ from collections.abc import Callable
 
 import numpy as np
 import trimesh
+from scipy.ndimage import zoom
 
 DEFAULT_SIZES_M: dict[str, tuple[float, float, float]] = {
     "frame": (9.0, 10.0, 6.0),
@@ -124,7 +125,6 @@ def seabed(size_m: float, relief_m: float, seed: int, cells: int = 96) -> trimes
     xs = np.linspace(-size_m / 2, size_m / 2, n)
     xx, yy = np.meshgrid(xs, xs)
     coarse = rng.standard_normal((7, 7))
-    from scipy.ndimage import zoom
 
     zz = zoom(coarse, n / 7, order=3)[:n, :n] * relief_m
     # keep the ground flat under the structure (|x|,|y| < 6 m) so parts sit on it

@@ -6,7 +6,9 @@ from pathlib import Path
 
 import typer
 
+from cadalign.align import PRESETS, AlignConfig, run
 from cadalign.cli.common import console, user_errors
+from cadalign.config import resolve
 
 
 def command(
@@ -21,9 +23,7 @@ def command(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
 ) -> None:
     """Align the CAD to the SfM cloud (global + Sim(3) ICP); a failed quality gate writes nothing."""
-    from cadalign.align import PRESETS, AlignConfig, run
-    from cadalign.build_dataset import load_structure
-    from cadalign.config import resolve
+    from cadalign.sim.structure import load_structure  # lazy: pulls cv2; keeps `cadalign --help` light
 
     with user_errors():
         cfg = resolve(AlignConfig, PRESETS, preset, config, {})

@@ -15,7 +15,7 @@ app = typer.Typer(help="Inspect ROS bags (the input of sfm, build-dataset and in
 @app.command("topics")
 def topics(bag: Path = typer.Argument(..., help="A ROS 1 .bag file or a ROS 2 bag folder (metadata.yaml).")) -> None:
     """List the bag's image topics (sensor_msgs/Image, CompressedImage) with their message counts."""
-    from cadalign.formats.bag import image_topics
+    from cadalign.formats.bag import image_topics  # lazy: pulls cv2; keeps `cadalign --help` light
 
     with user_errors():
         found = image_topics(bag)

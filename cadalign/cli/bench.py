@@ -10,8 +10,13 @@ from pathlib import Path
 
 import typer
 
+from cadalign.bench.report import recommendations, write_bench_report
 from cadalign.cli.common import console, track, user_errors
 from cadalign.cli.sim import _resolution
+from cadalign.config import read_mapping, resolve
+from cadalign.errors import InputError
+from cadalign.io import write_json
+from cadalign.types import Camera
 
 app = typer.Typer(help="Accuracy-versus-time benchmarks: sweeps a stage's knobs, writes bench.json, Pareto plots "
                   "and bench.html (the setting within 5% of the best accuracy at the least time).",
@@ -25,15 +30,14 @@ OUT = typer.Option(Path("runs/bench"), "--out", help="Benchmark folder (bench.js
 
 
 def _config(size: str, repeats: int | None, seed: int):  # -> BenchConfig
-    from cadalign.eval.bench import BenchConfig
-    from cadalign.eval.bench_data import size_spec
+    from cadalign.bench.data import size_spec  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.bench.registry import BenchConfig  # lazy: pulls cv2; keeps `cadalign --help` light
 
     return BenchConfig(size, repeats or size_spec(size).repeats, seed)
 
 
 def _print_summary(out: Path) -> None:
-    from cadalign.eval.bench import load_bench
-    from cadalign.eval.bench_report import recommendations
+    from cadalign.bench.registry import load_bench  # lazy: pulls cv2; keeps `cadalign --help` light
 
     for r in recommendations(load_bench(out)):
         console.print(f"  {r['stage']:<8} recommended [bold]{r['recommended setting']}[/]: "
@@ -42,7 +46,7 @@ def _print_summary(out: Path) -> None:
 
 
 def _run(stages: list[str], out: Path, size: str, repeats: int | None, seed: int, overwrite: bool) -> None:
-    from cadalign.eval.bench import run_bench
+    from cadalign.bench.registry import run_bench  # lazy: pulls cv2; keeps `cadalign --help` light
 
     with user_errors():
         run_bench(stages, out, _config(size, repeats, seed), overwrite=overwrite, progress=track)
@@ -90,11 +94,9 @@ def infer(
 ) -> None:
     """Infer presets (detector only, fast, balanced ...): ADD(-S) recall vs ms per frame, and each preset's cost
     over the detector alone measured in the same run; per-stage ms and frames/s in bench.json."""
-    from cadalign.config import read_mapping, resolve
-    from cadalign.errors import InputError
-    from cadalign.eval.bench import run_bench
-    from cadalign.eval.bench_infer import InferSource, infer_sweep
-    from cadalign.infer.pipeline import PRESETS, InferConfig
+    from cadalign.bench.registry import run_bench  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.bench.sweeps.infer import InferSource, infer_sweep  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.infer.config import PRESETS, InferConfig  # lazy: pulls cv2; keeps `cadalign --help` light
 
     with user_errors():
         sweeps = None
@@ -115,7 +117,7 @@ def infer(
 
 
 def _print_infer(out: Path) -> None:
-    from cadalign.eval.bench import current_records, load_bench
+    from cadalign.bench.registry import current_records, load_bench  # lazy: pulls cv2; keeps `cadalign --help` light
 
     st = load_bench(out)["stages"]["infer"]
     for r in current_records(st, st["current"]):
@@ -143,13 +145,11 @@ def track_speed(
     out: Path = OUT,
 ) -> None:
     """The structure tracker's frames/s and restart time against the detector alone, same frames, same run."""
-    from cadalign.build_dataset import load_structure
-    from cadalign.formats.calibration import read_calibration
-    from cadalign.infer.track.bench import bench_track
-    from cadalign.infer.track.run import read_init_pose
-    from cadalign.infer.video import iter_frames
-    from cadalign.io import write_json
-    from cadalign.types import Camera
+    from cadalign.formats.calibration import read_calibration  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.infer.track.bench import bench_track  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.infer.track.run import read_init_pose  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.infer.video import iter_frames  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.sim.structure import load_structure  # lazy: pulls cv2; keeps `cadalign --help` light
 
     with user_errors():
         first = next(iter(iter_frames(frames, max_frames=1)))
@@ -173,7 +173,7 @@ def all_stages(
                                        "pose/ training runs to score under each condition."),
 ) -> None:
     """Every stage's sweep (sim, sfm, align, render, seg, depth, refine, infer, fuse, emulate), then robustness."""
-    from cadalign.eval.bench import STAGES
+    from cadalign.bench.registry import STAGES  # lazy: pulls cv2; keeps `cadalign --help` light
 
     bad = [s for s in skip if s not in STAGES]
     if bad:
@@ -191,8 +191,7 @@ def robust(
 ) -> None:
     """Low visibility: turbidity (Jerlov type), marine snow density and light level, >= 3 severities each;
     SfM registration rate, rotation error and image contrast (and model scores with --models) vs severity."""
-    from cadalign.eval.bench_report import write_bench_report
-    from cadalign.eval.robustness import run_robustness
+    from cadalign.evaluate.robustness import run_robustness  # lazy: pulls cv2; keeps `cadalign --help` light
 
     with user_errors():
         rob = run_robustness(out, size=size, seed=seed, models=models, progress=track)
@@ -221,8 +220,8 @@ def sim(
     """Per-frame cost of the simulator: bare render, effect-free path, each effect, all effects, writing.
 
     With --sweep: effect subsets (none ... all) as an accuracy-vs-time sweep like the other stages."""
-    from cadalign.eval.bench_sim import bench_sim
-    from cadalign.sim.spec import default_scene_path
+    from cadalign.bench.sim import bench_sim  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.sim.spec import default_scene_path  # lazy: pulls cv2; keeps `cadalign --help` light
 
     if sweep:
         _run(["sim"], out, size, repeats, seed, overwrite)

@@ -8,9 +8,11 @@ from typing import TYPE_CHECKING
 import typer
 
 from cadalign.cli.common import console, track, user_errors
+from cadalign.cli.sfm import parse_overrides
+from cadalign.errors import ConfigError
 
 if TYPE_CHECKING:
-    from cadalign.scale.executor import ExecutorConfig
+    from cadalign.build.executor import ExecutorConfig
 
 
 def command(
@@ -50,11 +52,9 @@ def command(
                                        "many CPUs); default: all CPUs (local), 2 tasks per CPU in flight."),
 ) -> None:
     """Frames -> SfM -> CAD alignment (Sim3) -> per-frame CAD depth, normals, masks, poses -> BOP dataset."""
-    from cadalign.build_dataset import DEFAULT_VERIFY, build_dataset
-    from cadalign.cli.sfm import parse_overrides
-    from cadalign.errors import ConfigError
-    from cadalign.scale import executor_config, make_executor
-    from cadalign.scale.videos import JOBS_SUFFIXES
+    from cadalign.build import executor_config, make_executor  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.build.run import DEFAULT_VERIFY, build_dataset  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.build.videos import JOBS_SUFFIXES  # lazy: pulls cv2; keeps `cadalign --help` light
 
     with user_errors():
         cfg = executor_config(executor, ray_address, workers)
@@ -75,9 +75,8 @@ def command(
 def _many(jobs_file: Path, cad: Path, out: Path, preset: str, init: Path | None, gt: Path | None,
           cad_unit: str | None, calib: Path | None, overwrite: bool, cfg: ExecutorConfig) -> None:
     """Build every video of a jobs file; exit 1 when any failed (the others are kept)."""
-    from cadalign.errors import ConfigError
-    from cadalign.scale import make_executor
-    from cadalign.scale.videos import REPORT, build_videos, read_jobs
+    from cadalign.build import make_executor  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.build.videos import REPORT, build_videos, read_jobs  # lazy: pulls cv2; keeps `cadalign --help` light
 
     if init is not None or gt is not None:
         raise ConfigError(f"--init and --gt belong to one video: put them as init = / gt = under its [[video]] in "

@@ -11,6 +11,7 @@ from pathlib import Path
 import typer
 
 from cadalign.cli.common import console, track, user_errors
+from cadalign.cli.sim import _resolution
 
 
 def command(
@@ -20,8 +21,7 @@ def command(
     resolution: str | None = typer.Option(None, "--resolution", help="WIDTHxHEIGHT override."),
 ) -> None:
     """Run the whole pipeline on the embedded default scene and write a summary."""
-    from cadalign.cli.sim import _resolution
-    from cadalign.demo import run_demo
+    from cadalign.demo.run import run_demo  # lazy: pulls cv2; keeps `cadalign --help` light
 
     with user_errors():
         summary = run_demo(out, scene=scene, frames=frames, resolution=_resolution(resolution), progress=track)

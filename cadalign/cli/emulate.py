@@ -4,9 +4,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import typer
 
 from cadalign.cli.common import console, user_errors
+from cadalign.config import resolve
+from cadalign.emulate.layered_mesh import PRESETS, LayeredMeshConfig
+from cadalign.emulate.run import CONFIGS, default_pose, parse_pose, run, sensor_pose_from_camera
+from cadalign.emulate.sources import image_scene_dir, require_image_source
+from cadalign.errors import InputError
+from cadalign.sim.trajectory import look_at as look_at_fn
+from cadalign.types import Rigid3
 
 app = typer.Typer(help="Emulate LiDAR, multibeam sonar or novel views by ray casting, or build a layered mesh "
                        "from one image.", no_args_is_help=True)
@@ -28,7 +36,7 @@ MODEL_SEG_HELP = "Image sources: a 'cadalign train seg' run (or .pt) whose class
 def _predictors(model_depth: Path | None, model_seg: Path | None, device: str, source: Path) -> dict:
     """``run`` keyword arguments using trained networks for an image source's depth / classes.
 
-    The frame is prepared as each network's training images were (:mod:`cadalign.data.image_prep`: a built
+    The frame is prepared as each network's training images were (:mod:`cadalign.sfm.image_prep`: a built
     dataset's frames are already CLAHE-enhanced, a simulator's are raw; an ``.npz`` says nothing and is fed as
     it is).
 
@@ -37,9 +45,9 @@ def _predictors(model_depth: Path | None, model_seg: Path | None, device: str, s
     """
     if model_depth is None and model_seg is None:
         return {}
-    from cadalign.data.image_prep import read_prep
-    from cadalign.emulate.sources import image_scene_dir, require_image_source
+    # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.fuse.predictors import depth_predictor, seg_predictor
+    from cadalign.sfm.image_prep import read_prep  # lazy: pulls cv2; keeps `cadalign --help` light
 
     source = Path(source)  # checked before the networks are built
     require_image_source(source, " and ".join(o for o, m in (("--model-depth", model_depth),
@@ -57,14 +65,6 @@ def _predictors(model_depth: Path | None, model_seg: Path | None, device: str, s
 def _emulate(sensor: str, source: Path, out: Path, preset: str | None, config: Path | None, pose: str | None,
              look_at: str | None, engine: str | None, overwrite: bool, models: dict | None = None,
              unit: str | None = None) -> Path:
-    import numpy as np
-
-    from cadalign.config import resolve
-    from cadalign.emulate.run import CONFIGS, default_pose, parse_pose, run, sensor_pose_from_camera
-    from cadalign.errors import InputError
-    from cadalign.sim.trajectory import look_at as look_at_fn
-    from cadalign.types import Rigid3
-
     cls, presets, default = CONFIGS[sensor]
     overrides = {"engine": engine} if engine is not None else {}
     cfg = resolve(cls, presets, preset or default, config, overrides)
@@ -105,8 +105,6 @@ def _options(sensor: str, default_preset: str, what: str):
 
 
 def _register() -> None:
-    from cadalign.emulate.run import CONFIGS
-
     docs = {
         "lidar": ("scan.npz, scan.ply, lidar_class.png", "Spinning LiDAR / sphere scan: points with range, colour, "
                   "class and part id. Presets: " + ", ".join(CONFIGS["lidar"][1])),
@@ -133,9 +131,8 @@ PHOTO_HELP = ("An RGB frame of a BOP scene (SCENE/rgb/NNNNNN.png; depth, class a
 def _is_photo(source: Path, photo_options: list) -> bool:
     """Whether ``emulate mesh`` takes the photo path (:mod:`cadalign.emulate.photo`): a photo option is given, or
     the source is an image outside a BOP scene folder, or an ``.npz`` point map."""
-    import numpy as np
 
-    from cadalign.emulate.photo import PHOTO_SUFFIXES
+    from cadalign.emulate.photo import PHOTO_SUFFIXES  # lazy: pulls cv2; keeps `cadalign --help` light
 
     if any(o is not None for o in photo_options):
         return True
@@ -191,11 +188,8 @@ def _photo(source: Path, out: Path, preset: str, config: Path | None, model_dept
            model_seg: Path | None, depth_model: Path | None, seg_model: Path | None, hfov: float | None,
            calib: Path | None, scale_from: str | None, pane_mask: Path | None, sr_model: Path | None, device: str,
            overwrite: bool) -> Path:
-    from cadalign.config import resolve
-    from cadalign.emulate import photo
-    from cadalign.emulate.layered_mesh import PRESETS, LayeredMeshConfig
-    from cadalign.emulate.pretrained import PretrainedConfig
-    from cadalign.errors import InputError
+    from cadalign.emulate import photo  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.emulate.pretrained import PretrainedConfig  # lazy: pulls cv2; keeps `cadalign --help` light
 
     if model_depth is not None:
         raise InputError("--model-depth (a network trained on the simulator) needs a BOP frame or an .npz with K; "

@@ -8,6 +8,8 @@ import typer
 
 from cadalign.cli import eval_pose
 from cadalign.cli.common import console, user_errors
+from cadalign.config import from_dict
+from cadalign.metrics.depth import DepthEvalConfig
 
 app = typer.Typer(help="Evaluate trained networks on a dataset split (metrics JSON and figures).",
                   no_args_is_help=True)
@@ -27,7 +29,7 @@ def seg(
     flip_tta: bool = typer.Option(False, "--flip-tta", help="Average each frame with its mirror (2x time)."),
 ) -> None:
     """Per-class IoU, mIoU and pixel accuracy of a segmentation model."""
-    from cadalign.eval.dense_eval import evaluate_seg
+    from cadalign.evaluate.dense import evaluate_seg  # lazy: pulls torch
 
     with user_errors():
         res = evaluate_seg(model, ds, out, split=split, device=device, n_vis=figures, flip_tta=flip_tta)
@@ -49,9 +51,7 @@ def depth(
     alignment: str = typer.Option("none", "--alignment", help="none (metric) | median (per-frame scaling)."),
 ) -> None:
     """Eigen depth metrics (AbsRel, SqRel, RMSE, RMSElog, delta<1.25^k), over all valid pixels and per class."""
-    from cadalign.config import from_dict
-    from cadalign.eval.dense_eval import evaluate_depth
-    from cadalign.eval.depth_metrics import DepthEvalConfig
+    from cadalign.evaluate.dense import evaluate_depth  # lazy: pulls torch
 
     with user_errors():
         cfg = from_dict(DepthEvalConfig, {"max_depth_m": max_depth, "min_depth_m": min_depth, "alignment": alignment},

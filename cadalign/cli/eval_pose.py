@@ -8,6 +8,10 @@ from pathlib import Path
 import typer
 
 from cadalign.cli.common import console, user_errors
+from cadalign.errors import InputError
+from cadalign.infer.detect import frame_ids, resolve_scene_dir
+from cadalign.io import read_json
+from cadalign.metrics.pose_eval import PoseEvalConfig
 
 
 def command(
@@ -24,11 +28,7 @@ def command(
     (``box_xyxy_detector`` where track completion's ``reproject`` reported another). After completion those exclude
     short tracks' detections, and their masks are the reported ones, so ``infer --gt``'s ``eval.json`` (all the
     network's detections) may differ in those sections."""
-    from cadalign.errors import InputError
-    from cadalign.eval.pose_eval import PoseEvalConfig
-    from cadalign.infer.detect import frame_ids, resolve_scene_dir
-    from cadalign.infer.run import evaluate_run, read_poses
-    from cadalign.io import read_json
+    from cadalign.infer.run import evaluate_run, read_poses  # lazy: pulls cv2; keeps `cadalign --help` light
 
     with user_errors():
         path = poses / "poses.jsonl" if poses.is_dir() else poses

@@ -7,6 +7,9 @@ from pathlib import Path
 import typer
 
 from cadalign.cli.common import console, track, user_errors
+from cadalign.config import resolve
+from cadalign.fuse.config import PRESETS, FuseConfig
+from cadalign.io import read_json
 
 
 def command(
@@ -32,10 +35,7 @@ def command(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
 ) -> None:
     """Fuse posed depth and class probabilities into a labelled 3D map (mesh, point cloud, map file, report)."""
-    from cadalign.config import resolve
-    from cadalign.fuse.config import PRESETS, FuseConfig
-    from cadalign.fuse.run import REPORT, run
-    from cadalign.io import read_json
+    from cadalign.fuse.run import REPORT, run  # lazy: pulls cv2; keeps `cadalign --help` light
 
     id_range = None
     if ids is not None:

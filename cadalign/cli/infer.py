@@ -3,10 +3,20 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
 from cadalign.cli.common import console, track, user_errors
+from cadalign.config import resolve
+from cadalign.errors import InputError
+from cadalign.infer import detect as det
+from cadalign.io import read_json
+from cadalign.testing import oracle
+from cadalign.types import Camera
+
+if TYPE_CHECKING:
+    from cadalign.infer.config import InferConfig
 
 
 def command(
@@ -48,12 +58,9 @@ def command(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
 ) -> None:
     """Detect the parts, refine their poses against the CAD, fuse them over time; write poses.jsonl + overlay."""
-    from cadalign.build_dataset import load_structure
-    from cadalign.config import resolve
-    from cadalign.errors import InputError
-    from cadalign.infer import detect as det
-    from cadalign.infer.pipeline import PRESETS, InferConfig
-    from cadalign.infer.run import calibration_from_scene, load_calibration, run
+    from cadalign.infer.config import PRESETS, InferConfig  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.infer.run import run  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.sim.structure import load_structure  # lazy: pulls cv2; keeps `cadalign --help` light
 
     with user_errors():
         use_tracker = tracker if tracker is not None else (
@@ -68,34 +75,13 @@ def command(
                                                                 "depth_iters": refine_iters}}
         cfg = resolve(InferConfig, PRESETS, preset, config, overrides)
         structure = load_structure(cad, cad_unit)
-        class_names = structure.class_names
-        if model is not None:
-            from cadalign.models.maskrcnn.detector import load_pose_model
-
-            net, meta = load_pose_model(model, device)
-            class_names = tuple(meta.get("classes", class_names))
-            detector = det.TorchDetector(net, cfg.detector_score_thresh, device, cfg.tiles, cfg.nms_iou)
-            info = {"kind": "network", "run": str(model), "step": meta.get("step")}
-        else:
-            scene = det.resolve_scene_dir(oracle_gt)
-            ocfg = det.OracleConfig(noise_t_m=oracle_noise_t, noise_r_deg=oracle_noise_r, seed=cfg.refine.seed)
-            detector = det.OracleDetector(scene, ocfg)
-            class_names = detector.classes.names
-            info = {"kind": "oracle", "note": "ground truth + noise, NOT a trained network", "scene": str(scene),
-                    "noise_t_m": oracle_noise_t, "noise_r_deg": oracle_noise_r}
-            console.print("[yellow]detector: ORACLE (ground-truth detections with noisy poses) - for tests and "
-                          "demos of refinement/fusion only, not a trained network[/]")
+        detector, class_names, info = _detector(model, oracle_gt, cfg, structure.class_names, device,
+                                                (oracle_noise_t, oracle_noise_r))
         gt_scene = det.resolve_scene_dir(gt) if gt is not None else None
-        from cadalign.infer.run import is_depth_run
+        from cadalign.infer.run import is_depth_run  # lazy: pulls cv2; keeps `cadalign --help` light
 
         depth_scene = None if depth is None else depth if is_depth_run(depth) else det.resolve_scene_dir(depth)
-        if calib is not None:
-            cal = load_calibration(calib)
-        elif oracle_gt is not None or gt_scene is not None:
-            cal = calibration_from_scene(det.resolve_scene_dir(oracle_gt) if oracle_gt is not None else gt_scene)
-        else:
-            raise InputError("no camera intrinsics: pass --calib with the camera's calibration (a {\"K\": [...]} JSON, "
-                             "OpenCV/ROS YAML, COLMAP cameras.txt, or a cameras.json from 'cadalign sfm')")
+        cal = _calibration(calib, det.resolve_scene_dir(oracle_gt) if oracle_gt is not None else gt_scene)
         path = run(cfg, source, detector, structure.models, class_names, out, calib=cal, detector_info=info,
                    depth_scene=depth_scene, gt_scene=gt_scene, max_frames=max_frames, overwrite=overwrite,
                    progress=track, device=device, topic=topic)
@@ -103,8 +89,42 @@ def command(
     _print_summary(out)
 
 
+def _detector(model: Path | None, oracle_gt: Path | None, cfg: InferConfig, class_names: tuple[str, ...], device: str,
+              oracle_noise: tuple[float, float]) -> tuple[object, tuple[str, ...], dict]:
+    """(detector, its class names, its description for the outputs): the trained network in ``model``, or the
+    ground-truth oracle of ``oracle_gt`` with ``oracle_noise`` (translation m, rotation deg RMS)."""
+    if model is not None:
+        from cadalign.models.maskrcnn.detector import load_pose_model  # lazy: pulls torch
+
+        net, meta = load_pose_model(model, device)
+        detector = det.TorchDetector(net, cfg.detector_score_thresh, device, cfg.tiles, cfg.nms_iou)
+        return detector, tuple(meta.get("classes", class_names)), {"kind": "network", "run": str(model),
+                                                                  "step": meta.get("step")}
+    scene = det.resolve_scene_dir(oracle_gt)
+    ocfg = oracle.OracleConfig(noise_t_m=oracle_noise[0], noise_r_deg=oracle_noise[1], seed=cfg.refine.seed)
+    detector = oracle.OracleDetector(scene, ocfg)
+    info = {"kind": "oracle", "note": "ground truth + noise, NOT a trained network", "scene": str(scene),
+            "noise_t_m": oracle_noise[0], "noise_r_deg": oracle_noise[1]}
+    console.print("[yellow]detector: ORACLE (ground-truth detections with noisy poses) - for tests and "
+                  "demos of refinement/fusion only, not a trained network[/]")
+    return detector, detector.classes.names, info
+
+
+def _calibration(calib: Path | None, scene: Path | None) -> object:
+    """The camera of ``--calib``, else that of the oracle's or the ground truth's BOP ``scene``."""
+    # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.infer.run import calibration_from_scene, load_calibration
+
+    if calib is not None:
+        return load_calibration(calib)
+    if scene is not None:
+        return calibration_from_scene(scene)
+    raise InputError("no camera intrinsics: pass --calib with the camera's calibration (a {\"K\": [...]} JSON, "
+                     "OpenCV/ROS YAML, COLMAP cameras.txt, or a cameras.json from 'cadalign sfm')")
+
+
 def _has_metric_poses(calib: Path) -> bool:
-    from cadalign.infer.run import load_calibration
+    from cadalign.infer.run import load_calibration  # lazy: pulls cv2; keeps `cadalign --help` light
 
     return bool(load_calibration(calib).T_world_from_cam_of)
 
@@ -113,12 +133,10 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
            calib: Path | None, max_frames: int | None, cad_unit: str | None, device: str, preset: str,
            config: Path | None, overwrite: bool, topic: str | None, gt_poses: Path | None) -> None:
     """The tracker branch of ``infer`` (:mod:`cadalign.infer.track.run`)."""
-    from cadalign.build_dataset import load_structure
-    from cadalign.config import resolve
-    from cadalign.errors import InputError
-    from cadalign.infer import detect as det
+    # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.infer.track.run import PRESETS, TrackRunConfig, read_init_pose, track_video
-    from cadalign.infer.video import iter_frames
+    from cadalign.infer.video import iter_frames  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.sim.structure import load_structure  # lazy: pulls cv2; keeps `cadalign --help` light
 
     if model is None and init_pose is None:
         raise InputError("the tracker needs a start: pass --init-pose FILE (a rough first-frame pose) and/or --model "
@@ -129,7 +147,7 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
     info: dict = {"kind": "none"}
     network = None
     if model is not None:  # first: a wrong run folder fails before anything is read
-        from cadalign.models.maskrcnn.detector import load_pose_model
+        from cadalign.models.maskrcnn.detector import load_pose_model  # lazy: pulls torch
 
         net, meta = load_pose_model(model, device)
         network = (net, {**meta, "run": str(model)})
@@ -141,21 +159,19 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
     lens = None
     h, w = first.image.shape[:2]
     if calib is not None:
-        from cadalign.formats.calibration import read_calibration
-        from cadalign.types import Camera
+        from cadalign.formats.calibration import read_calibration  # lazy: pulls cv2; keeps `cadalign --help` light
 
         lens = read_calibration(calib)
         lens.check_size(w, h, f"{source}'s first frame {first.name}")
         camera = Camera(lens.K, w, h)
     elif gt_scene is not None:
-        from cadalign.infer.run import calibration_from_scene
-        from cadalign.types import Camera
+        from cadalign.infer.run import calibration_from_scene  # lazy: pulls cv2; keeps `cadalign --help` light
 
         camera = Camera(calibration_from_scene(gt_scene, use_poses=False).K_default, w, h)
     else:
         raise InputError("no camera intrinsics: pass --calib calibration.json (your camera's calibration)")
     if model is not None:
-        from cadalign.infer.track.start import detector_restarts
+        from cadalign.infer.track.start import detector_restarts  # lazy: pulls cv2; keeps `cadalign --help` light
 
         restart, info = detector_restarts(network, structure, camera, device)
     T0 = read_init_pose(init_pose, camera) if init_pose is not None else None
@@ -164,6 +180,7 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
                        record={"detector": info, "cad": str(cad)})
     console.print(f"[green]poses written to {path}[/]")
     if gt_poses is not None:
+        # lazy: pulls cv2; keeps `cadalign --help` light
         from cadalign.infer.track.run import read_truth_poses, truth_report
 
         summary = truth_report(out, structure, read_truth_poses(gt_poses))
@@ -175,8 +192,6 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
 
 
 def _print_track_summary(out: Path) -> None:
-    from cadalign.io import read_json
-
     t = read_json(out / "timings.json")
     fps = t["frames_per_s"]
     console.print(f"{t['frames']} frames: {t['tracked']} tracked, {t['lost']} lost; "
@@ -189,8 +204,6 @@ def _print_track_summary(out: Path) -> None:
 
 
 def _print_summary(out: Path) -> None:
-    from cadalign.io import read_json
-
     t = read_json(out / "timings.json")
     stages = ", ".join(f"{k} {v:.1f} ms" for k, v in t["stages_ms"].items())
     console.print(f"{t['frames']} frames, {t['poses']} poses; per frame: {stages} "

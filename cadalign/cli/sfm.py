@@ -10,6 +10,8 @@ from typing import Any
 import typer
 
 from cadalign.cli.common import console, track, user_errors
+from cadalign.config import merge_mappings, resolve
+from cadalign.io import read_json
 
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:
@@ -34,6 +36,7 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
 def _calibration(path: Path, source: Path) -> dict[str, Any]:
     """``camera`` settings (intrinsics, lens distortion) of a calibration file in any ``--calib`` format, checked
     against the size of the first frame of ``source``."""
+    # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.sfm.known_camera import camera_settings, checked_calibration
 
     return camera_settings(checked_calibration(path, source))
@@ -56,8 +59,7 @@ def command(
     overwrite: bool = typer.Option(False, "--overwrite", help="Delete SfM results of another config in --out."),
 ) -> None:
     """Structure from motion: frames -> SIFT -> matching -> mapping -> cameras.json, SfM depth, report."""
-    from cadalign.config import merge_mappings, resolve
-    from cadalign.sfm import PRESETS, SfMConfig, run
+    from cadalign.sfm import PRESETS, SfMConfig, run  # lazy: pulls cv2; keeps `cadalign --help` light
 
     with user_errors():
         extra = parse_overrides(overrides)
@@ -67,7 +69,7 @@ def command(
         out_dir = run(cfg, source, out, overwrite=overwrite, progress=track, topic=topic)
         report = out_dir / "sfm_report.json"
         if gt is not None:
-            from cadalign.eval.sfm_metrics import run as evaluate
+            from cadalign.evaluate.sfm import run as evaluate  # lazy: pulls cv2; keeps `cadalign --help` light
 
             evaluate(out_dir, gt)
     _summary(report)
@@ -75,8 +77,6 @@ def command(
 
 
 def _summary(report_path: Path) -> None:
-    from cadalign.io import read_json
-
     r = read_json(report_path)
     console.print(
         f"registered {r['registered']}/{r['frames_in']} frames, {r['points']} points, "

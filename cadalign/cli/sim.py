@@ -31,7 +31,7 @@ def command(
     overwrite: bool = typer.Option(False, "--overwrite", help="Delete results of another config in --out."),
 ) -> None:
     """Render a synthetic underwater scene: frames, video, BOP ground truth and a contact sheet."""
-    from cadalign.sim.run import simulate
+    from cadalign.sim.run import simulate  # lazy: pulls cv2; keeps `cadalign --help` light
 
     with user_errors():
         out_dir = simulate(scene, out, frames=frames, resolution=_resolution(resolution), seed=seed,

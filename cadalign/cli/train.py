@@ -8,8 +8,10 @@ from pathlib import Path
 from typing import Any
 
 import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from cadalign.cli.common import console, user_errors
+from cadalign.config import resolve
 
 app = typer.Typer(help="Train the segmentation, depth or detection+pose networks.", no_args_is_help=True)
 
@@ -25,7 +27,6 @@ def overrides(steps: int | None, seed: int | None) -> dict[str, Any]:
 @contextlib.contextmanager
 def progress_bar(description: str) -> Iterator[Callable[[int, int, dict[str, float]], None]]:
     """A rich progress bar fed by the training loop's ``progress(step, total, metrics)`` callback."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   TextColumn("{task.fields[info]}"), console=console) as bar:
@@ -60,8 +61,7 @@ def seg(
     device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
 ) -> None:
     """Train the ResUNet segmentation network (classes from the dataset's objects.json)."""
-    from cadalign.config import resolve
-    from cadalign.train.seg import PRESETS, SegTrainConfig, train_seg
+    from cadalign.train.seg import PRESETS, SegTrainConfig, train_seg  # lazy: pulls cv2, kornia, torch
 
     with user_errors():
         cfg = resolve(SegTrainConfig, PRESETS, preset, config, overrides(steps, seed))
@@ -85,8 +85,7 @@ def depth(
     device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
 ) -> None:
     """Train the DispNet-style metric depth network (masked loss on valid depth pixels)."""
-    from cadalign.config import resolve
-    from cadalign.train.depth import PRESETS, DepthTrainConfig, train_depth
+    from cadalign.train.depth import PRESETS, DepthTrainConfig, train_depth  # lazy: pulls cv2, kornia, torch
 
     with user_errors():
         cfg = resolve(DepthTrainConfig, PRESETS, preset, config, overrides(steps, seed))
@@ -110,8 +109,7 @@ def pose(
     device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
 ) -> None:
     """Train Mask R-CNN with the 6-DoF pose head; scores the held-out (val + test) frames at the end."""
-    from cadalign.config import resolve
-    from cadalign.train.pose import PRESETS, PoseTrainConfig, run
+    from cadalign.train.pose import PRESETS, PoseTrainConfig, run  # lazy: pulls cv2, kornia, torch
 
     with user_errors():
         extra = overrides(steps, seed)

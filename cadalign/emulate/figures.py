@@ -30,7 +30,7 @@ def _class_name(names: tuple[str, ...], c: int) -> str:
 
 
 def _save(fig, path: Path) -> Path:
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: heavy dependency (matplotlib)
 
     with atomic_path(Path(path)) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
@@ -40,10 +40,10 @@ def _save(fig, path: Path) -> Path:
 
 def lidar_figure(scan: LidarScan, path: Path, class_names: tuple[str, ...] = (), title: str = "") -> Path:
     """Bird's-eye view and, for spinning scans, the ring x azimuth image, both coloured by class."""
-    import matplotlib
+    import matplotlib  # lazy: heavy dependency (matplotlib)
 
     matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: heavy dependency (matplotlib)
 
     spinning = bool(len(scan.ring)) and scan.ring.min() >= 0
     n_panels = 3 if spinning else 2
@@ -115,10 +115,10 @@ def _az_step(az: np.ndarray) -> float:
 def sonar_figure(img: SonarImage, path: Path, dynamic_range_db: float, class_names: tuple[str, ...] = (),
                  title: str = "") -> Path:
     """The sonar fan (log intensity) beside the class of the strongest return per cell."""
-    import matplotlib
+    import matplotlib  # lazy: heavy dependency (matplotlib)
 
     matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: heavy dependency (matplotlib)
 
     r_max = float(img.ranges_m[-1])
     half = float(np.max(np.abs(img.bearings_rad)))
@@ -147,10 +147,10 @@ def contact_figure(rgb: np.ndarray, depth_m: np.ndarray, class_id: np.ndarray | 
     The scan panel plots camera-frame x (right) against z (forward), the points coloured by class (by their
     colour when there are no classes).
     """
-    import matplotlib
+    import matplotlib  # lazy: heavy dependency (matplotlib)
 
     matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: heavy dependency (matplotlib)
 
     fig, ax = plt.subplots(1, 5, figsize=(24, 4.8))
     ax[0].imshow(rgb)

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from cadalign.emulate import figures, lidar, views
@@ -43,6 +44,7 @@ from cadalign.emulate.pretrained import DepthOutput, PretrainedConfig, SegModel,
 from cadalign.emulate.run import SENSOR_FROM_CAM, SUMMARY
 from cadalign.emulate.sources import write_ply
 from cadalign.errors import InputError
+from cadalign.fuse.predictors import seg_predictor
 from cadalign.io import atomic_path, prepare_stage_dir, read_image, write_image, write_json
 from cadalign.types import Camera, Rigid3
 
@@ -168,7 +170,6 @@ def lift_photo(photo: Path, cfg: PhotoConfig, *, depth_fn: Callable[[np.ndarray]
 def _on_upscaled(depth_fn: Callable[[np.ndarray], DepthOutput], upscale: Callable[[np.ndarray], np.ndarray],
                  rgb: np.ndarray, info: dict) -> DepthOutput:
     """Depth of the super-resolved photo, area-averaged back to the photo's grid (the mesh keeps its size)."""
-    import cv2
 
     t = time.perf_counter()
     big = upscale(rgb)
@@ -238,6 +239,7 @@ def run(cfg: PhotoConfig, photo: Path, out_dir: Path, *, depth_model: Path | Non
     seg_fn = _trained_seg(seg_run, cfg.pretrained.device) if seg_run is not None else None
     upscale = None
     if sr_model is not None:
+        # lazy: pulls torch
         from cadalign.emulate.superres import load_sr_model  # torch at import: only with --sr-model
 
         upscale = load_sr_model(sr_model, cfg.pretrained.device)
@@ -292,7 +294,5 @@ def _read_mask(path: Path, shape: tuple[int, ...]) -> np.ndarray:
 
 
 def _trained_seg(run_dir: Path, device: str) -> Callable[[np.ndarray], np.ndarray]:
-    from cadalign.fuse.predictors import seg_predictor  # torch and the project's networks: only when asked for
-
     return seg_predictor(run_dir, None, device, None)
 

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+import cv2
 import numpy as np
 
 from cadalign.config import bounded
@@ -95,7 +96,7 @@ def _model_type(path: Path, supported: tuple[str, ...], what: str) -> str:
 def _load(cls_name: str, path: Path, device: str):
     # transformers is an optional dependency (the `genlam` extra): only photo sources need it
     try:
-        import transformers
+        import transformers  # lazy: optional dependency (transformers)
     except ImportError as exc:
         raise InputError("pretrained checkpoints need the 'transformers' package: pip install 'cadalign[genlam]'") \
             from exc
@@ -123,8 +124,7 @@ def _forward_size(H: int, W: int, long_side: int, multiple: int) -> tuple[int, i
 
 
 def _pixels(rgb: np.ndarray, size: tuple[int, int], mean: np.ndarray, std: np.ndarray, device: str):
-    import cv2
-    import torch
+    import torch  # lazy: heavy dependency (torch)
 
     rgb = np.asarray(rgb)
     if rgb.ndim != 3 or rgb.shape[2] < 3:
@@ -136,7 +136,7 @@ def _pixels(rgb: np.ndarray, size: tuple[int, int], mean: np.ndarray, std: np.nd
 
 def _to_photo(t, H: int, W: int) -> np.ndarray:
     """(1, [C,] h, w) tensor -> ([C,] H, W) float64 numpy, bilinear."""
-    import torch.nn.functional as F
+    import torch.nn.functional as F  # lazy: heavy dependency (torch)
 
     x = t if t.ndim == 4 else t[:, None]
     x = F.interpolate(x.float(), size=(H, W), mode="bilinear", align_corners=False)[0]
@@ -151,7 +151,7 @@ def load_depth_model(path: Path, cfg: PretrainedConfig = PretrainedConfig()) -> 
         InputError: no ``config.json``, an unsupported ``model_type`` (the message lists :data:`DEPTH_ARCHS`),
             weights that do not load, or ``transformers`` not installed.
     """
-    import torch
+    import torch  # lazy: heavy dependency (torch)
 
     arch = _model_type(path, DEPTH_ARCHS, "depth")
     cls_name = "DepthAnythingForDepthEstimation" if arch == "depth_anything" else "DPTForDepthEstimation"
@@ -183,7 +183,7 @@ def load_seg_model(path: Path, cfg: PretrainedConfig = PretrainedConfig()) -> Se
     Raises:
         InputError: as :func:`load_depth_model`, with :data:`SEG_ARCHS`.
     """
-    import torch
+    import torch  # lazy: heavy dependency (torch)
 
     _model_type(path, SEG_ARCHS, "segmentation")
     model = _load("SegformerForSemanticSegmentation", path, cfg.device)

@@ -5,7 +5,7 @@ normalised here, so the hit parameter is the Euclidean range in metres) and retu
 range, face index and barycentrics ``(u, v)`` of the hit point ``(1 - u - v) A + u B + v C`` on the face
 ``(A, B, C)``, so every hit can be given the mesh's colour, class, part and pane layers.
 
-Both engines work relative to the mesh's bounding-box centre (like :mod:`cadalign.render.raycast`), so
+Both engines work relative to the mesh's bounding-box centre (like :mod:`cadalign.raycast.core`), so
 worlds far from the origin (UTM coordinates) keep their precision: Open3D casts in float32 on the shifted
 coordinates, the torch engine in float64 by default.
 
@@ -91,7 +91,7 @@ class BVHEngine:
     name = "bvh"
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, *, nthreads: int = 0) -> None:
-        import open3d as o3d
+        import open3d as o3d  # lazy: heavy dependency (open3d)
 
         v, f, self._centre = _check_mesh(vertices, faces)
         self._n_faces = len(f)
@@ -109,7 +109,7 @@ class BVHEngine:
 
     def cast_unit(self, origins: np.ndarray, unit_dirs: np.ndarray, *, local: bool = False) -> RayHits:
         """Like :meth:`cast` for already-unit directions (no checks; the fast path of the sensors)."""
-        import open3d as o3d
+        import open3d as o3d  # lazy: heavy dependency (open3d)
 
         rays = np.empty((len(unit_dirs), 6), dtype=np.float32)
         rays[:, :3] = origins if local else origins - self._centre
@@ -171,7 +171,7 @@ class TorchEngine:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, *, device: str = "cpu",
                  dtype: Literal["float64", "float32"] = "float64", cluster_size: int = 8,
                  budget: int = 4_000_000, det_tol: float = 1e-12, bary_tol: float = 1e-9) -> None:
-        import torch
+        import torch  # lazy: heavy dependency (torch)
 
         v, f, self._centre = _check_mesh(vertices, faces)
         self._torch = torch

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from cadalign.emulate import figures, layered_mesh, lidar, sonar, views
 from cadalign.emulate.mesh import LayeredMesh
@@ -39,8 +40,9 @@ from cadalign.emulate.sources import (
     write_ply,
 )
 from cadalign.errors import InputError
-from cadalign.io import prepare_stage_dir, read_json, write_image, write_json
-from cadalign.types import Rigid3
+from cadalign.io import atomic_path, prepare_stage_dir, read_json, write_image, write_json
+from cadalign.sim.trajectory import frame_poses
+from cadalign.types import Camera, Rigid3
 
 log = logging.getLogger(__name__)
 Sensor = Literal["lidar", "sonar", "view", "mesh"]
@@ -79,7 +81,6 @@ def parse_pose(text: str) -> Rigid3:
         vals = []
     if len(vals) not in (3, 6) or not np.all(np.isfinite(vals)):
         raise InputError(f"--pose {text!r}: give 'x,y,z', 'x,y,z,roll,pitch,yaw' (metres, degrees) or a .json file")
-    from scipy.spatial.transform import Rotation
 
     R = Rotation.from_euler("xyz", vals[3:] if len(vals) == 6 else [0, 0, 0], degrees=True).as_matrix()
     return Rigid3(R, vals[:3])
@@ -89,8 +90,7 @@ def default_pose(source: Path, sensor: Sensor) -> Rigid3:
     """The pose used without ``--pose``: a scene's first trajectory pose, an image's own camera."""
     source = Path(source)
     if source.suffix.lower() in SCENE_SUFFIXES:
-        from cadalign.sim.spec import load_scene
-        from cadalign.sim.trajectory import frame_poses
+        from cadalign.sim.spec import load_scene  # lazy: pulls cv2; keeps `cadalign --help` light
 
         spec = load_scene(source)
         T_cam = frame_poses(spec.trajectory, 1, spec.seed)[0]
@@ -154,7 +154,6 @@ def _write_lidar(mesh: LayeredMesh, cfg: lidar.LidarConfig, T: Rigid3, out: Path
 
 def _write_sonar(mesh: LayeredMesh, cfg: sonar.SonarConfig, T: Rigid3, out: Path, source: Path) -> dict:
     img = sonar.ping(mesh, T, cfg)
-    from cadalign.io import atomic_path
 
     with atomic_path(out / "sonar.npz") as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, intensity=img.intensity, clean=img.clean, class_id=img.class_id,
@@ -175,7 +174,6 @@ def _write_view_files(v: views.ViewFrame, out: Path, prefix: str) -> None:
     write_image(out / f"{prefix}class.png", figures.class_colours(v.class_id))
     if not prefix:
         write_image(out / "depth.png", np.clip(np.rint(v.depth_m * 1000), 0, 65535).astype(np.uint16))
-        from cadalign.io import atomic_path
 
         with atomic_path(out / "view.npz") as tmp, open(tmp, "wb") as fh:
             np.savez_compressed(fh, rgb=v.rgb, depth_m=v.depth_m, range_m=v.range_m, class_id=v.class_id,
@@ -188,7 +186,6 @@ def _write_mesh(mesh: LayeredMesh, cfg: layered_mesh.LayeredMeshConfig, T: Rigid
     inp = read_image_input(source)  # for its camera only
     T_cam = Rigid3() if inp.T_world_from_cam is None else Rigid3.from_matrix(inp.T_world_from_cam)
     H, W = np.shape(inp.depth_m)
-    from cadalign.types import Camera
 
     v = views.render(mesh, Camera(inp.K, W, H), T_cam if T is None else T)
     _write_view_files(v, out, "preview_")

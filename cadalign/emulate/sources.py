@@ -22,13 +22,16 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
-from cadalign.cad.load import SUPPORTED_EXTENSIONS
+from cadalign.cad.load import SUPPORTED_EXTENSIONS, load_cad
 from cadalign.cad.units import unit_scale
 from cadalign.emulate.layered_mesh import PRESETS, ImageInput, mesh_from_image
 from cadalign.emulate.mesh import LayeredMesh, concatenate
 from cadalign.errors import InputError
-from cadalign.io import atomic_path
+from cadalign.formats.bop import BopScene
+from cadalign.io import atomic_path, read_image
+from cadalign.sim.textures import BASE_COLOURS
 from cadalign.types import Camera
 
 log = logging.getLogger(__name__)
@@ -43,9 +46,8 @@ _PANE_KEYS = ("pane", "pane_id")
 
 def scene_mesh(path: Path) -> LayeredMesh:
     """The CAD scene of a scene spec as one layered mesh in the world frame."""
-    from cadalign.sim.scene import build_scene
-    from cadalign.sim.spec import load_scene
-    from cadalign.sim.textures import BASE_COLOURS
+    from cadalign.sim.scene import build_scene  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.sim.spec import load_scene  # lazy: pulls cv2; keeps `cadalign --help` light
 
     spec = load_scene(Path(path))
     scene = build_scene(spec, Path(path), width=8, height=8)
@@ -93,7 +95,6 @@ def _face_layer(vdata, fdata, faces: np.ndarray, keys: tuple[str, ...]) -> np.nd
 def ply_mesh(path: Path, unit: str | None = None) -> LayeredMesh:
     """A mesh PLY (binary or ASCII) with optional colour / class / part / pane properties per vertex or face;
     vertices in ``unit`` (``m``, ``cm``, ``mm``, ``in``; None: metres, as a layered mesh or a fused map is)."""
-    import trimesh
 
     path = Path(path)
     if not path.is_file():
@@ -125,7 +126,6 @@ def ply_mesh(path: Path, unit: str | None = None) -> LayeredMesh:
 def cad_mesh(path: Path, unit: str | None = None) -> LayeredMesh:
     """A CAD file read by :func:`cadalign.cad.load.load_cad` (in ``unit``, None: detected) as a layered mesh: class
     0, part = the file's part + 1, face colour from the file's face or vertex colours (grey without)."""
-    from cadalign.cad.load import load_cad
 
     model = load_cad(Path(path), unit=unit)
     faces = np.asarray(model.faces, dtype=np.int64)
@@ -201,8 +201,6 @@ def read_image_input(path: Path) -> ImageInput:
             if "class_names" in z.files:
                 opt["class_names"] = tuple(str(n) for n in z["class_names"])
             return ImageInput(z["rgb"], z["depth_m"], z["K"], **opt)
-    from cadalign.data.bop import BopScene
-    from cadalign.io import read_image
 
     bop = BopScene(scene_dir)
     im_id = int(path.stem)

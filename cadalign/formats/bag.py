@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from cadalign.errors import InputError
@@ -87,14 +88,14 @@ def _reader(path: Path) -> Any:
         raise InputError(f"{path} is not a ROS bag: pass a ROS 1 .bag file or a ROS 2 bag folder (with "
                          "metadata.yaml)")
     try:
-        from rosbags.highlevel import AnyReader
+        from rosbags.highlevel import AnyReader  # lazy: heavy dependency (rosbags)
     except ImportError as exc:  # optional at import time so the rest of cadalign works without it
         raise InputError(f"reading {path} needs the 'rosbags' package: pip install rosbags rosbags-image") from exc
     return AnyReader([root])
 
 
 def _open(reader: Any, path: Path) -> None:
-    from rosbags.highlevel import AnyReaderError
+    from rosbags.highlevel import AnyReaderError  # lazy: heavy dependency (rosbags)
 
     try:
         reader.open()
@@ -201,7 +202,6 @@ def decode_image(msg: Any) -> np.ndarray:
     Raises:
         InputError: an unsupported encoding or data that does not decode.
     """
-    import cv2
 
     if hasattr(msg, "format"):  # CompressedImage
         img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_UNCHANGED)
@@ -212,8 +212,8 @@ def decode_image(msg: Any) -> np.ndarray:
             return np.ascontiguousarray(np.repeat(img[..., None], 3, axis=2))
         code = cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB
         return np.ascontiguousarray(cv2.cvtColor(img, code))
-    from rosbags.image import ImageError, image_to_cvimage
-    from rosbags.image.image import convert_color
+    from rosbags.image import ImageError, image_to_cvimage  # lazy: heavy dependency (rosbags)
+    from rosbags.image.image import convert_color  # lazy: heavy dependency (rosbags)
 
     enc = str(msg.encoding)
     expected = int(msg.step) * int(msg.height)

@@ -39,7 +39,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+import cv2
 import numpy as np
+import yaml
 
 from cadalign.errors import InputError
 
@@ -276,8 +278,6 @@ def _colmap_txt(path: Path, text: str) -> CameraCalibration:
 # --- OpenCV FileStorage and YAML (OpenCV plain / ROS CameraInfo) ---------------------------------------------------
 
 def _opencv_filestorage(path: Path) -> CameraCalibration:
-    import cv2
-
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except cv2.error as exc:
@@ -311,8 +311,6 @@ def _opencv_filestorage(path: Path) -> CameraCalibration:
 
 
 def _from_yaml(path: Path, text: str) -> CameraCalibration:
-    import yaml
-
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -349,7 +347,6 @@ def undistort_maps(K: np.ndarray, model: DistortionModel, coeffs: tuple[float, .
                    height: int) -> tuple[np.ndarray, np.ndarray]:
     """``cv2.remap`` maps (two (H, W) float32) that undo a lens distortion, keeping ``K`` ((3, 3), cadalign
     convention): the output is the pinhole image of the same camera (what every later stage assumes)."""
-    import cv2
 
     K_cv = np.array(K, dtype=np.float64)
     K_cv[0, 2] -= 0.5  # OpenCV's maps index pixels by their centres
@@ -384,7 +381,6 @@ class Undistorter:
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         """(H, W[, C]) image -> the same camera's pinhole image (bilinear; outside the lens: black)."""
-        import cv2
 
         if not self.active:
             return image

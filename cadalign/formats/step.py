@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from cadalign.errors import InputError
 
@@ -151,13 +152,12 @@ def read_brep(path: Path, tessellation: TessellationConfig | None = None) -> Bre
         InputError: ``cascadio`` is not installed, the file does not parse, or it holds no solid or surface
             (e.g. only wireframe curves), each naming the file and the fix.
     """
-    import trimesh
 
     path = Path(path)
     tess = tessellation or TessellationConfig()
     kind = "iges" if path.suffix.lower() in IGES_SUFFIXES else "step"
     try:
-        import cascadio
+        import cascadio  # lazy: heavy dependency (cascadio)
     except ImportError as exc:  # optional at import time: only STEP/IGES need OpenCASCADE
         raise InputError(f"reading {kind.upper()} file '{path}' needs OpenCASCADE: pip install cascadio (or convert "
                          "it to PLY/OBJ/GLB in your CAD tool)") from exc

@@ -25,6 +25,7 @@ from cadalign.fuse.base import FuseFrame, LabelledGeometry, SemanticMap, origin_
 from cadalign.fuse.config import FuseConfig
 from cadalign.fuse.inputs import open_source
 from cadalign.fuse.map_io import new_map
+from cadalign.fuse.tsdf import require_open3d
 from cadalign.io import write_json
 from cadalign.types import Rigid3
 
@@ -39,8 +40,6 @@ class Open3DTSDF:
     block size, initial block count, truncation and depth range."""
 
     def __init__(self, cfg: FuseConfig) -> None:
-        from cadalign.fuse.tsdf import require_open3d
-
         o3d = require_open3d()
         self.cfg, self.o3d = cfg, o3d
         f32 = o3d.core.float32
@@ -145,8 +144,6 @@ def load_average() -> float:
 
 
 def _open3d_threads() -> int | None:
-    from cadalign.fuse.tsdf import require_open3d
-
     o3d = require_open3d()
     return int(o3d.utility.get_max_threads()) if hasattr(o3d.utility, "get_max_threads") else None
 

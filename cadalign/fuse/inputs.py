@@ -7,7 +7,7 @@ Accepted sources (the BOP scene inside is found automatically):
 - a dataset folder: ``DS/all/000000``
 - a BOP scene folder itself (holding ``scene_camera.json``), also a plain one with only ``rgb/``, ``depth/``,
   ``scene_camera.json`` and ``scene_gt.json``: its classes are one per object id, or a ``classes`` JSON
-  ``{obj_id: class name}`` (:func:`cadalign.data.torch_datasets.load_class_map`)
+  ``{obj_id: class name}`` (:func:`cadalign.train.datasets.load_class_map`)
 
 Depth: ``gt`` (the scene's ``depth/``), ``sfm`` (``depth_sfm/`` of a built dataset: sparse, metres after
 alignment) or ``pred`` (a :data:`DepthPredictor`). Labels: ``gt`` (``class/``, or painted from the visible
@@ -28,9 +28,9 @@ from typing import Literal
 
 import numpy as np
 
-from cadalign.data import bop
-from cadalign.data.torch_datasets import ClassMap, load_class_map
 from cadalign.errors import InputError
+from cadalign.formats import bop
+from cadalign.formats.class_map import ClassMap, load_class_map
 from cadalign.fuse.base import FuseFrame
 from cadalign.fuse.semantic import check_probs, probs_from_labels
 from cadalign.io import read_image, read_json

@@ -13,15 +13,15 @@ from typing import Any
 
 import numpy as np
 
-from cadalign.data import image_prep
 from cadalign.errors import InputError
 from cadalign.fuse.inputs import DepthPredictor, SegPredictor
+from cadalign.sfm import image_prep
 from cadalign.types import Camera
 
 
 def _feed(run: Path, source_prep: dict[str, Any] | None) -> dict[str, Any]:
     """What the frames (prepared as ``source_prep``, None: unknown) need before ``run``'s network sees them
-    (:mod:`cadalign.data.image_prep`): raw frames get the enhancement its training images had."""
+    (:mod:`cadalign.sfm.image_prep`): raw frames get the enhancement its training images had."""
     return image_prep.to_feed(source_prep, image_prep.read_run_prep(run), str(run))
 
 
@@ -30,11 +30,11 @@ def seg_predictor(run: Path, classes: Sequence[str] | None, device: str = "cpu",
     """``rgb -> (C, H, W)`` probabilities of the segmentation network of ``run`` (its classes must match
     ``classes``; None: the network's own classes, unchecked).
 
-    ``source_prep``: how the frames to be fed were prepared (:func:`cadalign.data.image_prep.read_prep` of their
+    ``source_prep``: how the frames to be fed were prepared (:func:`cadalign.sfm.image_prep.read_prep` of their
     scene); raw frames are then prepared as the network's training images were. The last result is remembered
     (keyed by the image object), so the depth mask and the labels of one frame share one network pass.
     """
-    from cadalign.infer.dense import load_dense_model, seg_probabilities
+    from cadalign.infer.dense import load_dense_model, seg_probabilities  # lazy: pulls torch
 
     dm = load_dense_model(Path(run), task="seg", classes=classes, device=device)
     prep = _feed(run, source_prep)
@@ -57,7 +57,7 @@ def depth_predictor(run: Path, seg: SegPredictor | None = None, device: str = "c
     ``foreground_only`` zeroes (invalidates) the depth wherever ``seg`` predicts background: depth networks
     predict a depth for open water too, which would otherwise be fused as surfaces.
     """
-    from cadalign.infer.dense import load_dense_model, metric_depth
+    from cadalign.infer.dense import load_dense_model, metric_depth  # lazy: pulls torch
 
     dm = load_dense_model(Path(run), task="depth", device=device)
     prep = _feed(run, source_prep)

@@ -8,7 +8,7 @@ Outputs in ``OUT``::
     OUT/points.ply         labelled point cloud
     OUT/views.png          ray-cast views of the mesh coloured by class and by observed colour
     OUT/fuse_report.json   frames, timings (frames/s), map size and, where the CAD truth is known, the
-                           metrics of cadalign.eval.map_metrics
+                           metrics of cadalign.metrics.map
     OUT/cadalign_stage.json  the resolved config and version
 
 An interrupted run continues from the last map checkpoint; a finished one is reused; a folder made with
@@ -25,15 +25,16 @@ from pathlib import Path
 import numpy as np
 
 from cadalign.config import to_dict
-from cadalign.data.image_prep import read_prep
 from cadalign.errors import InputError
-from cadalign.eval.map_metrics import load_truth, map_metrics, point_truth_labels, sample_surface, visible_mask
 from cadalign.fuse.base import LabelledGeometry, SemanticMap
 from cadalign.fuse.config import FuseConfig
 from cadalign.fuse.inputs import FrameSource, open_source
 from cadalign.fuse.map_io import MapMeta, load_map, new_map, save_map, write_ply
+from cadalign.fuse.predictors import depth_predictor, seg_predictor
 from cadalign.fuse.views import render_views
 from cadalign.io import prepare_stage_dir, write_json
+from cadalign.metrics.map import load_truth, map_metrics, point_truth_labels, sample_surface, visible_mask
+from cadalign.sfm.image_prep import read_prep
 from cadalign.types import Progress
 
 log = logging.getLogger(__name__)
@@ -79,7 +80,7 @@ def fuse(source: FrameSource, cfg: FuseConfig, *, m: SemanticMap | None = None, 
 
 def evaluate(source: FrameSource, cfg: FuseConfig, mesh: LabelledGeometry, points: LabelledGeometry,
              seed: int = 0) -> dict:
-    """Map metrics against the scene's truth (see :mod:`cadalign.eval.map_metrics`): the CAD for geometry, the
+    """Map metrics against the scene's truth (see :mod:`cadalign.metrics.map`): the CAD for geometry, the
     scene's true depth for visibility and its class maps for the labels of surface points."""
     truth = load_truth(source.scene.dir)
     samples, _ = sample_surface(truth, spacing_m=max(cfg.voxel_m, 0.01), seed=seed)
@@ -162,14 +163,12 @@ def _open(cfg: FuseConfig, source: Path, depth: str, labels: str, seg_model: Pat
         if seg_model is None:
             raise InputError("--labels pred needs a segmentation model: pass --model-seg RUN "
                              "(a `cadalign train seg` run folder or checkpoint)")
-        from cadalign.fuse.predictors import seg_predictor
 
         seg = seg_predictor(seg_model, src.classes.names, source_prep=prep)
     if depth == "pred":
         if depth_model is None:
             raise InputError("--depth pred needs a depth model: pass --model-depth RUN "
                              "(a `cadalign train depth` run folder or checkpoint)")
-        from cadalign.fuse.predictors import depth_predictor
 
         dep = depth_predictor(depth_model, seg, foreground_only=cfg.pred_depth_foreground_only and seg is not None,
                               source_prep=prep)

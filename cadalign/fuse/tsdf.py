@@ -58,7 +58,7 @@ at every 4th pixel only and would skip most of its points, so blocks are picked 
 
 def require_open3d():  # -> module
     """Import open3d, refusing versions without a working tensor ``VoxelBlockGrid``."""
-    import open3d as o3d
+    import open3d as o3d  # lazy: heavy dependency (open3d)
 
     version = tuple(int(p) for p in o3d.__version__.split(".")[:2] if p.isdigit())
     if version < MIN_OPEN3D or not hasattr(o3d.t.geometry, "VoxelBlockGrid"):

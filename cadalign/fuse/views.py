@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from cadalign.errors import InputError
@@ -35,7 +36,7 @@ def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
 def render_view(mesh: LabelledGeometry, eye: np.ndarray, target: np.ndarray, size: tuple[int, int],
                 hfov_deg: float = 60.0, by_class: bool = True) -> np.ndarray:
     """(H, W, 3) uint8 picture of ``mesh`` from ``eye``: class or observed colour, Lambert-shaded, white sky."""
-    import open3d as o3d
+    import open3d as o3d  # lazy: heavy dependency (open3d)
 
     if mesh.faces is None or len(mesh.faces) == 0:
         raise InputError("render_view needs a mesh with faces")
@@ -69,7 +70,6 @@ def render_views(mesh: LabelledGeometry, path: Path, class_names: Sequence[str],
 
     The views frame the labelled (non-background) part of the map when it has one, so a large seabed does
     not shrink the structure to a few pixels."""
-    import cv2
 
     fg = mesh.points_m[mesh.labels != 0]
     lo, hi = np.percentile(fg if len(fg) >= 100 else mesh.points_m, [1, 99], axis=0)

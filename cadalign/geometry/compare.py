@@ -1,6 +1,6 @@
 """Comparisons of two estimates: rotation error, box IoU and mask IoU (one implementation each, numpy only).
 
-The metrics (:mod:`cadalign.eval.pose_metrics`, :mod:`cadalign.eval.dataset_metrics`) and the stages that
+The metrics (:mod:`cadalign.metrics.pose`, :mod:`cadalign.metrics.dataset`) and the stages that
 score candidates (:mod:`cadalign.infer`) call these. Boxes are ``x0, y0, x1, y1`` in pixels with ``x1``/``y1``
 exclusive (pixel-edge coordinates of :mod:`cadalign.types`).
 
@@ -22,7 +22,7 @@ def rotation_error_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray | float:
     """Angle (degrees) of the rotation between ``R_a`` and ``R_b`` ((..., 3, 3), broadcast): the geodesic distance.
 
     Symmetry-aware errors (a part that a turn leaves unchanged) are
-    :func:`cadalign.eval.pose_metrics.rotation_error_deg`.
+    :func:`cadalign.metrics.pose.rotation_error_deg`.
 
     >>> from cadalign.geometry.rotations import axis_angle_to_matrix
     >>> round(float(rotation_error_deg(np.eye(3), axis_angle_to_matrix(np.array([0, 0, np.pi / 6])))), 6)

@@ -37,96 +37,11 @@ from typing import Any
 
 import numpy as np
 
-from cadalign.config import bounded
-from cadalign.eval.pose_eval import CroppedMask
 from cadalign.geometry.compare import box_iou
+from cadalign.infer.config import CompleteConfig
 from cadalign.infer.model_geom import ModelGeometry, project_points, render_depth
-from cadalign.infer.track_fit import RefitConfig
+from cadalign.metrics.pose_eval import CroppedMask
 from cadalign.types import Rigid3
-
-
-@dataclass(frozen=True)
-class CompleteConfig:
-    enabled: bool = False
-    """Run the completion pass after the video (needs depth and the frames' camera poses, given or registered on
-    the parts; see module doc)."""
-    min_obs: int = bounded(3, ge=1)
-    """Detections a track needs to be completed into other frames (and, with ``drop_short``, to be reported)."""
-    drop_short: bool = True
-    """Drop the detections of tracks with fewer than ``min_obs`` detections."""
-    consistency_iou: float = bounded(0.3, ge=0, le=1)
-    """Median box IoU of a track's projected world pose and its own detections needed to complete it."""
-    min_visible: float = bounded(0.1, gt=0, le=1)
-    """Fraction of the projected silhouette that the depth map must show in sight for the part to be reported
-    (0.1: BOP's rule for which parts count as targets). It also decides in which of a track's own frames its
-    projection is compared with the detection (``consistency_iou``). Default orbit, 33 held-out frames, nine
-    ``improved`` networks of sessions 19-21: mean valve / hot stab F1 0.907 / 0.529 at 0.3, 0.915 / 0.551 at 0.2,
-    0.919 / 0.558 at 0.1 (valve F1 higher in all nine, hot stab in six, lower in two); picked on those frames."""
-    depth_tol_m: float = bounded(0.05, ge=0)
-    """A model pixel is in sight when its depth is at most the observed depth plus this (metres)..."""
-    depth_tol_rel: float = bounded(0.0, ge=0)
-    """...or plus this fraction of the model's depth there, whichever is larger (for predicted depth)."""
-    min_detected: float = bounded(0.0, ge=0, le=1)
-    """Fraction of the frames showing a track's part in sight (by its projection) in which it must have been
-    detected to be completed: a false positive that recurs in a few frames at one place is otherwise reported in
-    every frame that sees that place. Off: hot stabs are detected in 10-30 % of the frames that show them, as
-    few as such false tracks. Default orbit, 33 held-out frames, nine ``improved`` networks of sessions 19-21: 0.3
-    removed the two false valve tracks of one network (valve F1 0.837 -> 0.912, 38 fewer false positives) but
-    lowered hot stab F1 in four (0.627 -> 0.358, 0.712 -> 0.286, 0.663 -> 0.281, 0.405 -> 0.139)."""
-    drop_untrusted: bool = False
-    """Drop the detections of tracks that completion does not trust (at least ``min_obs`` detections, but their
-    projection disagrees with them or, with ``min_detected``, they are detected in too few of their views): a
-    false positive recurring at one place makes such a track, and its detections would otherwise stay reported.
-    A track completion never saw (no frame with camera pose and depth) is kept: nothing was checked. Default orbit,
-    33 held-out frames, true depth, ``accurate`` with ``training/infer_hot_stab_03.toml``, two ``roi_balance``
-    networks of session 29 (3700 steps): hot stab F1 0.913 -> 1.000 (seed 3: 18 false positives of six 3-detection
-    tracks) and 0.749 -> 0.813 (seed 1: 17 false positives, and the UUV hot stab's only two matches, 10 deg off);
-    valves unchanged."""
-    max_fit_rel: float = bounded(1.0, gt=0, le=1)
-    """A refitted track whose CAD model explains its masked depth worse than this (:attr:`WorldTrack.fit_rel`) is not
-    trusted: a part of the structure taken for a valve in a few neighbouring frames makes a track whose projection
-    agrees with its detections, but the valve's CAD model does not fit its depth. 1.0: off (the fit is capped).
-    Session 29, six ``roi_balance`` networks' runs on the default orbit's held-out frames and a second dive
-    (``two_pass.toml``, every 4th frame): tracks with true detections fitted 0.13-0.51 (the highest: the UUV hot stab,
-    whose masks take in the plate under it), the two false valve tracks on the panel support of the second dive 0.59
-    and 0.61 (54 false positives; valve F1 0.823 -> 0.945 at 0.55), false hot stab tracks 0.05-0.91. A thin margin,
-    read off those runs."""
-    dedup_iou: float = bounded(0.5, gt=0, le=1)
-    """A completion whose box overlaps a reported box of its class by at least this is not added."""
-    reproject: bool = True
-    """A completed track's detections report the visible box and mask of its world pose in their frame (as its
-    completions do) instead of the network's: a thin part's box often covers only its handle, or a part and its
-    neighbour, while the pose fused over the video puts it whole; box and pose then agree. Default orbit, 33
-    held-out frames, true depth, ``accurate``; valve / hot stab F1 without -> with: the acceptance networks (seeds
-    0, 1, 2) 0.942 -> 0.961 / 0.695 -> 0.671, 0.959 -> 0.957 / 0.484 -> 0.611 and 0.944 -> 0.957 / 0.714 -> 0.726;
-    fused valve t mean 0.029 -> 0.002 m with seed 0 (its two matches 2.7 m off, a box on a neighbour, are gone),
-    0.004 -> 0.003 m and 0.004 -> 0.004 m with seeds 1 and 2. Completion re-run on the stored detections of nine
-    ``improved`` networks of sessions 19-21: valve up in five, down in two (0.959 -> 0.950, 0.883 -> 0.860), mean
-    0.919 -> 0.925; hot stab up in five, down in two (0.695 -> 0.671, 0.550 -> 0.526), mean 0.558 -> 0.583."""
-    refit: RefitConfig = field(default_factory=RefitConfig)
-    """Before completion, each track's world pose is fitted again to the masked depth of all its detections at once
-    (:mod:`cadalign.infer.track_fit`; tracks of at least ``min_obs`` detections), and a second track of the same part
-    is dropped. Default orbit, 33 held-out frames, true depth and camera poses, ``accurate``; valve / hot stab F1,
-    fused valve t / R, hot stab t / R mean, without -> with (the acceptance networks, 4200 steps): seed 0 0.961 /
-    0.671, 0.002 m / 4.04 deg, 0.107 m / 24.4 deg -> 0.970 / 0.813, 0.001 m / 0.18 deg, 0.001 m / 0.20 deg; seed 1
-    0.957 / 0.611, 0.003 m / 4.52 deg, 0.105 m / 21.9 deg -> 0.972 / 0.798, 0.001 m / 0.98 deg, 0.001 m / 0.25
-    deg; seed 2 0.957 / 0.726, 0.004 m / 5.38 deg, 0.070 m / 27.3 deg -> 0.986 / 0.984, 0.000 m / 0.16 deg,
-    0.000 m / 1.74 deg (the UUV hot stab's track, retired by a re-identification on a 14 px mask, refitted and
-    completed: 30 of 30); ``thesis`` seed 0 0.871 / 0.382, 0.210 m / 93.9 deg, 0.309 m / 79.7 deg -> 0.950 / 0.805,
-    0.153 m / 63.2 deg, 0.006 m / 4.2 deg. The 87 mm panel valve's quarter turn, which no single frame shows, is
-    found (85 -> 0.1-1 deg). Two networks trained within 60 CPU-minutes (3700 steps, seeds 0 and 2): 0.933 / 0.520,
-    0.008 m / 3.91 deg, 0.109 m / 35.4 deg -> 0.917 / 0.825, 0.001 m / 0.14 deg, 0.031 m / 18.3 deg (the UUV hot
-    stab tracked with the procedural hot stab's model: 13 matches at 109 deg, 15 false), and 0.951 / 0.600, 0.004 m /
-    2.12 deg, 0.179 m / 34.5 deg -> 0.951 / 0.578, 0.001 m / 1.87 deg, 0.019 m / 1.22 deg (a hot stab track dropped
-    as a duplicate of a worse one: 9 fewer hot stab matches). ~1 s per track (the completion pass 0.9 -> ~30 s on
-    those 33 frames). Session 25 added the choice of each track's CAD model by its views, a turn by the views, hops
-    and a median centre in the search (numbers at ``RefitConfig.choose_model``): those two networks 0.917 / 1.000,
-    0.001 m / 0.14 deg, 0.001 m / 0.65 deg and 0.951 / 0.813, 0.001 m / 1.87 deg, 0.006 m / 0.21 deg."""
-    smooth: bool = True
-    """A completed track's detections report its final world pose too (fused from all its frames, later ones
-    included) instead of the running mean of the frames up to theirs. Default orbit, 33 held-out frames, four
-    ``improved`` networks (``min_visible = 0.3``): fused valve R mean 3.51 -> 3.39, 5.06 -> 4.64, 5.81 -> 5.71,
-    2.12 -> 0.67 deg; hot stab 27.9 -> 27.6, 37.1 -> 27.4, 12.0 -> 11.1, 29.0 -> 28.2 deg; F1 unchanged."""
 
 
 @dataclass(frozen=True)

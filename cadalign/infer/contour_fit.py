@@ -12,11 +12,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from cadalign.geometry.compare import mask_iou
+from cadalign.infer.config import RefineConfig
 from cadalign.infer.model_geom import ModelGeometry, contour_points, project_points, render_silhouette
-from cadalign.infer.refine_config import RefineConfig
 from cadalign.infer.refine_math import apply_twist, huber_weights, pose_prior, proj_jacobian, small_step, solve_step
 from cadalign.types import Rigid3
 
@@ -36,8 +37,6 @@ class SignedDistance:
 
     @staticmethod
     def of(mask: np.ndarray, margin: int) -> SignedDistance:
-        import cv2
-
         m = np.asarray(mask, bool)
         rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
         x0, x1 = cols[0] - margin, cols[-1] + 1 + margin

@@ -19,6 +19,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from cadalign.errors import InputError, TrainingError
+from cadalign.models.dispnet import DispNet, DispNetConfig
+from cadalign.models.resunet import ResUNet, ResUNetConfig
 from cadalign.train.checkpoint import LAST, load_checkpoint
 from cadalign.train.data import resized_size
 
@@ -57,8 +59,6 @@ def load_dense_model(run: Path, *, task: str | None = None, classes: Sequence[st
         TrainingError: missing/unreadable checkpoint, another task than ``task``, or a class list other than
             ``classes`` (a model trained on another dataset's classes must not be applied silently).
     """
-    from cadalign.models.dispnet import DispNet, DispNetConfig
-    from cadalign.models.resunet import ResUNet, ResUNetConfig
 
     path = checkpoint_path(run)
     ck = load_checkpoint(path, map_location="cpu")

@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import binary_erosion
 
+from cadalign.infer.config import RefineConfig
 from cadalign.infer.model_geom import ModelGeometry
-from cadalign.infer.refine_config import RefineConfig
 from cadalign.infer.refine_math import apply_twist, clamp_step, huber_weights, pose_prior, small_step, solve_step
 from cadalign.types import Rigid3
 

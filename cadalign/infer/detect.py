@@ -1,78 +1,32 @@
-"""The detector interface of the pose pipeline, the trained-network adapter and the ground-truth oracle.
+"""The detector interface of the pose pipeline and the trained-network adapter.
 
 Any object with ``detect(image, K) -> list[Detection-like]`` is a :class:`Detector`: ``image`` is (H, W, 3)
 RGB uint8, ``K`` (3, 3); a detection has ``box_xyxy`` (4,) px, ``label`` (class index), ``score``, ``mask``
 (H, W) bool, ``R_cam_from_obj`` (3, 3), ``t_cam_from_obj_m`` (3,), and optionally ``obj_id`` (the BOP model)
 — the attributes of ``cadalign.models.maskrcnn.detector.Detection``.
 
-:class:`OracleDetector` is for tests and demos only: it returns the ground-truth instances of a BOP scene
-(visible masks, exact boxes) with their poses perturbed by seeded noise, so refinement and temporal fusion
-can be exercised and measured without a trained network. Its results are labelled ``oracle`` everywhere.
+The ground-truth oracle, for tests and demos only, is :class:`cadalign.testing.oracle.OracleDetector`.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
-from cadalign.config import bounded
-from cadalign.data.bop import BopScene, mask_bbox
-from cadalign.data.torch_datasets import load_class_map
-from cadalign.geometry.rotations import axis_angle_to_matrix
-from cadalign.types import Detection
+from cadalign.errors import InputError
+from cadalign.formats.bop import BopScene
+from cadalign.infer.config import TileConfig
+from cadalign.io import read_json
 
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class OracleDetection(Detection):
-    """A :class:`~cadalign.types.Detection` made from ground truth, remembering which instance it came from."""
-
-    gt_idx: int | None = None
-    """Oracle only: the ground-truth instance index in the frame (for measurements)."""
-
-
 class Detector(Protocol):
     def detect(self, image: np.ndarray, K: np.ndarray) -> list[Any]: ...
-
-
-@dataclass(frozen=True)
-class TileConfig:
-    """Zoomed windows of each frame (test-time): parts a few pixels across are seen as the network sees nearer ones.
-
-    With ``zoom`` > 1 the network also runs on overlapping windows ``1 / zoom`` of the frame, each upsampled to
-    its input (``K`` moves with the window, so poses stay in the frame's camera); a window's detection that
-    touches an inner window edge is cut and left to the whole-frame pass or a neighbour; the union is
-    non-maximum suppressed per class (:class:`TorchDetector`'s ``nms_iou``). Each window costs a whole detector
-    pass."""
-
-    zoom: float = bounded(1.0, ge=1)
-    """Window size as a fraction ``1 / zoom`` of the frame (1 = off: the whole frame only)."""
-    overlap: float = bounded(0.25, ge=0, lt=1)
-    """Least fraction of a window shared with its neighbour (parts up to ``overlap / zoom`` of the frame are
-    whole in some window)."""
-    border_px: float = bounded(2.0, ge=0)
-    """A window's detection within this many frame pixels of an inner window edge counts as cut."""
-    score_thresh: float = bounded(0.5, ge=0, le=1)
-    """A window's detections scoring below this are dropped (the whole-frame pass keeps the detector's threshold):
-    the windows add recall and, at the same threshold, false positives."""
-    max_box_px: float = bounded(0.0, ge=0)
-    """A window's detection whose box is longer than this (frame pixels) on either side is dropped (0 = keep all):
-    the windows then add only parts too small for the whole frame, and larger parts come from the whole frame alone.
-    Default orbit, 33 held-out frames, zoom 2 (9 windows), windows' detections from 0.5, merged across windows: with
-    a 24 px cap the windows add 144-192 false valve boxes over the 33 frames (two 3700-step networks, ``improved``
-    seeds 0 and 2), with 8 px 13; the two 87 mm panel valves (3-6 px boxes) are then found from 0.5 in 13 of 24
-    frames against 5 on the whole frame alone (seed 0). Through ``infer --preset accurate`` (true depth, hot stabs
-    from 0.3; valve / hot stab F1, fused valve t / R): seed 2 0.951 / 0.984, 0.001 m / 1.87 deg -> 0.986 / 0.984,
-    0.001 m / 0.16 deg; seed 0 0.917 -> 0.907 (its 87 mm valve misses halve, 22 -> 11, but its boxes there stay ~2 px
-    off and 17 false valves are added); seed 1 0.970 -> 0.947 (misses 11 -> 6, background false valves 1 -> 17);
-    ``thesis`` seed 2 0.946 -> 0.881 (35 background false valves). Hot stab F1 moves by at most 0.036. Without the
-    cap (zoom 2) 0.917 / 0.984 -> 0.785 / 0.927 (seed 0), 0.970 / 0.737 -> 0.814 / 0.695 (seed 1). Mixed, so off:
-    the windows find the small valves, and small false ones with them."""
 
 
 def tile_windows(height: int, width: int, cfg: TileConfig) -> list[tuple[int, int, int, int]]:
@@ -95,9 +49,9 @@ def merge_detections(dets: list[Any], iou: float) -> list[Any]:
     """Per-class greedy NMS over detections (any objects with ``box_xyxy``, ``label``, ``score``), by score."""
     if len(dets) <= 1:
         return list(dets)
-    import torch
+    import torch  # lazy: heavy dependency (torch)
 
-    from cadalign.models.ops import batched_nms
+    from cadalign.models.ops import batched_nms  # lazy: pulls torch
 
     boxes = torch.as_tensor(np.stack([np.asarray(d.box_xyxy, np.float64) for d in dets]))
     keep = batched_nms(boxes, torch.as_tensor([float(d.score) for d in dets], dtype=torch.float64),
@@ -121,7 +75,7 @@ class TorchDetector:
         self.last_timings: dict[str, float] = {}
 
     def _pass(self, image: np.ndarray, K: np.ndarray) -> list[Any]:
-        import torch
+        import torch  # lazy: heavy dependency (torch)
 
         img = torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))).float().div(255.0).to(self.device)
         Kt = torch.as_tensor(np.asarray(K, dtype=np.float32), device=self.device)
@@ -154,68 +108,8 @@ class TorchDetector:
         return merge_detections(dets, self.nms_iou)
 
 
-@dataclass(frozen=True)
-class OracleConfig:
-    noise_t_m: float = bounded(0.03, ge=0)
-    """RMS of the translation noise added to the true pose (m; isotropic Gaussian)."""
-    noise_r_deg: float = bounded(3.0, ge=0)
-    """RMS of the rotation noise (deg; rotation vector isotropic Gaussian)."""
-    min_visib_fract: float = bounded(0.1, ge=0, le=1)
-    """Instances less visible than this are not reported (BOP's default)."""
-    min_pixels: int = bounded(1, ge=1)
-    """Instances with fewer visible pixels are not reported."""
-    give_obj_id: bool = False
-    """Report the true model id (a network reports only the class; off = the pipeline must identify it)."""
-    seed: int = 0
-    """Seed of the pose noise (per frame: seed + frame id)."""
-
-
-class OracleDetector:
-    """Ground-truth detections of a BOP scene with noisy poses (tests and demos only; see module doc)."""
-
-    name = "oracle"
-
-    def __init__(self, scene_dir: Path, cfg: OracleConfig) -> None:
-        self.scene = BopScene(scene_dir)
-        self.cfg = cfg
-        self.classes = load_class_map(scene_dir)
-        self.im_id_of = frame_ids(scene_dir)
-        self.current: str | None = None
-
-    def for_frame(self, name: str) -> OracleDetector:
-        """Select the frame (by name) that the next :meth:`detect` call reports."""
-        self.current = name
-        return self
-
-    def detect(self, image: np.ndarray, K: np.ndarray) -> list[Detection]:
-        im_id = self.im_id_of.get(self.current or "")
-        if im_id is None:
-            log.debug("oracle: frame %s is not in the ground truth; no detections", self.current)
-            return []
-        cfg = self.cfg
-        frame = self.scene.frame(im_id)
-        rng = np.random.default_rng(cfg.seed + im_id)
-        out = []
-        for g, inst in enumerate(frame.instances):
-            info = frame.info[g] if g < len(frame.info) else {}
-            if info.get("visib_fract", 1.0) < cfg.min_visib_fract:
-                continue
-            m = self.scene.mask(im_id, g, visible=True)
-            if m.sum() < cfg.min_pixels:
-                continue
-            x, y, w, h = mask_bbox(m)
-            dR = axis_angle_to_matrix(rng.normal(scale=np.radians(cfg.noise_r_deg) / np.sqrt(3), size=3))
-            dt = rng.normal(scale=cfg.noise_t_m / np.sqrt(3), size=3)
-            T = inst.T_cam_from_obj
-            box = np.array([x, y, x + w, y + h], float)
-            out.append(OracleDetection(box, self.classes.class_of_obj[inst.obj_id], 1.0, m, dR @ T.R, T.t + dt,
-                                       inst.obj_id if cfg.give_obj_id else None, g))
-        return out
-
-
 def frame_ids(scene_dir: Path) -> dict[str, int]:
     """Frame name -> BOP image id of a scene: ``frame_names.json`` (dataset builder) or ``NNNNNN.png``."""
-    from cadalign.io import read_json
 
     scene_dir = Path(scene_dir)
     names = scene_dir / "frame_names.json"
@@ -230,7 +124,6 @@ def resolve_scene_dir(path: Path) -> Path:
     for cand in (path, path / "gt" / "sim" / "000000", path / "dataset" / "all" / "000000", path / "all" / "000000"):
         if (cand / "scene_gt.json").is_file():
             return cand
-    from cadalign.errors import InputError
 
     raise InputError(f"{path} holds no BOP scene (looked for scene_gt.json in it, gt/sim/000000, "
                      "dataset/all/000000); pass a 'cadalign sim' output folder or a BOP scene folder")

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
+import trimesh
 from scipy.spatial import cKDTree
 
 from cadalign.cad.model import CadModel
@@ -50,7 +52,7 @@ class ModelGeometry:
 
     def raycaster(self):  # -> open3d.t.geometry.RaycastingScene, built on first use
         if not self._scene:
-            import open3d as o3d
+            import open3d as o3d  # lazy: heavy dependency (open3d)
 
             mesh = o3d.t.geometry.TriangleMesh()
             mesh.vertex.positions = o3d.core.Tensor(self.vertices.astype(np.float32))
@@ -62,8 +64,6 @@ class ModelGeometry:
 
     @staticmethod
     def from_cad(model: CadModel, n_samples: int = 3000, seed: int = 0) -> ModelGeometry:
-        import trimesh
-
         mesh = trimesh.Trimesh(model.vertices_m, model.faces, process=False)
         fn = np.asarray(mesh.face_normals, dtype=np.float64)
         e_sorted = np.sort(np.asarray(mesh.edges, dtype=np.int64), axis=1)
@@ -92,7 +92,7 @@ def render_silhouette(geom: ModelGeometry, T_cam_from_obj: Rigid3, K: np.ndarray
     """(H, W) bool silhouette of the model, in a window whose top-left pixel is ``offset`` = (x0, y0).
 
     Exact: one ray through each pixel centre, cast against the model (Open3D, one thread), the same rule as
-    the ground-truth masks of :mod:`cadalign.render.raycast`.
+    the ground-truth masks of :mod:`cadalign.raycast.core`.
     """
     return np.isfinite(render_depth(geom, T_cam_from_obj, K, shape, offset))
 
@@ -102,7 +102,7 @@ def render_depth(geom: ModelGeometry, T_cam_from_obj: Rigid3, K: np.ndarray, sha
     """(H, W) camera z (metres) of the model's nearest surface through each pixel centre of a window whose
     top-left pixel is ``offset`` = (x0, y0); ``inf`` where the ray misses the model (ray cast as
     :func:`render_silhouette`)."""
-    import open3d as o3d
+    import open3d as o3d  # lazy: heavy dependency (open3d)
 
     H, W = shape
     u = np.arange(W) + 0.5 + offset[0]
@@ -153,7 +153,6 @@ def contour_points(geom: ModelGeometry, T_cam_from_obj: Rigid3, K: np.ndarray, s
 def draw_wireframe(image: np.ndarray, geom: ModelGeometry, T_cam_from_obj: Rigid3, K: np.ndarray,
                    color: tuple[int, int, int], thickness: int = 1) -> None:
     """Draw the model's feature edges at a pose onto an RGB uint8 image in place."""
-    import cv2
 
     e = geom.feature_edges
     Xc = T_cam_from_obj.apply(geom.vertices)

@@ -13,35 +13,25 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field, replace
-from typing import Literal
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from cadalign.cad.model import CadModel
-from cadalign.config import bounded
-from cadalign.eval.pose_metrics import rotation_error_deg
+from cadalign.formats.coco import mask_to_rle
 from cadalign.geometry.compare import box_iou, mask_iou
 from cadalign.geometry.rotations import axis_angle_to_matrix
-from cadalign.infer.complete import CompleteConfig, WorldTrack
-from cadalign.infer.detect import Detector, TileConfig
+from cadalign.infer.complete import WorldTrack
+from cadalign.infer.config import InferConfig, RefitConfig
+from cadalign.infer.detect import Detector
 from cadalign.infer.half_turn import view_disagreement, view_window
 from cadalign.infer.hypotheses import yaw_hypotheses_rad
 from cadalign.infer.model_geom import ModelGeometry, project_points, render_silhouette
 from cadalign.infer.pose_math import Observation
-from cadalign.infer.refine import PRESETS as REFINE_PRESETS
-from cadalign.infer.refine import (
-    RefineConfig,
-    icp_points,
-    pick_fit,
-    refine,
-    refine_depth_icp,
-    refine_silhouette,
-)
-from cadalign.infer.temporal import TemporalConfig, TemporalFuser
+from cadalign.infer.refine import icp_points, pick_fit, refine, refine_depth_icp, refine_silhouette
+from cadalign.infer.temporal import TemporalFuser
 from cadalign.infer.track_fit import (
     FittedTrack,
-    RefitConfig,
     RefitResult,
     TrackPoints,
     TrackView,
@@ -51,159 +41,10 @@ from cadalign.infer.track_fit import (
     refit_world_pose,
     turn_track,
 )
-from cadalign.types import Rigid3
+from cadalign.metrics.pose import rotation_error_deg
+from cadalign.types import Detection, Rigid3
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class InferConfig:
-    refine: RefineConfig = field(default_factory=RefineConfig)
-    """Refinement against the CAD (``refine.method = "none"`` keeps the network's pose)."""
-    temporal: TemporalConfig = field(default_factory=TemporalConfig)
-    """Temporal fusion over the video (``temporal.mode = "none"`` keeps per-frame poses)."""
-    complete: CompleteConfig = field(default_factory=CompleteConfig)
-    """Track completion after the video (:mod:`cadalign.infer.complete`): each static part fused in the world frame is
-    reported wherever its pose puts it in sight, the detector's misses included; detections of short tracks are dropped.
-    Needs depth and the frames' camera poses, given (temporal mode ``world``) or registered on the parts (``ego``);
-    without depth nothing changes. Default orbit, 33 held-out frames, true depth, ``accurate`` otherwise; valve / hot
-    stab F1 without -> with completion (true camera poses; measured before ``complete.reproject`` and
-    ``complete.refit``, whose numbers are in their docs), nine ``improved`` networks of sessions 19-21
-    (training/pose_fast_zoom_*.toml, 4200-7600 steps): 0.817 -> 0.942 / 0.367 -> 0.695 (the acceptance network, seed 0),
-    0.838 -> 0.959 / 0.386 -> 0.484 (seed 1), 0.866 -> 0.964 / 0.378 -> 0.525, 0.828 -> 0.844 / 0.358 -> 0.507 (two
-    false valve tracks completed into 38 frames), 0.841 -> 0.952 / 0.296 -> 0.514, 0.790 -> 0.883 / 0.255 -> 0.756,
-    0.828 -> 0.942 / 0.261 -> 0.659, 0.762 -> 0.850 / 0.239 -> 0.336, 0.812 -> 0.939 / 0.124 -> 0.550; ``thesis`` (seed
-    0) 0.816 -> 0.867 / 0.349 -> 0.382. The misses left are parts never detected three times (the 87 mm panel valves at
-    3-5 px, the UUV hot stab in its receptacle); ~20-30 ms per frame. Without camera poses (``ego``) seed 0 / 1: 0.817
-    -> 0.893 / 0.367 -> 0.575 and 0.838 -> 0.883 / 0.386 -> 0.439 (``min_visible = 0.3``: 0.891 / 0.566 and 0.889 /
-    0.477). On in ``accurate``."""
-    score_thresh: float = bounded(0.5, ge=0, le=1)
-    """Detections scoring below this are dropped. Default orbit, 33 held-out frames, ``accurate`` (with
-    ``complete.refit``), true depth, 0.5 -> 0.3: seed 0 (4200 steps) valve / hot stab F1 0.970 / 0.813 -> 0.986 /
-    0.947 (the UUV hot stab tracked from four 5 px detections, but fitted 60 deg off: hot stab R mean 0.20 -> 16.9
-    deg); seed 1 0.972 / 0.798 -> 0.971 / 0.798 (valve R mean 0.98 -> 2.19 deg). Not taken."""
-    class_score_thresh: dict[str, float] = field(default_factory=dict)
-    """Per-class ``score_thresh`` (class name -> threshold) where it differs; the detector runs at the lowest of
-    them all (:attr:`detector_score_thresh`). Empty in every preset. Default orbit, 33 held-out frames, true depth,
-    ``accurate`` (with ``complete.refit.choose_model``), ``{"hot_stab": 0.3}`` (valve / hot stab F1, hot stab t /
-    R mean): seed 2, 3700 steps 0.951 / 0.813, 0.006 m / 0.21 deg -> 0.951 / 0.984, 0.011 m / 2.26 deg (the UUV
-    hot stab, never scored >= 0.5 there, tracked from 0.33-0.36 detections and completed: 30 of 30 at 6 deg); seed
-    0, 3700 steps 0.917 / 1.000, 0.001 m / 0.65 deg -> 0.917 / 0.984, 0.002 m / 1.77 deg (a false hot stab track on
-    the structure); ``thesis`` seed 0, 3700 steps 0.912 / 0.788, 0.011 m / 13.2 deg -> 0.912 / 0.769, 0.024 m /
-    18.1 deg (28 more false hot stabs)."""
-    nms_iou: float = bounded(0.5, gt=0, le=1)
-    """A trained network's detections (with those of its ``tiles`` windows) are non-maximum suppressed per class:
-    of two same-class boxes overlapping by more than this IoU the lower-scoring goes (0.5, the network's own
-    threshold, changes nothing without windows). The networks' duplicates on thin parts overlap less than 0.5
-    (a box on a hot stab's handle beside one on the whole part). Default orbit, 33 held-out frames, ``accurate``,
-    true depth, 0.5 -> 0.3, valve / hot stab F1 of four networks (training/pose_fast_zoom_*.toml + amp): improved
-    10000 steps 0.844 / 0.467 -> 0.856 / 0.466; improved 6600 steps seed 1 0.853 / 0.426 -> 0.860 / 0.463; thesis
-    10000 steps 0.846 / 0.439 -> 0.862 / 0.442; improved with copy-paste 0.824 / 0.304 -> 0.835 / 0.331; poses
-    unchanged within noise. 0.3 in ``accurate``; the other presets keep the network's 0.5 (only measured there)."""
-    tiles: TileConfig = field(default_factory=TileConfig)
-    """Zoomed windows for a trained network (``tiles.zoom`` > 1; :class:`~cadalign.infer.detect.TileConfig`). Off
-    in every preset: on the default orbit (as ``nms_iou``, with it at 0.3) ``zoom = 1.6`` (4 windows, ~5x the
-    detector's time) and windows' detections kept from 0.8 moved valve / hot stab F1 by +0.027 / +0.031
-    (improved, 10000 steps), -0.011 / -0.026 (improved, 6600 steps seed 1), +0.008 / -0.004 (thesis, 10000
-    steps): recall rises (with the windows' detections kept from 0.5: valve 0.78-0.79 -> 0.85, hot stab 0.44 ->
-    0.51-0.57), and so do false positives, mostly 2-4 px boxes on 1-3 px panel valves and boxes on a hot stab's
-    handle alone. Session 14 found the same of the whole frame upscaled 1.5x / 2x."""
-    ignore_classes: tuple[str, ...] = ("background", "structure")
-    """Classes not reported (the structure is what the parts sit on); ignored when it would leave nothing."""
-    use_depth: bool = True
-    """Use a depth map for ICP when one is given for the frame."""
-    overlay: bool = True
-    """Write ``overlay.mp4`` (CAD wireframe at each pose)."""
-    overlay_fps: float = bounded(5.0, gt=0)
-    """Frame rate of the overlay video."""
-    reuse_box_iou: float = bounded(0.5, ge=0, le=1)
-    """A detection whose box overlaps a same-class box of the previous frame by at least this IoU takes that
-    detection's CAD model instead of being identified again (0 = off: identify every detection not on an
-    established track, see ``track_init``). Added when the only reuse was a 3D gate on the network's translation
-    (~1 m off), which met 6 of 263 detections on the default scene's 33 held-out frames. There, 2 threads:
-    'fast' 522 -> 474 ms/frame, accuracy unchanged; 'balanced' with 4 yaw restarts 1375 -> 1067 ms/frame and
-    refined valve rotation error 16.3 -> 13.4 deg mean."""
-    track_init: Literal["off", "model", "pose"] = "pose"
-    """Frame-to-frame tracking. A detection whose box holds the projected centre of an established track of its
-    class (fused from at least three frames; with depth, the masked depth within half the part's diameter of that
-    centre) takes the track's CAD model instead of being identified again (``model``), and (``pose``) starts its
-    refinement from the track's pose in this frame instead of the network's (~1 m and tens of degrees off at 10 m).
-    ``off``: identify every detection not reused by ``reuse_box_iou``. (Until session 14 a 3D gate of the
-    network's translation against the tracks also reused models. Removing it left the 6600-step ``improved``
-    network's held-out results unchanged; the ``thesis`` network's translations (~0.5 m off) met it more often,
-    and its fused valve rotation error went 56.2 -> 51.2 deg without it.)
-    Default orbit, 33 held-out frames, ``accurate`` before ``refine.tie_m``, true camera poses; fused valve R mean
-    (without the ball valve) / t mean / ms per frame (2 threads): 3300-step network off 3.52 (3.36) deg / 0.026 m /
-    2208; model 3.44 (3.91) / 0.026 / 1171; pose 2.67 (3.05) / 0.025 / 1128. 6600-step network off 7.23 (2.28) /
-    0.049 / 2160; model 5.90 (1.80) / 0.048 / 1116; pose 12.75 (1.53) / 0.003 / 1087. Without the ball valve,
-    ``pose`` is the best every time; the ball valve (no symmetry, but its lever the only difference from a half
-    turn) was a coin toss at 10-13 m, and ``pose`` keeps the orientation of its first frames (right for one network,
-    flipped for 11 of 28 detections with the other), where ``off`` / ``model`` fuse independent per-frame guesses.
-    With ``tie_m`` (the start wins ties) the 6600-step network's ``pose`` run gives 1.12 deg / 0.009 m."""
-    reidentify_growth: float = bounded(0.0, ge=0)
-    """A detection on an established track (``track_init``) takes the track's CAD model, decided once by
-    identification, mostly on the part's first and smallest or least visible views. With this > 0, when a
-    detection's mask has at least this many times the pixels of the largest mask the track's model was
-    identified on, the detection is identified again (from the track's pose): the same model raises the bar, another
-    retires the track and starts a new one with that model. 0: never. Default orbit, 33 held-out frames: one
-    gate valve, identified at 39 % visibility in its first frames as the ball valve, kept that model on all its
-    28-30 later detections, fully visible at 9-12 m, which identification alone gets right. There (``accurate``
-    otherwise, true depth), 0 -> 1.5, fused valve R mean / wrong-model valve detections / fused hot stab t and R
-    mean: ``improved`` 10000 steps 4.82 -> 3.76 deg / 33 -> 11 / 0.264 m, 34.8 deg -> 0.167 m, 31.2 deg; its seed 1
-    1.17 -> 0.92 / 34 -> 11 / 0.102, 28.1 -> 0.034, 11.2; 6600 steps seed 1 6.34 -> 1.30 / 30 -> 6 / 0.211, 44.8 ->
-    0.142, 42.0; with copy-paste 0.62 -> 0.67 / 32 -> 10 / 0.367, 46.2 -> 0.342, 39.2. ``thesis`` 10000 steps
-    36.7 -> 24.5 / 63 -> 40 / 0.173, 68.3 -> 0.166, 57.3; its seed 1 32.1 -> 25.2 / 36 -> 30 / 0.263, 72.9 ->
-    0.289, 103.1. One to three re-identifications changed a model per run; time per frame unchanged. 1.5 in
-    ``accurate``."""
-    identify_iters: int = bounded(3, ge=0)
-    """ICP iterations per candidate model (and yaw restart) when a detection's class has several models. Three
-    leave every big valve type of the default scene 10-18 mm (median point distance) from the ball valve's
-    points at 10 m, so the pick among them is noise; 20 converge, and the right type fits best. The default
-    orbit's 33 held-out frames, 4 yaw restarts: fused valve rotation error 9.7 (3) -> 4.2 (10) -> 3.4 deg (20)
-    mean, 1.7x the time per frame (the ball valve taken for another type in 6 of its 27 detections -> 1).
-    Giving the 3-iteration fits' best 3 (or 12) 17 more iterations instead gave 11.3 (3.8) deg: the right type
-    is often not among the best after three."""
-    identify_score: Literal["depth", "view"] = "depth"
-    """How the candidate models of a detection are compared when its class has several and depth is given.
-    ``depth``: the smallest median distance of the masked depth points to the model (data -> model). ``view``:
-    each model's best-fitting yaw restart (as ``depth``, ties within ``refine.tie_m``) is scored from the model's
-    side too, as the half-turn check scores a pose (:func:`cadalign.infer.half_turn.view_disagreement`: pixels seen
-    through the model plus mask pixels it leaves unexplained), and the model disagreeing in fewest pixels wins
-    (within ``refine.half_turn_min_px`` of it, the best depth fit). The data -> model fit cannot see model surface
-    where nothing was observed: a decoy holding the whole part plus more fits as well. Default orbit, 33 held-out
-    frames, ``accurate`` otherwise (with ``reidentify_growth``), true depth, four ``improved`` networks
-    (training/pose_fast_zoom_improved.toml + amp: 10000 steps seeds 0 and 1, 6600 steps seed 1, with copy-paste):
-    ``depth`` -> ``view`` took the wrong valve model in 15 instead of 38 of 689 matched detections (fused valve R
-    mean 1.66 -> 1.50 deg), but hot stabs came out worse (fused t 0.171 -> 0.188 m, R 30.9 -> 34.7 deg mean):
-    their masks often cover the handle alone, which the other hot stab model explains as well. ``depth`` in every
-    preset."""
-    samples_per_model: int = bounded(3000, ge=100)
-    """Surface samples per CAD model for ICP."""
-    enhance: Literal["auto", "none", "clahe", "clahe_wb"] = "auto"
-    """Pre-processing of each frame before detection, as :func:`cadalign.sfm.frames.enhance`. 'auto': as the
-    network's training images were prepared (:mod:`cadalign.data.image_prep`: a built dataset's images were
-    CLAHE-enhanced by SfM, a simulator's are raw), read from the run folder; the others force one (default CLAHE
-    settings). Measured on the default scene's 16 held-out frames: valve F1 0.902 on the dataset's images, 0.676
-    on the raw frames. The overlay is drawn on the raw frame."""
-
-    def __post_init__(self) -> None:
-        bad = {k: v for k, v in self.class_score_thresh.items() if not 0.0 <= float(v) <= 1.0}
-        if bad:
-            raise ValueError(f"class_score_thresh {bad}: each threshold must lie in [0, 1]")
-
-    @property
-    def detector_score_thresh(self) -> float:
-        """The detector's own threshold: the lowest of ``score_thresh`` and the ``class_score_thresh`` values."""
-        return min([self.score_thresh, *map(float, self.class_score_thresh.values())])
-
-
-PRESETS: dict[str, InferConfig] = {
-    "none": InferConfig(refine=REFINE_PRESETS["none"], temporal=TemporalConfig(mode="none")),
-    "fast": InferConfig(refine=REFINE_PRESETS["fast"]),
-    "balanced": InferConfig(),
-    "accurate": InferConfig(refine=REFINE_PRESETS["accurate"], identify_iters=20, nms_iou=0.3,
-                            reidentify_growth=1.5, complete=CompleteConfig(enabled=True)),
-}
 
 
 @dataclass(frozen=True)
@@ -226,7 +67,7 @@ class PoseRecord:
     """After refinement, before temporal fusion."""
     refine_iters: dict[str, int]
     mask: np.ndarray | None = None
-    """(H, W) bool from the detector (a :class:`~cadalign.eval.pose_eval.CroppedMask` once stored for evaluation)."""
+    """(H, W) bool from the detector (a :class:`~cadalign.metrics.pose_eval.CroppedMask` once stored for evaluation)."""
     source: str = "detector"
     """``detector``: a detection of this frame; ``track``: added by track completion (:mod:`cadalign.infer.complete`),
     the track's world pose projected into a frame where the detector missed the part."""
@@ -235,8 +76,6 @@ class PoseRecord:
     same."""
 
     def to_json(self) -> dict:
-        from cadalign.data.coco import mask_to_rle
-
         return {
             "frame": self.frame, "frame_name": self.frame_name, "obj_id": self.obj_id, "track_id": self.track_id,
             "class": self.class_name, "label": self.label, "score": round(float(self.score), 6),
@@ -364,7 +203,7 @@ class PosePipeline:
         name = self.class_names[label] if 0 <= label < len(self.class_names) else ""
         return [k for k, m in sorted(self.models.items()) if m.class_name == name]
 
-    def identify(self, det: object, T: Rigid3, K: np.ndarray,
+    def identify(self, det: Detection, T: Rigid3, K: np.ndarray,
                  depth_m: np.ndarray | None = None) -> tuple[int | None, Rigid3]:
         """The CAD model of a detection and a start pose for its refinement.
 
@@ -431,7 +270,7 @@ class PosePipeline:
         best = min((k for k in per_model if view[k] <= least + cfg.half_turn_min_px), key=lambda k: per_model[k][0])
         return best, per_model[best][1]
 
-    def _reused_model(self, det: object, frame: int) -> int | None:
+    def _reused_model(self, det: Detection, frame: int) -> int | None:
         """The model id of the previous frame's same-class detection whose box this one overlaps most (IoU >=
         ``reuse_box_iou``, consecutive frames only), for a class with several models; else None."""
         if getattr(det, "obj_id", None) is not None or self.cfg.reuse_box_iou <= 0 or self._prev is None \
@@ -445,7 +284,7 @@ class PosePipeline:
         best = int(np.argmax(ious))
         return prev[best][1] if ious[best] >= self.cfg.reuse_box_iou else None
 
-    def _track_start(self, det: object, K: np.ndarray, frame: int, T_world_from_cam: Rigid3 | None,
+    def _track_start(self, det: Detection, K: np.ndarray, frame: int, T_world_from_cam: Rigid3 | None,
                      depth_m: np.ndarray | None, taken: set[int]) -> tuple[int, Rigid3, int, int] | None:
         """(model id, start pose, track id, the track's ``id_px``) from the established track under a detection
         (``track_init``), else None.
@@ -481,7 +320,7 @@ class PosePipeline:
         taken.add(best[1])
         return best[2], best[3], best[1], best[4]
 
-    def _start(self, d: object, T0: Rigid3, K: np.ndarray, frame: int, T_world_from_cam: Rigid3 | None,
+    def _start(self, d: Detection, T0: Rigid3, K: np.ndarray, frame: int, T_world_from_cam: Rigid3 | None,
                depth: np.ndarray | None, taken: set[int]) -> tuple[int | None, Rigid3, int]:
         """(model id, start pose of the refinement, ``id_px``: the mask's pixels when identification chose the
         model, else 0) of a detection: from its track, the previous frame's box, or identification."""

@@ -31,6 +31,8 @@ import numpy as np
 
 from cadalign.cad.symmetry import Symmetry
 from cadalign.geometry.rotations import axis_angle_to_matrix, geodesic_angle
+from cadalign.infer.config import REFINE_PRESETS as PRESETS
+from cadalign.infer.config import RefineConfig
 from cadalign.infer.contour_fit import SignedDistance, refine_silhouette, silhouette_iou
 from cadalign.infer.depth_icp import (
     ICP_DAMPING,
@@ -43,7 +45,6 @@ from cadalign.infer.depth_icp import (
 from cadalign.infer.half_turn import half_turned, needs_half_turn_check, pick_half_turn
 from cadalign.infer.hypotheses import yaw_hypotheses_rad
 from cadalign.infer.model_geom import ModelGeometry
-from cadalign.infer.refine_config import RefineConfig
 from cadalign.infer.refine_math import apply_twist
 from cadalign.types import Rigid3
 
@@ -54,15 +55,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-
-PRESETS: dict[str, RefineConfig] = {
-    "none": RefineConfig(method="none"),
-    "fast": RefineConfig(silhouette_iters=5, depth_iters=5, max_contour_points=200, max_depth_points=600),
-    "balanced": RefineConfig(),
-    "accurate": RefineConfig(silhouette_iters=30, depth_iters=20, max_contour_points=800, max_depth_points=4000,
-                             yaw_hypotheses=4, tie_m=0.003),
-}
 
 
 @dataclass(frozen=True)

@@ -12,8 +12,8 @@ import numpy as np
 
 from cadalign.geometry.camera import project_jacobian
 from cadalign.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from cadalign.infer.config import RefineConfig
 from cadalign.infer.model_geom import ModelGeometry
-from cadalign.infer.refine_config import RefineConfig
 from cadalign.types import Rigid3
 
 

@@ -27,21 +27,36 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
+import cv2
 import numpy as np
 
 from cadalign.cad.model import CadModel
-from cadalign.data import image_prep
 from cadalign.errors import InputError
-from cadalign.eval.pose_eval import CroppedMask, PoseEvalConfig
+from cadalign.formats.bop import BopScene
 from cadalign.formats.calibration import CameraCalibration, Undistorter, read_calibration
+from cadalign.formats.class_map import load_class_map
+from cadalign.formats.coco import rle_to_mask
+from cadalign.fuse.predictors import depth_predictor
 from cadalign.infer.complete import TrackCompleter
+from cadalign.infer.config import InferConfig
 from cadalign.infer.detect import Detector, frame_ids, models_dir_of
 from cadalign.infer.model_geom import draw_wireframe
-from cadalign.infer.pipeline import InferConfig, PosePipeline, PoseRecord
+from cadalign.infer.pipeline import PosePipeline, PoseRecord
 from cadalign.infer.video import VideoFrame, iter_frames
 from cadalign.io import atomic_path, prepare_stage_dir, read_json, write_json, write_text
-from cadalign.types import Progress, Rigid3
+from cadalign.metrics.pose_eval import (
+    CroppedMask,
+    PoseEvalConfig,
+    PosePrediction,
+    evaluate_scene,
+    load_bop_models,
+    table_markdown,
+)
+from cadalign.metrics.pose_symmetry import warn_undeclared
+from cadalign.sfm import image_prep
+from cadalign.types import Camera, Progress, Rigid3
 
 log = logging.getLogger(__name__)
 COLORS = ((255, 80, 80), (80, 255, 80), (80, 160, 255), (255, 220, 60), (255, 80, 255), (60, 255, 255))
@@ -98,7 +113,6 @@ def load_calibration(path: Path, *, use_poses: bool = True) -> Calibration:
 
 def calibration_from_scene(scene_dir: Path, *, use_poses: bool = True) -> Calibration:
     """Intrinsics (and camera poses) of a BOP scene's ``scene_camera.json``, keyed by frame name."""
-    from cadalign.data.bop import BopScene
 
     scene = BopScene(scene_dir)
     K_of, T_of = {}, {}
@@ -126,12 +140,8 @@ class _DepthSource:
     (``raw_frames``: ``enhance = "auto"``), else the frame as the detector gets it."""
 
     def __init__(self, path: Path | None, *, raw_frames: bool = True, device: str = "cpu") -> None:
-        from cadalign.data.bop import BopScene
-
         self.scene, self.ids, self.predict, self.raw_frames = None, {}, None, raw_frames
         if path is not None and is_depth_run(path):
-            from cadalign.fuse.predictors import depth_predictor
-
             self.predict = depth_predictor(Path(path), device=device,
                                            source_prep=dict(image_prep.RAW) if raw_frames else None)
         elif path is not None:
@@ -145,8 +155,6 @@ class _DepthSource:
     def get(self, name: str, raw: np.ndarray, prepared: np.ndarray, K: np.ndarray) -> np.ndarray | None:
         """(H, W) depth in metres of frame ``name`` (``raw`` as read, ``prepared`` as the detector sees it)."""
         if self.predict is not None:
-            from cadalign.types import Camera
-
             rgb = raw if self.raw_frames else prepared
             return np.asarray(self.predict(rgb, Camera(K, rgb.shape[1], rgb.shape[0])), dtype=np.float64)
         if self.scene is None or name not in self.ids:
@@ -155,8 +163,6 @@ class _DepthSource:
 
 
 def _draw(image: np.ndarray, records: list[PoseRecord], pipeline: PosePipeline, K: np.ndarray) -> np.ndarray:
-    import cv2
-
     img = image.copy()
     for r in records:
         if r.obj_id is None:
@@ -168,6 +174,34 @@ def _draw(image: np.ndarray, records: list[PoseRecord], pipeline: PosePipeline, 
         cv2.putText(img, f"{r.class_name} #{r.track_id} {r.score:.2f}{tag}", (x0, max(y0 - 3, 10)),
                     cv2.FONT_HERSHEY_SIMPLEX, 0.35, color, 1, cv2.LINE_AA)
     return img
+
+
+def _infer_frame(pipeline: PosePipeline, vf: Any, K: np.ndarray, prep: dict[str, Any], depth: _DepthSource,
+                 calib: Calibration) -> tuple[list[PoseRecord], dict[str, float]]:
+    """One frame through the pipeline: its poses and its timings (with ``depth_net`` when depth is predicted, and
+    ``pipeline_cpu``, the process time, which a busy machine inflates less than the wall times)."""
+    cpu0 = time.process_time()
+    prepared = image_prep.apply(vf.image, prep)
+    t0, c0 = time.perf_counter(), time.process_time()
+    d_m = depth.get(vf.name, vf.image, prepared, K)
+    t_depth, c_depth = time.perf_counter() - t0, time.process_time() - c0
+    records, t = pipeline.process(vf.index, vf.name, prepared, K, d_m, calib.T_world_from_cam_of.get(vf.name))
+    if depth.predicted:  # a depth network is a stage; reading a scene's depth map is not
+        t["depth_net"] = t_depth
+    # wall times above inflate on a busy machine
+    t["pipeline_cpu"] = time.process_time() - cpu0 - (0.0 if depth.predicted else c_depth)
+    return records, t
+
+
+def _write_run_files(out_dir: Path, names: list[str], calib: Calibration, stamps: dict[str, int],
+                     timings: dict[str, Any]) -> None:
+    """frames.json, calibration.json (an undistorted lens), frame_stamps.json (a bag's) and timings.json."""
+    write_json(out_dir / "frames.json", names)
+    if calib.lens is not None:
+        write_json(out_dir / "calibration.json", {**calib.lens.record(), "undistorted": calib.lens.distorted})
+    if stamps:
+        write_json(out_dir / "frame_stamps.json", stamps)
+    write_json(out_dir / "timings.json", timings)
 
 
 def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, CadModel], class_names: tuple[str, ...],
@@ -204,17 +238,7 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
         with open(tmp_poses, "w", encoding="utf-8") as fh:
             for vf in progress(frames, "infer", max_frames) if progress else frames:
                 K = calib.K(vf.name)
-                cpu0 = time.process_time()
-                prepared = image_prep.apply(vf.image, prep)
-                t0, c0 = time.perf_counter(), time.process_time()
-                d_m = depth.get(vf.name, vf.image, prepared, K)
-                t_depth, c_depth = time.perf_counter() - t0, time.process_time() - c0
-                records, t = pipeline.process(vf.index, vf.name, prepared, K, d_m,
-                                              calib.T_world_from_cam_of.get(vf.name))
-                if depth.predicted:  # a depth network is a stage; reading a scene's depth map is not
-                    t["depth_net"] = t_depth
-                # wall times above inflate on a busy machine
-                t["pipeline_cpu"] = time.process_time() - cpu0 - (0.0 if depth.predicted else c_depth)
+                records, t = _infer_frame(pipeline, vf, K, prep, depth, calib)
                 for r in records:
                     fh.write(json.dumps(r.to_json()) + "\n")
                 if cfg.overlay:
@@ -246,12 +270,7 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
                         fh.write(json.dumps(replace(r, mask=mask).to_json()) + "\n")
                 if cfg.overlay and writer is not None:
                     _redraw_overlay(tmp_video, cfg, final, pipeline, source, calib, max_frames, topic)
-    write_json(out_dir / "frames.json", names)
-    if calib.lens is not None:
-        write_json(out_dir / "calibration.json", {**calib.lens.record(), "undistorted": calib.lens.distorted})
-    if stamps:
-        write_json(out_dir / "frame_stamps.json", stamps)
-    write_json(out_dir / "timings.json", _timing_summary(times, len(names), len(final), detector_info))
+    _write_run_files(out_dir, names, calib, stamps, _timing_summary(times, len(names), len(final), detector_info))
     log.info("infer: %d frames, %d poses -> %s", len(names), len(final), poses_path)
     if gt_scene is not None:
         evaluate_run(all_records, names, gt_scene, out_dir, fused=final)
@@ -319,7 +338,7 @@ def resolve_prep(enhance: str, detector_info: dict) -> dict:
 
 
 def video_writer(path: Path, fps: float):  # -> imageio writer
-    import imageio.v2 as imageio
+    import imageio.v2 as imageio  # lazy: heavy dependency (imageio)
 
     return imageio.get_writer(path, format="FFMPEG", fps=fps, codec="libx264", quality=7, macro_block_size=16,
                               ffmpeg_log_level="error")
@@ -362,10 +381,7 @@ def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, ou
 
     ``fused``: the records the fused section scores (after track completion), ``records`` by default; the other
     sections score ``records`` (the detections). ``eval_cfg`` defaults to
-    :class:`~cadalign.eval.pose_eval.PoseEvalConfig` () (BOP's rules)."""
-    from cadalign.data.torch_datasets import load_class_map
-    from cadalign.eval.pose_eval import PosePrediction, evaluate_scene, load_bop_models, table_markdown
-    from cadalign.eval.pose_symmetry import warn_undeclared
+    :class:`~cadalign.metrics.pose_eval.PoseEvalConfig` () (BOP's rules)."""
 
     cmap = load_class_map(gt_scene)
     ids = frame_ids(gt_scene)
@@ -401,7 +417,6 @@ def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, ou
 
 def read_poses(path: Path) -> list[PoseRecord]:
     """The records of a ``poses.jsonl`` (masks decoded when stored)."""
-    from cadalign.data.coco import rle_to_mask
 
     out = []
     for i, line in enumerate(Path(path).read_text(encoding="utf-8").splitlines()):

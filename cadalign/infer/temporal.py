@@ -24,41 +24,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 
-from cadalign.config import bounded
+from cadalign.infer.config import TemporalConfig
 from cadalign.infer.ego import predict_camera, register_camera
 from cadalign.infer.pose_math import Observation, apply_twist_camera, canonicalize, robust_mean, twist_between
 from cadalign.types import Rigid3
-
-
-@dataclass(frozen=True)
-class TemporalConfig:
-    mode: Literal["auto", "world", "ego", "filter", "none"] = "auto"
-    """``auto``: the world robust mean where the frame's camera pose is known, else ``ego`` (camera poses from
-    the static parts). Valve t / R mean (ADD(-S) < 0.1 d) on the default orbit's 33 held-out frames, 3300-step
-    network, ``accurate`` refinement, simulated depth: per frame (refined) 0.030 m / 15.0 deg (0.60); without
-    camera poses fused by ``filter`` 0.079 m / 14.7 deg (0.47: it lags the orbiting camera), by ``ego``
-    0.036 m / 3.6 deg (0.69); with the true camera poses (``world``) 0.026 m / 3.5 deg (0.71)."""
-    window: int = bounded(30, ge=1)
-    """Observations per track in the world robust mean."""
-    huber_t_m: float = bounded(0.05, gt=0)
-    """Huber threshold of translation residuals (m) in the robust mean."""
-    huber_r_deg: float = bounded(5.0, gt=0)
-    """Huber threshold of rotation residuals (deg) in the robust mean."""
-    alpha: float = bounded(0.5, gt=0, le=1)
-    """Filter gain on the pose innovation (1 = trust each measurement)."""
-    beta: float = bounded(0.167, ge=0, le=1)
-    """Filter gain on the velocity (``alpha^2 / (2 - alpha)``: the critically damped pair)."""
-    gate_m: float = bounded(0.3, gt=0)
-    """Association / outlier gate on translation (m); parts smaller than twice it use half their diameter."""
-    gate_deg: float = bounded(30.0, gt=0)
-    """Outlier gate of the filter on rotation (deg) after symmetry canonicalisation."""
-    max_missed: int = bounded(5, ge=0)
-    """A filter track whose observations are rejected this many frames in a row restarts from the next one."""
-
 
 PRESETS: dict[str, TemporalConfig] = {"none": TemporalConfig(mode="none"), "default": TemporalConfig()}
 

@@ -25,155 +25,25 @@ one's refitted pose explains the other's points (:func:`duplicates`).
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import itertools
 import math
 from collections import Counter, defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 
 from cadalign.cad.symmetry import Symmetry
-from cadalign.config import bounded
-from cadalign.eval.pose_metrics import rotation_error_deg
 from cadalign.geometry.rotations import axis_angle_to_matrix, orthonormalize
+from cadalign.infer.config import RefitConfig
 from cadalign.infer.depth_icp import FIT_CAP, depth_fit
 from cadalign.infer.half_turn import view_disagreement_parts
 from cadalign.infer.model_geom import ModelGeometry
 from cadalign.infer.pose_math import canonicalize
 from cadalign.infer.refine_math import clamp_step, huber_weights
+from cadalign.metrics.pose import rotation_error_deg
 from cadalign.types import Rigid3
-
-
-@dataclass(frozen=True)
-class RefitConfig:
-    enabled: bool = True
-    """Refit each completed track's world pose to all its frames' depth before completion (see module doc)."""
-    points_per_frame: int = bounded(300, ge=6)
-    """Masked depth points kept per detection (world frame)."""
-    max_points: int = bounded(2000, ge=6)
-    """Points of the final ICP (a random subset of the union)."""
-    coarse_points: int = bounded(300, ge=6)
-    """Points of the first, short ICP from every start."""
-    coarse_iters: int = bounded(20, ge=1)
-    """ICP iterations from every start. 30 (refit CPU +43%) let improved seed 2's hot stab track (3700 steps, session
-    29's networks; default orbit, 33 held-out frames, true depth, training/infer_hot_stab_03.toml) reach its true pose
-    (from 7 cm / 23 deg off: none of its starts got there in 20 iterations; hot stab F1 0.735 -> 0.852, t / R mean
-    0.029 m / 6.4 deg -> 0.0004 m / 0.7 deg), but seed 0 hot stab F1 0.833 -> 0.792, seed 3 valve F1 0.986 -> 0.956,
-    two more unchanged: not taken."""
-    keep: int = bounded(4, ge=1)
-    """Starts (besides the fused pose) taken on to the final ICP."""
-    iters: int = bounded(30, ge=1)
-    """Final ICP iterations."""
-    anchors: int = bounded(12, ge=1)
-    """Model points put on the points' centroid per start rotation (its centroid, then farthest-point samples)."""
-    hops: tuple[float, ...] = (0.1, 0.2)
-    """Translation hops: the fused pose and the best ``keep`` coarse fits are moved along each principal axis of the
-    model by these fractions of its diameter, both ways, and fitted again (coarse, 6 more starts per fit and
-    fraction); the best ``keep`` of them join the final ICP too. On a cylinder ICP slides into the nearest minimum:
-    a procedural hot stab's track fused 0.10 m / 6 deg off, with a third of its points on its receptacle, fitted
-    0.13 m / 91 deg off without hops and 0.011 m / 0.3 deg with. Empty: off."""
-    tie_rel: float = bounded(0.02, ge=0)
-    """Fits within this fraction of the best are ties (the one nearest the fused pose wins)."""
-    huber_m: float = bounded(0.005, gt=0)
-    """Huber threshold of the point-to-plane residuals, metres."""
-    min_points: int = bounded(30, ge=6)
-    """A track with fewer points in all keeps its fused pose."""
-    ego: bool = False
-    """Refit tracks in the worlds of camera poses registered on the parts (temporal mode ``ego``) too. Off: those
-    poses carry the registration's errors into the union of points. Default orbit, 33 held-out frames, true depth,
-    ``accurate`` with ``temporal.mode = "ego"``, valve / hot stab F1 and fused R mean, without -> with: seed 0
-    0.896 / 0.562, 3.55 / 30.5 deg -> 0.917 / 0.523, 5.09 / 7.7 deg; seed 1 0.877 / 0.483, 3.22 / 15.7 deg ->
-    0.890 / 0.511, 5.72 / 55.6 deg."""
-    dup_tol: float = bounded(0.02, gt=0)
-    """A point is explained by a pose when within this fraction of the diameter of the model (the duplicate test)."""
-    dup_share: float = bounded(0.8, ge=0, le=1)
-    """Two refitted tracks of a class are one part (a second track, often with the wrong model of the class, e.g.
-    the UUV hot stab fitted onto a procedural one's probe, or a retired track and its successor) when one's pose
-    explains at least this share of what the other's own pose explains of the other's points; the one lying closer
-    to both tracks' points is kept, and the other's records are dropped when the kept one is completed
-    (:func:`duplicates`). 0 = off."""
-    choose_model: Literal["off", "depth", "view"] = "view"
-    """Refit every CAD model of the track's class, not only the track's own, and keep the one that fits best
-    (:func:`pick_model`): a track's model is chosen on its first, smallest views. ``depth``: the mean distance of
-    the points to the model (capped alike for all). ``view``: the pixels where the model, in each of the track's
-    detections' views, disagrees with them (seen through, or mask left unexplained; :func:`view_score`). The
-    points alone cannot see model surface where nothing was observed: the UUV hot stab's points with some of its
-    receptacle's fit the procedural hot stab's longer model better than its own (18.5 against 21.7 mm). ``off``:
-    the track's model only. Default orbit, 33 held-out frames, true depth, ``accurate``; session 24's refit ->
-    ``view`` with the turn, ``hops`` and the median centre (valve / hot stab F1, hot stab t / R mean): seed 0, 3700
-    steps 0.917 / 0.825, 0.031 m / 18.3 deg -> 0.917 / 1.000, 0.001 m / 0.65 deg (the UUV hot stab's track, fitted
-    with the procedural model 109 deg off, now has its own: 30 of 30 at 0.003 m / 1.8 deg); seed 2, 3700 steps 0.951
-    / 0.578, 0.019 m / 1.22 deg -> 0.951 / 0.813, 0.006 m / 0.21 deg (the second procedural hot stab's track
-    refitted 0.011 m / 0.3 deg: the hops); 4200-step seeds 0, 1 unchanged, seed 2 hot stab R 1.74 -> 0.75 deg
-    (before the median centre and the two-variant turn). One track's model changed wrongly during tuning (the
-    87 mm valve's, to the 145 mm one: ``mask_weight``, ``model_min_px``). The completion pass takes ~1 s per
-    frame more (the other models' screening fits)."""
-    model_margin: float = bounded(0.1, ge=0)
-    """Another model replaces the track's own only when its score is better by more than this fraction."""
-    mask_weight: float = bounded(0.25, ge=0)
-    """Weight, in :func:`view_score`, of a mask pixel the model leaves unexplained against a pixel seen through the
-    model. Masks of parts a few pixels across spill over their outline: with weight 1 the 87 mm valve's track
-    (seed 2, 4200 steps; 9 views, 15-33 px masks) was given the 145 mm valve's model (unexplained: 28 px for its own
-    model, 0 for the other; seen through: 0 and 1). What tells the UUV hot stab's own model from the procedural one
-    is seen-through pixels (127 for the procedural model, 33 for its own; unexplained 4 and 7)."""
-    model_min_px: float = bounded(2.0, ge=0)
-    """... and (``choose_model = "view"``) by more than this many pixels per view: the 87 mm valve's 14-20 px masks
-    disagree with its own model in 3 pixels and with the 145 mm valve's in none."""
-    screen: bool = True
-    """With ``choose_model``, the other models of the class are first fitted by a cheaper search (at most 6 anchors,
-    150 coarse points, 10 coarse iterations, 2 kept: :meth:`screening`); a model that wins on that fit is fitted
-    again by the full search before it replaces the track's own. Off: every model gets the full search (the
-    default scene's valve class has 7 models)."""
-    view_turns_deg: tuple[float, ...] = (16.0, 8.0, 4.0)
-    """With ``choose_model = "view"``, the chosen fit is then turned about the model's axes (through its centroid)
-    by these steps, coarse to fine, each turn followed by ``turn_icp_iters`` ICP iterations, while a turn lowers
-    :func:`view_score` and keeps the points' fit within ``tie_rel`` (:func:`turn_by_view`): a turn the points cannot
-    see (the roll of a thin part seen from 7 m) is decided by the views. Empty: off."""
-    turn_icp_iters: tuple[int, ...] = (0, 10)
-    """The turns of ``view_turns_deg`` are searched once per entry, each turn followed by that many ICP iterations
-    (so that the part's position follows the turn; 0: the turn alone); the result with the lowest
-    :func:`view_score` is kept (ties: the first). The UUV hot stab's track (seed 0, 3700 steps) from four fits
-    (deg / mm off -> deg off with 0 / with 10 iterations, and which scored lower): 9.3 / 8 -> 9.3 / 0.5 (10);
-    16.3 / 2 -> 0.5 / 1.0 (tie); 21.4 / 6 -> 5.5 / 18.1 (0); 12.8 / 6 -> 12.8 / 1.8 (10)."""
-    turn_min_px: float = bounded(0.5, ge=0)
-    """The turns of ``view_turns_deg`` are kept only when they lower :func:`view_score` by more than this many
-    pixels per view in all: the UUV hot stab's 7 views fell 11.75 -> 5.75 (16.3 -> 1.0 deg off); the 87 mm valve's 9
-    views (15-33 px masks; seed 2, 4200 steps) 7.0 -> 5.75, turning it 0.6 -> 5.9 deg off."""
-    view_pick_rel: float = bounded(1.0, ge=0)
-    """With views (``choose_model = "view"``), the final fits within this fraction of the best points' fit are compared
-    by :func:`view_score` too: those within ``turn_min_px`` per view of the lowest are ties (then the ``tie_rel``
-    rule among them). The points' fit (data -> model) cannot see model surface where nothing was observed: a rod
-    shifted along its axis onto the few points of its handle fits them as well as the true pose, while its projection
-    covers background the depth map shows behind it. 0: off. Default orbit, 33 held-out frames, true depth,
-    ``accurate`` with hot stabs from 0.3 (training/infer_hot_stab_03.toml), 3700-step networks, valve / hot stab F1
-    and hot stab t / R mean, off -> on (with ``view_pick_max_fit = 0.04``): improved seed 3 0.948 / 0.548, 0.182 m /
-    54.8 deg -> 0.948 / 0.774, 0.001 m / 0.13 deg (a procedural hot stab's track had been moved 0.39 m along its axis
-    and given the UUV model; it now stays, and the three tracks on that part are one); improved seeds 0, 1 and 2
-    unchanged; ``thesis`` seed 1 (3700 steps) valve t / R 0.106 m / 55.3 deg -> 0.079 m / 27.9 deg (one of its two
-    valves fitted end for end is now right), F1 unchanged; seeds 0 and 2 unchanged. Without the ``view_pick_max_fit``
-    gate, seed 2 fell 0.984 -> 0.918: a 3-frame track fitting its points to 37 mm was moved to a pose its own
-    detections agree with, and completed into 11 frames where no hot stab is."""
-    view_pick_max_fit: float = bounded(0.04, gt=0)
-    """...and only when the best points' fit is within this fraction of the model's diameter: the views choose
-    among fits that explain the points, not a new place for a track that no fit explains. Set between the two
-    tracks above: 28 mm (3.4 % of the procedural hot stab's 0.806 m) and 37 mm (4.6 %); at 0.02 seed 3's gain is
-    lost too."""
-    view_pad: float = bounded(1.0, ge=0)
-    """A detection's view (``choose_model = "view"``) is its mask's box grown by this times its longer side."""
-    max_views: int = bounded(40, ge=1)
-    """Views kept per track at most (a uniform sample of its detections, reservoir-drawn): a view is a depth crop of
-    up to ~1 MB for a part near the camera, and a long video would otherwise keep all of them."""
-    seed: int = 0
-    """Seed of the point subsampling."""
-
-    def screening(self) -> RefitConfig:
-        """The cheaper search of ``screen``."""
-        return dataclasses.replace(self, anchors=min(self.anchors, 6), coarse_points=min(self.coarse_points, 150),
-                                   coarse_iters=min(self.coarse_iters, 10), keep=min(self.keep, 2))
 
 
 @dataclass(frozen=True)

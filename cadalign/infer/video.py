@@ -14,6 +14,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from cadalign.errors import InputError
@@ -80,8 +81,6 @@ def iter_frames(source: Path, *, stride: int = 1, max_frames: int | None = None,
 
 
 def _folder(source: Path) -> Iterator[VideoFrame]:
-    import cv2
-
     for i, path in enumerate(list_frames(source)):
         img = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if img is None or img.size == 0:
@@ -91,8 +90,6 @@ def _folder(source: Path) -> Iterator[VideoFrame]:
 
 
 def _video(source: Path) -> Iterator[VideoFrame]:
-    import cv2
-
     if source.suffix.lower() not in VIDEO_SUFFIXES:
         raise InputError(f"{source} is neither a frame folder nor a video ({', '.join(VIDEO_SUFFIXES)})")
     cap = cv2.VideoCapture(str(source))

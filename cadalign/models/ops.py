@@ -36,7 +36,7 @@ BBOX_XFORM_CLIP = math.log(1000.0 / 16)
 def _tv_ops():  # pragma: no cover - torchvision's compiled ops do not load in this environment
     """torchvision.ops when its compiled kernels work, else None (probed once per process)."""
     try:
-        import torchvision.ops as tv_ops
+        import torchvision.ops as tv_ops  # lazy: heavy dependency (torchvision)
 
         tv_ops.nms(torch.zeros(1, 4), torch.zeros(1), 0.5)  # the import may work while the kernels do not
         return tv_ops

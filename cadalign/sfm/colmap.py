@@ -24,7 +24,7 @@ _EXTRACT_CHUNK = 8  # images per extract_features call, so progress can be shown
 
 
 def _device() -> Any:
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     return pycolmap.Device.cpu
 
@@ -41,7 +41,7 @@ def reader_options(cfg: SfMConfig, masks_dir: Path | None, exif_source: Path | N
     ``exif_source`` is an original input image: when the frames were re-encoded (enhancement drops
     EXIF), its EXIF focal length still seeds the shared camera as a prior.
     """
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     opts = pycolmap.ImageReaderOptions()
     if fixed_while_mapping(cfg):
@@ -61,7 +61,7 @@ def reader_options(cfg: SfMConfig, masks_dir: Path | None, exif_source: Path | N
 
 
 def extraction_options(cfg: SfMConfig) -> Any:
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     opts = pycolmap.FeatureExtractionOptions()
     opts.num_threads = cfg.num_threads
@@ -85,7 +85,7 @@ def extract_features(
         InputError: fewer than three frames have ``features.min_features`` features; the message names
             the frames that have too few.
     """
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     if database.exists():
         database.unlink()  # a half-written database from an interrupted run
@@ -120,7 +120,7 @@ def extract_features(
 
 def feature_counts(database: Path) -> dict[str, int]:
     """Image name -> number of keypoints in ``database``."""
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     with pycolmap.Database.open(database) as db:
         return {im.name: db.num_keypoints_for_image(im.image_id) for im in db.read_all_images()}
@@ -128,7 +128,7 @@ def feature_counts(database: Path) -> dict[str, int]:
 
 def matching_options(cfg: SfMConfig) -> tuple[Any, Any]:
     """``(FeatureMatchingOptions, TwoViewGeometryOptions)`` of the config."""
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     m = cfg.matching
     matching = pycolmap.FeatureMatchingOptions()
@@ -146,7 +146,7 @@ def matching_options(cfg: SfMConfig) -> tuple[Any, Any]:
 
 def match(cfg: SfMConfig, database: Path) -> None:
     """Match and verify image pairs in ``database`` (previous matches are dropped first)."""
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     with pycolmap.Database.open(database) as db:
         db.clear_matches()
@@ -167,7 +167,7 @@ def match(cfg: SfMConfig, database: Path) -> None:
 
 def match_pairs(cfg: SfMConfig, database: Path, pairs: Sequence[tuple[str, str]], pairs_file: Path) -> None:
     """Match and verify the listed image pairs (pairs already in ``database`` are skipped by COLMAP)."""
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     pairs_file.parent.mkdir(parents=True, exist_ok=True)
     pairs_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
@@ -179,7 +179,7 @@ def match_pairs(cfg: SfMConfig, database: Path, pairs: Sequence[tuple[str, str]]
 
 
 def incremental_options(cfg: SfMConfig, image_names: list[str]) -> Any:
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     mp = cfg.mapper
     opts = pycolmap.IncrementalPipelineOptions()
@@ -206,7 +206,7 @@ def incremental_options(cfg: SfMConfig, image_names: list[str]) -> Any:
 
 
 def _global_options(cfg: SfMConfig, image_names: list[str]) -> Any:
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     opts = pycolmap.GlobalPipelineOptions()
     opts.num_threads = cfg.num_threads
@@ -276,7 +276,7 @@ def _run_mapper(
     kind: str, cfg: SfMConfig, database: Path, images_dir: Path, work_dir: Path, image_names: list[str],
     progress: Progress | None,
 ) -> MappingResult:
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     if work_dir.exists():
         shutil.rmtree(work_dir)
@@ -317,7 +317,7 @@ def unregistered_reasons(
     cfg: SfMConfig, database: Path, names: Sequence[str], models: Sequence[Any]
 ) -> dict[str, str]:
     """Why each frame of ``names`` missing from the kept model ``models[0]`` is missing."""
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     registered = [{im.name for im in rec.images.values() if im.has_pose} for rec in models]
     with pycolmap.Database.open(database) as db:

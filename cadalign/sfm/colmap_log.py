@@ -95,7 +95,7 @@ def colmap_log(show: bool | None = None) -> Iterator[ColmapLog]:
     Yields:
         The block's :class:`ColmapLog`; its counts are set when the block ends (also when it raises).
     """
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     L = pycolmap.logging
     out = ColmapLog(shown=verbose() if show is None else show)

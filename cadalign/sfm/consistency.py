@@ -92,7 +92,7 @@ def sequence_consistency(rec: Any, database: Path, names_in_order: Sequence[str]
     over all checked pairs (so noisier footage does not raise false alarms). Pairs with fewer than
     ``min_matches`` verified matches are not checked (too little evidence).
     """
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     registered = {im.name: im for im in rec.images.values() if im.has_pose}
     seq = [n for n in names_in_order if n in registered]

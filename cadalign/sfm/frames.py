@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 
 from cadalign.errors import InputError
-from cadalign.formats.bag import is_bag, iter_bag_frames
+from cadalign.formats.bag import is_bag, iter_bag_frames, resolve_topic
 from cadalign.io import link_or_copy, read_image, write_image
 from cadalign.sfm.config import FrameConfig
 from cadalign.types import Progress
@@ -243,7 +243,6 @@ def folder_candidates(folder: Path) -> tuple[Iterator[tuple[str, str, np.ndarray
 
 def bag_candidates(path: Path, topic: str | None) -> tuple[Iterator[tuple[str, str, np.ndarray, int]], int]:
     """Candidate frames of a ROS bag's image topic ``(name, "topic#index", rgb, stamp_ns)`` and their count."""
-    from cadalign.formats.bag import resolve_topic
 
     chosen = resolve_topic(path, topic)
     frames = iter_bag_frames(path, chosen.name)

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from cadalign.sfm import colmap
+from cadalign.sfm import colmap, repair, segments
 from cadalign.sfm.config import SfMConfig
 from cadalign.sfm.consistency import Consistency, keep_largest_piece, sequence_consistency
 from cadalign.sfm.layout import Layout
@@ -36,7 +36,6 @@ def map_frames(cfg: SfMConfig, lay: Layout, names: list[str], progress: Progress
         model, info = _map_with_attempts(cfg, lay, names, work, progress)
         write_model(model, lay.model)
         return info
-    from cadalign.sfm import segments
 
     def map_one(sub: list[str], k: int) -> tuple[Any, dict[str, Any]]:
         return _map_with_attempts(cfg, lay, sub, work / f"segment_{k:03d}", progress)
@@ -132,7 +131,6 @@ def _repair(cfg: SfMConfig, lay: Layout, rec: Any, names: list[str], cons: Consi
             progress: Progress | None) -> tuple[Any | None, dict[str, Any]]:
     """:func:`cadalign.sfm.repair.repair_breaks` of ``rec``: each window is mapped like a model of its own
     (the same seeds and retries; no loop closure, no nested repair)."""
-    from cadalign.sfm import repair, segments
 
     wcfg = dataclasses.replace(cfg, matching=dataclasses.replace(cfg.matching, loop_closure=False),
                                mapper=dataclasses.replace(cfg.mapper, on_break="keep_all"))
@@ -186,7 +184,7 @@ def _map_once(cfg: SfMConfig, lay: Layout, names: list[str], work: Path,
 
 def num_verified(cfg: SfMConfig, database: Path) -> int:
     """Pairs in ``database`` with at least ``matching.min_num_inliers`` verified matches."""
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     with pycolmap.Database.open(database) as db:
         _, geoms = db.read_two_view_geometries()

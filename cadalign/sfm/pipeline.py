@@ -199,7 +199,7 @@ def _step_mapping(cfg: SfMConfig, lay: Layout, progress: Progress | None) -> dic
 
 
 def _step_refine(cfg: SfMConfig, lay: Layout) -> dict[str, Any]:
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     rec = pycolmap.Reconstruction(str(lay.model))
     info = refine(rec, cfg)
@@ -208,7 +208,7 @@ def _step_refine(cfg: SfMConfig, lay: Layout) -> dict[str, Any]:
 
 
 def _step_export(cfg: SfMConfig, source: Path, lay: Layout, progress: Progress | None) -> dict[str, Any]:
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     rec = pycolmap.Reconstruction(str(lay.model))
     cams = cameras_json(rec)
@@ -249,7 +249,7 @@ def _plot(rec: Any, path: Path) -> None:
 def _finish_report(lay: Layout, keep_gt: bool) -> None:
     """sfm_report.json from the step markers (so a resumed run reports the original timings).
 
-    A ground-truth section written by :mod:`cadalign.eval.sfm_metrics` is kept when nothing was recomputed.
+    A ground-truth section written by :mod:`cadalign.evaluate.sfm` is kept when nothing was recomputed.
     """
     marks = {s: read_json(lay.marker(s)) for s in STEPS}
     frames = read_json(lay.root / "frames.json")

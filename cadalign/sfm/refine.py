@@ -83,7 +83,7 @@ def refine(rec: Any, cfg: SfMConfig) -> dict[str, Any]:
     ``refine_loss_scale_px``) and then drops observations above ``refine_max_error_px`` and points
     below ``refine_min_tri_angle_deg``. Intrinsics are refined unless a known calibration is fixed.
     """
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     mp = cfg.mapper
     fixed = cfg.camera.intrinsics is not None and not cfg.camera.refine_intrinsics
@@ -118,7 +118,7 @@ def _set_known_intrinsics(rec: Any, cfg: SfMConfig) -> dict[str, Any] | None:
     """With ``camera.known_intrinsics_from == 'refinement'``: replace every self-calibrated camera of ``rec``
     by the known PINHOLE calibration (the adjustment that follows moves poses and points to it); returns the
     parameters before and after, or None when there is nothing to set."""
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     if cfg.camera.intrinsics is None or cfg.camera.known_intrinsics_from != "refinement":
         return None

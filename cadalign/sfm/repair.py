@@ -48,7 +48,7 @@ def break_windows(names: Sequence[str], cons: Consistency, frames: int) -> list[
 
 def restricted(rec: Any, keep: set[str]) -> Any:
     """A copy of ``rec`` (``pycolmap.Reconstruction``) with every frame outside ``keep`` deregistered."""
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     out = pycolmap.Reconstruction(rec)
     for im in list(out.images.values()):
@@ -62,7 +62,7 @@ def adopt_camera(win: Any, rec: Any, num_threads: int) -> None:
     points with them held fixed: a window self-calibrates on a few frames only, and its relative poses must
     match the pieces' camera to join them (on the tiny test dive a 6-frame window's own focal length turned
     consecutive frames up to 1.6 deg against the whole model's)."""
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     for cid in list(win.cameras):
         if cid in rec.cameras:

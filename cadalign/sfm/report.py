@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from cadalign.formats.calibration import read_calibration
 from cadalign.io import atomic_path
 
 SFM_UNITS = "sfm"
@@ -82,7 +83,6 @@ def model_stats(rec: Any) -> dict[str, Any]:
 def intrinsics_from_cameras_json(path: Path) -> tuple[float, float, float, float]:
     """``(fx, fy, cx, cy)`` (pixel centres at +0.5) of a calibration file in any ``--calib`` format
     (:func:`cadalign.formats.calibration.read_calibration`)."""
-    from cadalign.formats.calibration import read_calibration
 
     return read_calibration(path).intrinsics
 
@@ -115,8 +115,8 @@ def plot_trajectory(
         errors: optional per-frame series, e.g. ``{"rotation [deg]": (N,), "centre [m]": (N,)}``,
             drawn in a second panel against the frame index.
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # lazy: heavy dependency (matplotlib)
+    from matplotlib.figure import Figure  # lazy: heavy dependency (matplotlib)
 
     fig = Figure(figsize=(12.0 if errors else 6.4, 6.0), dpi=110)
     FigureCanvasAgg(fig)

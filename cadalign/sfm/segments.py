@@ -86,7 +86,7 @@ def merge_models(models: list[Any], database: Path, images_dir: Path, work_dir: 
     """One model from segment models (each a ``pycolmap.Reconstruction`` of the same database, in capture
     order); returns it and one record per seam. See the module doc. ``adds``: per model, the frames whose
     poses it may give (None: any); a model that only joins its neighbours still aligns them."""
-    import pycolmap
+    import pycolmap  # lazy: heavy dependency (pycolmap)
 
     base = models[0]
     cam_id = next(iter(base.cameras))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from cadalign.io import write_image
@@ -16,8 +17,6 @@ TILE_W = 320
 
 
 def _label(img: np.ndarray, text: str) -> np.ndarray:
-    import cv2
-
     out = img.copy()
     cv2.rectangle(out, (0, 0), (out.shape[1], 22), (0, 0, 0), -1)
     cv2.putText(out, text, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
@@ -26,7 +25,6 @@ def _label(img: np.ndarray, text: str) -> np.ndarray:
 
 def contact_sheet_tiles(scene: SimScene, frame: int | None = None) -> list[tuple[str, np.ndarray]]:
     """(label, uint8 RGB tile) for clean, each effect alone, and all effects, on one frame."""
-    import cv2
 
     spec = scene.spec
     k = spec.trajectory.frames // 2 if frame is None else frame

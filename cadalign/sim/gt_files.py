@@ -7,7 +7,7 @@ from pathlib import Path
 from cadalign.cad.model import CadModel
 from cadalign.cad.models_info import write_model_ply_mm, write_models_info
 from cadalign.cad.symmetry import Symmetry
-from cadalign.render.bop_writer import PosedObject, merge_scene_files
+from cadalign.raycast.bop_writer import PosedObject, merge_scene_files
 from cadalign.sim.scene import SimScene
 
 

@@ -1,5 +1,5 @@
 """Render a simulated scene: RGB with pyrender (EGL, headless) and exact ground truth by ray casting
-(:mod:`cadalign.render.raycast`: one ray through each pixel centre, z-depth and range)."""
+(:mod:`cadalign.raycast.core`: one ray through each pixel centre, z-depth and range)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import os
 
 import numpy as np
 
-from cadalign.render.raycast import RaycastFrame, RaycastRenderer, RenderMesh
+from cadalign.raycast.core import RaycastFrame, RaycastRenderer, RenderMesh
 from cadalign.sim.scene import SEABED_INSTANCE, SimScene, triplanar_uv
 from cadalign.sim.textures import make_texture
 from cadalign.types import Rigid3
@@ -50,7 +50,7 @@ class RGBRenderer:
 
     def __init__(self, scene: SimScene) -> None:
         os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-        import pyrender
+        import pyrender  # lazy: heavy dependency (pyrender)
 
         self._pr = pyrender
         cam = scene.camera

@@ -25,13 +25,15 @@ import dataclasses
 import logging
 import shutil
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
-from cadalign.data import bop
-from cadalign.io import prepare_stage_dir, read_json, write_image, write_json
-from cadalign.render.bop_writer import frame_done, write_bop_frame
+from cadalign.formats import bop
+from cadalign.io import atomic_path, prepare_stage_dir, read_image, read_json, write_image, write_json
+from cadalign.raycast.bop_writer import frame_done, write_bop_frame
+from cadalign.sim.contact_sheet import write_contact_sheet
 from cadalign.sim.effects_chain import build_chain, run_chain
 from cadalign.sim.gt_files import posed_objects, write_models, write_scene_files
 from cadalign.sim.render import FrameGT, GroundTruthCaster, RGBRenderer
@@ -94,8 +96,6 @@ def simulate(
             sorted((out_dir / "frames").glob("*.png")), out_dir / "video.mp4", fps=max(spec.trajectory.fps, 1)
         )
     if contact_sheet:
-        from cadalign.sim.contact_sheet import write_contact_sheet
-
         write_contact_sheet(scene, out_dir / "contact_sheet.png")
     write_json(report_path, _report(spec, timings))
     return out_dir
@@ -131,7 +131,6 @@ def render_frame(
 
 def _render_frames(scene: SimScene, out_dir: Path, progress: Progress | None) -> dict[str, list[float]]:
     """Render every unfinished frame; file writing overlaps the next frame's rendering (one writer thread)."""
-    from concurrent.futures import Future, ThreadPoolExecutor
 
     spec = scene.spec
     n = spec.trajectory.frames
@@ -181,9 +180,7 @@ def _write_frame(
 
 def write_video(frames: list[Path], path: Path, fps: float) -> Path:
     """Encode PNG frames to an H.264 MP4 (imageio-ffmpeg's bundled ffmpeg), atomically."""
-    import imageio.v2 as imageio
-
-    from cadalign.io import atomic_path, read_image
+    import imageio.v2 as imageio  # lazy: heavy dependency (imageio)
 
     with atomic_path(path) as tmp:
         with imageio.get_writer(

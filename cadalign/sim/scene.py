@@ -10,6 +10,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from cadalign.cad import load_cad
 from cadalign.cad.procedural import DEFAULT_SIZES_M, make_part, seabed
 from cadalign.errors import InputError
 from cadalign.sim.spec import ObjectSpec, SceneSpec, check_mesh_clearance, resolve_source, split_part
@@ -76,8 +77,6 @@ def _load_mesh(o: ObjectSpec, scene_path: Path | None) -> trimesh.Trimesh:
             raise InputError(f"object '{o.name}': unknown procedural part '{kind}'; allowed: {list(DEFAULT_SIZES_M)}")
         mesh = make_part(kind, o.size_m)
     else:
-        from cadalign.cad import load_cad
-
         model = load_cad(resolve_source(o.source, scene_path), unit=o.unit, name=o.name,
                          part=split_part(o.source)[1])
         mesh = trimesh.Trimesh(model.vertices_m, model.faces, process=False)

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from cadalign.cad.procedural import DEFAULT_SIZES_M
 from cadalign.config import bounded
 
 TrajectoryKind = Literal["orbit", "lawnmower", "approach", "hover"]
@@ -164,7 +165,6 @@ class SceneSpec:
                 raise ValueError(f"object '{o.name}' has class '{o.class_name}'; allowed: {list(self.classes[1:])}")
         if not self.objects:
             raise ValueError("a scene needs at least one object")
-        from cadalign.cad.procedural import DEFAULT_SIZES_M
 
         for o in self.objects:
             kind = o.source.split(":", 1)[1] if o.source.startswith("procedural:") else None

@@ -13,7 +13,10 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
+from cadalign.cad.inside import inside_mesh
+from cadalign.cad.procedural import DEFAULT_SIZES_M
 from cadalign.config import from_dict, read_mapping
 from cadalign.errors import ConfigError, InputError
 from cadalign.sim.effects_chain import build_chain
@@ -86,9 +89,6 @@ def _anchored(source: str, scene_path: Path) -> str:
 
 def _inside_solid(spec: ObjectSpec, p_world: np.ndarray) -> np.ndarray:
     """(N,) whether world points lie inside a procedural box or cylinder (other parts: never)."""
-    from scipy.spatial.transform import Rotation
-
-    from cadalign.cad.procedural import DEFAULT_SIZES_M
 
     kind = spec.source.split(":", 1)[1] if spec.source.startswith("procedural:") else ""
     if kind not in ("box", "cylinder"):
@@ -155,7 +155,6 @@ def check_mesh_clearance(spec: SceneSpec, meshes: Sequence[tuple[np.ndarray, np.
     Raises:
         ConfigError: naming the file, the first offending frame, its position, the object and the fix.
     """
-    from cadalign.cad.inside import inside_mesh
 
     ks, eyes = _camera_centres(spec, source, max_frames)
     for o, (vertices, faces) in zip(spec.objects, meshes, strict=True):

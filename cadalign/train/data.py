@@ -2,7 +2,7 @@
 
 ``DS`` is either a dataset root with ``splits.json`` (its ``scene`` and per-split ids: train on ``train``,
 evaluate on ``val``/``test``) or a bare BOP scene folder (``all/000000`` of a dataset, ``gt/sim/000000`` of
-the simulator); a bare scene is split by :func:`cadalign.data.splits.time_block_splits` with blocks of
+the simulator); a bare scene is split by :func:`cadalign.formats.splits.time_block_splits` with blocks of
 ``max(1, min(10, n // 10))`` frames (gap 1 when blocks have more than 2 frames, seed 0), so train and eval
 agree on the held-out frames without a file. ``all`` selects every frame.
 """
@@ -17,9 +17,11 @@ import numpy as np
 import torch.nn.functional as F
 from torch.utils.data import Dataset
 
-from cadalign.data.splits import SPLITS, time_block_splits
 from cadalign.errors import InputError
+from cadalign.formats.bop import BopScene
+from cadalign.formats.splits import SPLITS, time_block_splits
 from cadalign.io import read_json
+from cadalign.train.datasets import SegmentationDataset
 
 log = logging.getLogger(__name__)
 
@@ -37,8 +39,6 @@ class DataSelection:
 
 
 def _scene_ids(scene_dir: Path) -> list[int]:
-    from cadalign.data.bop import BopScene
-
     return list(BopScene(scene_dir).ids)
 
 
@@ -90,8 +90,6 @@ class ScaledDataset(Dataset):
         self._items: dict[int, dict] = {}
         self._labels = None
         if with_fg:
-            from cadalign.data.torch_datasets import SegmentationDataset
-
             self._labels = SegmentationDataset(base.scene.dir, base.ids)
 
     def __len__(self) -> int:

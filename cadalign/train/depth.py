@@ -19,11 +19,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from cadalign.config import bounded
-from cadalign.data.image_prep import read_prep
 from cadalign.models.dispnet import DispNet, DispNetConfig, alpha_beta_from_range
+from cadalign.sfm.image_prep import read_prep
 from cadalign.train.augment import AugmentConfig, augment_dense
 from cadalign.train.common import write_run_record
 from cadalign.train.data import ScaledDataset, depth_percentiles, select
+from cadalign.train.datasets import DepthDataset
 from cadalign.train.loop import LoopConfig, TrainResult, train_loop
 from cadalign.train.losses import gradient_loss, masked_l1, masked_mse, scale_invariant_log
 
@@ -137,7 +138,6 @@ def train_depth(cfg: DepthTrainConfig, ds: Path, out: Path, *, split: str = "tra
                 overwrite: bool = False, device: str = "cpu",
                 progress: Callable[[int, int, dict[str, float]], None] | None = None) -> TrainResult:
     """Train a DispNet on the ``split`` frames of ``ds`` into the run folder ``out`` (see cadalign.train.loop)."""
-    from cadalign.data.torch_datasets import DepthDataset
 
     sel = select(ds, split)
     base = DepthDataset(sel.scene_dir, sel.ids)

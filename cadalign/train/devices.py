@@ -7,11 +7,11 @@ import os
 from typing import Any
 
 import torch
+import torch.distributed as dist
 
 
 def is_main_rank() -> bool:
     """True outside DDP and on rank 0: the process that writes run files."""
-    import torch.distributed as dist
 
     return not (dist.is_available() and dist.is_initialized()) or dist.get_rank() == 0
 
@@ -38,7 +38,6 @@ def dist_setup(device: str) -> tuple[int, int]:
     on CUDA, gloo on CPU); else (0, 1)."""
     if "RANK" not in os.environ or int(os.environ.get("WORLD_SIZE", "1")) <= 1:
         return 0, 1
-    import torch.distributed as dist
 
     if not dist.is_initialized():
         dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
@@ -58,7 +57,6 @@ def bf16_native(dev: torch.device) -> bool:
 
 def any_rank(flag: bool, dev: torch.device) -> bool:
     """Whether ``flag`` is set on any DDP rank (a signal may reach the ranks between different steps)."""
-    import torch.distributed as dist
 
     t = torch.tensor([1.0 if flag else 0.0], device=dev)
     dist.all_reduce(t)

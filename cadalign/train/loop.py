@@ -28,6 +28,7 @@ from typing import Any, Protocol
 
 import numpy as np
 import torch
+import torch.distributed as dist
 from torch import nn
 from torch.utils.data import DataLoader, Dataset, default_collate
 
@@ -45,6 +46,7 @@ from cadalign.train.checkpoint import (
     unwrap,
 )
 from cadalign.train.devices import any_rank, bf16_native, dist_setup, is_main_rank, rank_device, to_device
+from cadalign.train.plots import plot_metrics
 
 log = logging.getLogger(__name__)
 
@@ -230,8 +232,6 @@ class _Run:
         write_json(self.run_dir / "metrics.json", {"loop_config": to_dict(self.cfg), "bf16_autocast": self.bf16,
                                                    "rows": self.rows})
         if plot and self.rows:
-            from cadalign.train.plots import plot_metrics
-
             plot_metrics(self.rows, self.run_dir / "loss.png")
 
 
@@ -310,8 +310,6 @@ def train_loop(model: nn.Module, step_fn: StepFn, dataset: Dataset, cfg: LoopCon
     run.save(numbered=False)
     run.write_metrics(plot=True)
     if world > 1:  # no rank returns (and may resume) before rank 0 has written the last checkpoint
-        import torch.distributed as dist
-
         dist.barrier()
     return TrainResult(Path(run_dir), run.step, loss_v, time.perf_counter() - t0, interrupted)
 
@@ -341,8 +339,6 @@ def _one_step(run: _Run, step_fn: StepFn, batch: dict, dev: torch.device,
     run.step += 1
     loss_v = float(loss.detach())
     if world > 1:
-        import torch.distributed as dist
-
         t = torch.tensor([loss_v], device=dev)
         dist.all_reduce(t)
         loss_v = float(t) / world

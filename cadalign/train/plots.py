@@ -11,7 +11,7 @@ def plot_metrics(rows: list[dict[str, float]], path: Path) -> Path:
     """Plot ``loss``/``loss_avg`` and every ``val_*`` column of the metrics rows against the step into a PNG."""
     # the object API draws without pyplot, so no backend is set: matplotlib.use("Agg") here switched a notebook's
     # inline backend off for every later plot
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # lazy: heavy dependency (matplotlib)
 
     val_keys = sorted({k for r in rows for k in r if k.startswith("val_")})
     fig = Figure(figsize=(10 if val_keys else 6, 4))

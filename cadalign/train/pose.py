@@ -2,7 +2,7 @@
 
 ``run(cfg, dataset, out_dir)`` trains with the shared loop (:mod:`cadalign.train.loop`) and then scores
 the held-out frames (val + test, never used in training; ``eval_heldout.json``, at the images' own resolution,
-scored by :func:`cadalign.eval.pose_eval.evaluate_scene` with the rules of ``cadalign eval pose``: detection
+scored by :func:`cadalign.metrics.pose_eval.evaluate_scene` with the rules of ``cadalign eval pose``: detection
 precision/recall/F1 at IoU 0.5, mask IoU, translation and rotation errors, BOP recalls, per class).
 The dataset is a ``cadalign build-dataset`` folder
 (``splits.json``, ``models/``) or one BOP scene folder (e.g. the simulator's ``gt/sim/000000``, models in
@@ -23,22 +23,24 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+import trimesh
 from torch import nn
 from torch.utils.data import Dataset
 
 from cadalign.cad.models_info import symmetry_from_entry
 from cadalign.config import bounded
-from cadalign.data.bop import mask_bbox
-from cadalign.data.image_prep import read_prep
-from cadalign.data.torch_datasets import DetectionPoseDataset, detection_collate
 from cadalign.errors import InputError
+from cadalign.formats.bop import mask_bbox
 from cadalign.io import read_json, write_json
 from cadalign.models.maskrcnn.detector import MODEL_KIND, MaskRCNNConfig, MaskRCNNPose
+from cadalign.sfm.image_prep import read_prep
 from cadalign.train.augment import AugmentConfig, colour_jitter
 from cadalign.train.common import write_run_record
 from cadalign.train.data import select
+from cadalign.train.datasets import DetectionPoseDataset, detection_collate
 from cadalign.train.loop import LoopConfig, TrainResult, is_main_rank, train_loop
 from cadalign.train.pose_crop import crop_batch
+from cadalign.train.pose_eval import evaluate
 from cadalign.train.pose_losses import ObjectGeometry, PoseLoss, PoseLossConfig
 
 log = logging.getLogger(__name__)
@@ -167,7 +169,6 @@ symmetry_from_bop = symmetry_from_entry
 
 def load_object_geometry(models_dir: Path, n_points: int, seed: int = 0) -> dict[int, ObjectGeometry]:
     """Surface samples (metres), diameters and symmetries of every BOP model in ``models_dir`` (files in mm)."""
-    import trimesh
 
     info = read_json(Path(models_dir) / "models_info.json")
     out = {}
@@ -302,8 +303,6 @@ def run(cfg: PoseTrainConfig, dataset: Path, out_dir: Path, *, resume: bool = Fa
                         extra_state=identity)
     held_out = sorted((ds.splits.get("val") or []) + (ds.splits.get("test") or []))
     if held_out and not result.interrupted and is_main_rank():  # under DDP rank 0 scores and writes
-        from cadalign.train.pose_eval import evaluate
-
         model.eval()
         report = evaluate(model, ds.scene_dir, held_out, ds.models_dir, cfg.eval_score_thresh)
         write_json(Path(out_dir) / "eval_heldout.json", report)

@@ -281,7 +281,7 @@ def crop_batch(batch: dict, g: torch.Generator, crop_hw: tuple[int, int], object
                zoom_prob: float = 0.0, zoom_max: float = 2.0, balance_classes: bool = False,
                rotate_prob: float = 0.0, rotate_max_deg: float = 30.0, paste_prob: float = 0.0,
                paste_max: int = 3) -> dict:
-    """A :func:`cadalign.data.torch_datasets.detection_collate` batch with each image randomly cropped.
+    """A :func:`cadalign.train.datasets.detection_collate` batch with each image randomly cropped.
 
     ``image`` (B, 3, H, W) -> (B, 3, ch, cw); the per-image lists follow (see :func:`crop_target`). With
     probability ``zoom_prob`` an image's crop is instead a window ``z`` times smaller (``z`` log-uniform in

@@ -1,6 +1,6 @@
 """The held-out score of a detection + pose model, written by ``cadalign train pose`` (``eval_heldout.json``).
 
-Scoring is :func:`cadalign.eval.pose_eval.evaluate_scene`, the function behind ``cadalign eval pose`` and
+Scoring is :func:`cadalign.metrics.pose_eval.evaluate_scene`, the function behind ``cadalign eval pose`` and
 ``cadalign infer --gt``: detections are matched greedily by score to the same class at box IoU >= 0.5, GT
 instances with ``visib_fract`` < 0.1 (and optionally smaller than ``min_box_side_px``) are don't-care, the
 structure class is not scored, and rotation errors are minimised over the symmetries that ``models_info.json``
@@ -15,8 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cadalign.data.torch_datasets import DetectionPoseDataset
-from cadalign.eval.pose_eval import (
+from cadalign.metrics.pose_eval import (
     CroppedMask,
     PoseEvalConfig,
     PosePrediction,
@@ -27,6 +26,7 @@ from cadalign.eval.pose_eval import (
 )
 from cadalign.models.maskrcnn.detector import MaskRCNNPose
 from cadalign.models.ops import box_iou
+from cadalign.train.datasets import DetectionPoseDataset
 from cadalign.types import Rigid3
 
 

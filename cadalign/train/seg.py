@@ -15,14 +15,16 @@ from typing import Literal
 
 import numpy as np
 import torch
+import torch.distributed as dist
 from torch import nn
 
 from cadalign.config import bounded
-from cadalign.data.image_prep import read_prep
 from cadalign.models.resunet import ResUNet, ResUNetConfig
+from cadalign.sfm.image_prep import read_prep
 from cadalign.train.augment import AugmentConfig, augment_dense, random_patches
 from cadalign.train.common import write_run_record
 from cadalign.train.data import ScaledDataset, class_pixel_counts, select
+from cadalign.train.datasets import SegmentationDataset
 from cadalign.train.loop import LoopConfig, TrainResult, augment_seed, train_loop
 from cadalign.train.losses import boundary_weights, cross_entropy, median_frequency_weights, soft_dice
 
@@ -175,7 +177,7 @@ def val_miou(ds: ScaledDataset, classes: tuple[str, ...], device: str, batch: in
     n = len(classes)
 
     def fn(model: nn.Module) -> dict[str, float]:
-        cm = np.zeros(n * n, dtype=np.int64)  # the full metrics live in cadalign.eval; IoU is all we log here
+        cm = np.zeros(n * n, dtype=np.int64)  # the full metrics live in cadalign.evaluate; IoU is all we log here
         for i in range(0, len(ds), batch):
             items = [ds[j] for j in range(i, min(i + batch, len(ds)))]
             pred = model(torch.stack([it["image"] for it in items]).to(device)).argmax(1).cpu()
@@ -195,7 +197,6 @@ def val_miou(ds: ScaledDataset, classes: tuple[str, ...], device: str, batch: in
 def augment_step(g: torch.Generator, seed: int) -> int:
     """The loop step whose augmentation generator ``g`` is (inverts :func:`cadalign.train.loop.augment_seed`,
     which is linear in the step), so a resumed run switches phases at the same step as an uninterrupted one."""
-    import torch.distributed as dist
 
     rank = dist.get_rank() if dist.is_available() and dist.is_initialized() else 0
     base = augment_seed(seed, 0, rank)
@@ -229,7 +230,6 @@ def train_seg(cfg: SegTrainConfig, ds: Path, out: Path, *, split: str = "train",
     ``out/train_config.json`` records the resolved config, class list, class weights and data selection; the
     checkpoint carries the class list and model config, and resuming with other ones is refused.
     """
-    from cadalign.data.torch_datasets import SegmentationDataset
 
     sel = select(ds, split)
     base = SegmentationDataset(sel.scene_dir, sel.ids)

@@ -8,7 +8,7 @@ import numpy as np
 import trimesh
 
 from cadalign.align.seabed import SeabedConfig, fit_seabed
-from cadalign.render.raycast import RaycastRenderer, RenderMesh
+from cadalign.raycast.core import RaycastRenderer, RenderMesh
 from cadalign.types import Camera, Rigid3
 
 

@@ -9,9 +9,9 @@ import pytest
 from bench_testdata import CHEAP_STAGES
 from typer.testing import CliRunner
 
+from cadalign.bench.registry import STAGES, load_bench
+from cadalign.bench.report import recommendations
 from cadalign.cli.main import app
-from cadalign.eval.bench import STAGES, load_bench
-from cadalign.eval.bench_report import recommendations
 
 runner = CliRunner()
 

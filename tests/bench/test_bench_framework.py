@@ -7,8 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from cadalign.errors import ConfigError
-from cadalign.eval.bench import (
+from cadalign.bench.registry import (
     BenchConfig,
     BenchStore,
     Metric,
@@ -19,6 +18,7 @@ from cadalign.eval.bench import (
     run_sweep,
     stage_rows,
 )
+from cadalign.errors import ConfigError
 
 
 def toy_sweep(calls: list[str], *, fail: str | None = None, interrupt: str | None = None) -> Sweep:

@@ -7,8 +7,8 @@ from pathlib import Path
 
 from typer.testing import CliRunner
 
+from cadalign.bench.registry import current_records, load_bench
 from cadalign.cli.main import app
-from cadalign.eval.bench import current_records, load_bench
 
 runner = CliRunner()
 
@@ -63,7 +63,7 @@ def test_model_options_are_checked_before_anything_runs(tmp_path: Path):
 
 
 def test_settings_with_the_same_override_keys_get_their_own_folders():
-    from cadalign.eval.bench_infer import run_folder_name
+    from cadalign.bench.sweeps.infer import run_folder_name
 
     a = run_folder_name("balanced", {"refine": {"yaw_hypotheses": 4}})
     b = run_folder_name("balanced", {"refine": {"yaw_hypotheses": 8}})

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cadalign.eval.pareto import accuracy_threshold, pareto_front, plot_pareto, recommend
+from cadalign.bench.pareto import accuracy_threshold, pareto_front, plot_pareto, recommend
 
 
 def test_recommend_higher_is_better_picks_cheapest_within_5pct():

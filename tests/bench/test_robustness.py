@@ -7,10 +7,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from cadalign.bench.data import bench_scene, write_scene_variant
+from cadalign.bench.report import write_bench_report
 from cadalign.errors import ConfigError
-from cadalign.eval.bench_data import bench_scene, write_scene_variant
-from cadalign.eval.bench_report import write_bench_report
-from cadalign.eval.robustness import SEVERITIES, condition_scene, conditions, contrast_metrics, run_robustness
+from cadalign.evaluate.robustness import SEVERITIES, condition_scene, conditions, contrast_metrics, run_robustness
 from cadalign.sim.spec import default_scene_path, load_scene
 
 
@@ -70,7 +70,7 @@ def test_contrast_hand_cases():
 
 def test_tiny_robustness_run_without_sfm(tmp_path, shared_data, monkeypatch):
     """Baseline + the third severity of turbidity and light (the full list is the slow test below)."""
-    from cadalign.eval import robustness
+    from cadalign.evaluate import robustness
 
     conds = [("baseline", "0", None), ("turbidity", "3", SEVERITIES["turbidity"][2]),
              ("light", "3", SEVERITIES["light"][2])]
@@ -114,7 +114,7 @@ def test_small_robustness_with_sfm(tmp_path, shared_data):
 
 
 def test_plot_robustness_three_effects_three_severities(tmp_path):
-    from cadalign.eval.robustness import plot_robustness
+    from cadalign.evaluate.robustness import plot_robustness
 
     rows = [{"effect": "baseline", "severity": "0", "value": None,
              "metrics": {"contrast": 0.5, "registration_rate": 1}}]

@@ -6,13 +6,13 @@ from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
-from sim_testdata import write_tiny_scene
 from typer.testing import CliRunner
 
-from cadalign.build_dataset import load_structure
 from cadalign.cli.main import app
 from cadalign.geometry import geodesic_angle
 from cadalign.io import read_json, write_json
+from cadalign.sim.structure import load_structure
+from cadalign.testing.tiny_scene import write_tiny_scene
 from cadalign.types import Sim3
 
 

@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from calib_testdata import write_all
-from sim_testdata import write_build_capture, write_picks_from_truth
 from typer.testing import CliRunner
 
 from cadalign.cli.main import app
 from cadalign.io import read_json
+from cadalign.testing.tiny_scene import write_build_capture, write_picks_from_truth
 
 GLOG_LINE = re.compile(r"^[IWE]\d{8} ", re.MULTILINE)
 runner = CliRunner()

@@ -12,11 +12,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from sim_testdata import write_build_capture, write_picks_from_truth
 
-from cadalign.data.bop import BopScene
 from cadalign.errors import AlignmentError
+from cadalign.formats.bop import BopScene
 from cadalign.io import read_image, read_json
+from cadalign.testing.tiny_scene import write_build_capture, write_picks_from_truth
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +31,7 @@ def capture(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> tupl
 
 @pytest.fixture(scope="module")
 def built(capture: tuple[Path, Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from cadalign.build_dataset import build_dataset
+    from cadalign.build.run import build_dataset
     from cadalign.sfm import PRESETS, run
 
     spec, sim = capture
@@ -81,7 +81,7 @@ def test_dataset_layout_splits_and_coco(built: Path) -> None:
     depth_sfm = read_image(ds / "all" / "000000" / "depth_sfm" / "000000.png", unchanged=True)
     assert depth_sfm.dtype == np.uint16 and 0 < (depth_sfm > 0).mean() < 0.2
     # the images are SfM's CLAHE-enhanced frames, and the dataset says so (for 'cadalign infer' on raw video)
-    from cadalign.data.image_prep import read_prep
+    from cadalign.sfm.image_prep import read_prep
 
     assert read_json(ds / "images.json")["enhance"] == "clahe"
     assert read_prep(ds / "all" / "000000") == {"enhance": "clahe", "clahe_clip": 2.0, "clahe_tiles": 8}
@@ -90,7 +90,7 @@ def test_dataset_layout_splits_and_coco(built: Path) -> None:
 def test_interrupted_render_resumes_to_the_same_result(built: Path, capture: tuple[Path, Path]) -> None:
     """Deleting the last frames' records (as a kill mid-render leaves it) and re-running redoes only those
     frames, reuses SfM and the alignment, and gives identical files."""
-    from cadalign.build_dataset import build_dataset
+    from cadalign.build.run import build_dataset
 
     spec, sim = capture
     scene_dir = built / "dataset" / "all" / "000000"
@@ -110,7 +110,7 @@ def test_interrupted_render_resumes_to_the_same_result(built: Path, capture: tup
 def test_cad_in_the_wrong_unit_fails_the_gate(capture: tuple[Path, Path], built: Path, tmp_path: Path,
                                               shared_data: Path) -> None:
     """The hot stab read as millimetres (it is in metres) gives an alignment error naming the unit, no dataset."""
-    from cadalign.build_dataset import build_dataset
+    from cadalign.build.run import build_dataset
 
     _, sim = capture
     out = tmp_path / "bad"
@@ -131,7 +131,7 @@ def test_a_bag_builds_the_same_dataset_as_the_frames_folder(built: Path, capture
     once failed the fitness gate)."""
     from bag_testdata import write_bag
 
-    from cadalign.build_dataset import build_dataset
+    from cadalign.build.run import build_dataset
 
     spec, sim = capture
     frames = [read_image(p) for p in sorted((sim / "frames").glob("*.png"))]
@@ -167,8 +167,8 @@ def test_a_wrong_global_alignment_is_refused_by_the_images(capture: tuple[Path, 
     off) and its best one passes every cloud gate. The image verification refuses it: no dataset, the reason
     (edges and free space), the fix, the picture of the hypotheses and a report; a person's choice of a
     hypothesis is refused too, as the images contradict it."""
-    from cadalign.build_dataset import build_dataset
-    from cadalign.render.verify_run import VerificationError
+    from cadalign.align.verify.run import VerificationError
+    from cadalign.build.run import build_dataset
 
     spec, sim = capture
     out = tmp_path / "global"

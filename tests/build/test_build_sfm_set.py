@@ -5,11 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from sim_testdata import write_tiny_scene
 from typer.testing import CliRunner
 
 from cadalign import sfm
 from cadalign.cli.main import app
+from cadalign.testing.tiny_scene import write_tiny_scene
 
 runner = CliRunner()
 

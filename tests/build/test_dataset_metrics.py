@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cadalign.eval.dataset_metrics import boundary_offset_px, depth_errors, mask_iou
+from cadalign.metrics.dataset import boundary_offset_px, depth_errors, mask_iou
 
 
 def _rect(h: int, w: int, grow: int = 0, shape: tuple[int, int] = (200, 200)) -> np.ndarray:

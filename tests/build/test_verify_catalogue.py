@@ -14,10 +14,9 @@ pytestmark = pytest.mark.slow
 
 @pytest.fixture(scope="module")
 def tiny_build(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> tuple[Path, Path, Path]:
-    from sim_testdata import write_build_capture
-
     from cadalign.sfm import PRESETS, run
     from cadalign.sim.run import simulate
+    from cadalign.testing.tiny_scene import write_build_capture
 
     root = tmp_path_factory.mktemp("catalogue")
     spec = write_build_capture(root / "tiny.toml", effects=["attenuation", "backscatter"], frames=12)

@@ -72,10 +72,9 @@ def test_iges_unit_from_the_global_section(tmp_path: Path) -> None:
 
 def test_scene_object_refers_to_a_step_part_by_name(tmp_path: Path) -> None:
     """``source = "panel.step#valve_1"`` in a scene's [[objects]] loads that part only, in metres."""
-    from sim_testdata import write_tiny_scene
-
     from cadalign.sim.scene import build_scene
     from cadalign.sim.spec import load_scene
+    from cadalign.testing.tiny_scene import write_tiny_scene
 
     _assembly(tmp_path / "panel.step", "in")
     spec_path = write_tiny_scene(tmp_path / "tiny.toml", effects=[])

@@ -11,17 +11,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from cadalign.data.bop import BopScene
-from cadalign.data.coco import coco_annotations, mask_to_rle, rle_to_mask
-from cadalign.data.splits import time_block_splits
-from cadalign.data.torch_datasets import (
+from cadalign.errors import ConfigError, InputError
+from cadalign.formats.bop import BopScene
+from cadalign.formats.class_map import load_class_map
+from cadalign.formats.coco import coco_annotations, mask_to_rle, rle_to_mask
+from cadalign.formats.splits import time_block_splits
+from cadalign.train.datasets import (
     DepthDataset,
     DetectionPoseDataset,
     SegmentationDataset,
     detection_collate,
-    load_class_map,
 )
-from cadalign.errors import ConfigError, InputError
 
 
 @settings(max_examples=60, deadline=None, derandomize=True)

@@ -7,12 +7,12 @@ import json
 from pathlib import Path
 
 import pytest
-from sim_testdata import write_tiny_scene
 from typer.testing import CliRunner
 
 from cadalign.cli.main import app
-from cadalign.demo import LEARNING_STAGES, run_demo
-from cadalign.demo_stages import DemoConfig
+from cadalign.demo.run import LEARNING_STAGES, run_demo
+from cadalign.demo.stages import DemoConfig
+from cadalign.testing.tiny_scene import write_tiny_scene
 
 TINY = DemoConfig(seg_steps=2, depth_steps=2, pose_steps=2, infer_frames=2, fuse_voxel_m=0.08, lidar_preset="vlp16")
 
@@ -58,7 +58,7 @@ def test_demo_help() -> None:
 def test_an_interrupted_training_stops_the_demo() -> None:
     from types import SimpleNamespace
 
-    from cadalign.demo_stages import _stop_if_interrupted
+    from cadalign.demo.stages import _stop_if_interrupted
 
     done = SimpleNamespace(interrupted=False, steps_done=5)
     assert _stop_if_interrupted(done) is done
@@ -69,7 +69,7 @@ def test_an_interrupted_training_stops_the_demo() -> None:
 def test_a_build_that_passed_its_gate_is_still_refused_when_unfit_for_learning() -> None:
     """Seen once in CI: on the 6-frame scene the alignment gate passed a wrong alignment, the dataset had no test
     frame and 1.2 cm depths, and every learning stage failed. The demo now falls back to the simulator's truth."""
-    from cadalign.demo import untrusted_build
+    from cadalign.demo.run import untrusted_build
 
     good = {"splits": {"train": 83, "val": 17, "test": 16},
             "vs_truth": {"alignment": {"rotation_deg": 0.067, "scale_rel": 0.0005, "translation_m": 0.011}}}

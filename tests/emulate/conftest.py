@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from sim_testdata import write_tiny_scene
 
+from cadalign.testing.tiny_scene import write_tiny_scene
 from cadalign.types import Rigid3
 
 

@@ -85,7 +85,7 @@ def test_readable_errors(tiny_scene_path, tmp_path) -> None:
 
 
 def test_bench_emulate_on_the_tiny_scene(tiny_scene_path, tmp_path) -> None:
-    from cadalign.eval.bench_emulate import bench_emulate
+    from cadalign.bench.emulate import bench_emulate
 
     r = bench_emulate(tiny_scene_path, tmp_path, rings=16, azimuths=128, torch_rays=500, agree_rays=2000, rounds=1,
                       poses=2, torch_threads=(1,))

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cadalign.bench.emulate import agreement
 from cadalign.emulate.lidar import uniform_sphere
-from cadalign.eval.bench_emulate import agreement
 
 
 @pytest.mark.slow

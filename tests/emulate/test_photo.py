@@ -320,7 +320,7 @@ class TestScaleFromReference:
 
 
 def test_bench_photo_on_the_tiny_scene(tiny_scene_path, tmp_path) -> None:
-    from cadalign.eval.bench_photo import bench_photo
+    from cadalign.bench.photo import bench_photo
 
     out = bench_photo(tiny_scene_path, tmp_path, frames=1, width=96, height=72)
     (row,) = out["frames"]

@@ -5,13 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from sim_testdata import write_tiny_scene
+
+from cadalign.testing.tiny_scene import simulate_tiny
 
 
 @pytest.fixture(scope="session")
 def small_sim(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> Path:
-    from cadalign.sim.run import simulate
-
-    root = tmp_path_factory.mktemp("calib_sim")
-    scene = write_tiny_scene(root / "tiny.toml", effects=[], frames=3)
-    return simulate(scene, root / "sim", resolution=(320, 240), video=False, contact_sheet=False)
+    return simulate_tiny(tmp_path_factory.mktemp("calib_sim"), frames=3, resolution=(320, 240))

@@ -5,19 +5,15 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from sim_testdata import write_tiny_scene
 
 from cadalign.fuse.config import FuseConfig
+from cadalign.testing.tiny_scene import simulate_tiny
 
 
 @pytest.fixture(scope="session")
 def fuse_sim(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> Path:
     """A `cadalign sim` output folder of the tiny scene (exact depth, class maps, poses, CAD models)."""
-    from cadalign.sim.run import simulate
-
-    root = tmp_path_factory.mktemp("fuse_sim")
-    scene = write_tiny_scene(root / "tiny.toml", effects=[], frames=6)
-    return simulate(scene, root / "sim", video=False, contact_sheet=False)
+    return simulate_tiny(tmp_path_factory.mktemp("fuse_sim"), frames=6)
 
 
 @pytest.fixture(scope="session")

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from cadalign.errors import InputError
-from cadalign.eval.map_metrics import CadTruth, map_metrics, point_truth_labels, sample_surface, visible_mask
 from cadalign.fuse.base import LabelledGeometry
 from cadalign.fuse.map_io import load_map, read_ply, write_ply
+from cadalign.metrics.map import CadTruth, map_metrics, point_truth_labels, sample_surface, visible_mask
 from cadalign.types import Camera, Rigid3
 
 

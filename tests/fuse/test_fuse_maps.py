@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from cadalign.errors import InputError
-from cadalign.eval.map_metrics import point_truth_labels
 from cadalign.fuse.base import FuseFrame
 from cadalign.fuse.config import FuseConfig
 from cadalign.fuse.inputs import FrameSource, open_source
 from cadalign.fuse.map_io import load_map, new_map, save_map
+from cadalign.metrics.map import point_truth_labels
 from cadalign.types import Rigid3
 
 METHODS = ["tsdf", "surfel"]
@@ -73,7 +73,7 @@ def _projective_residual(points: np.ndarray, src: FrameSource) -> np.ndarray:
 
 
 def test_fused_gt_depth_lies_within_a_voxel_of_the_mesh(fused, src: FrameSource, small_cfg: FuseConfig) -> None:
-    from cadalign.eval.map_metrics import _distance_to_mesh
+    from cadalign.metrics.map import _distance_to_mesh
 
     method, m = fused
     mesh = m.extract_mesh()

@@ -13,10 +13,11 @@ import trimesh
 from typer.testing import CliRunner
 
 from cadalign.cli.main import app
-from cadalign.data.torch_datasets import DepthDataset, SegmentationDataset, load_class_map
 from cadalign.errors import InputError
+from cadalign.formats.class_map import load_class_map
 from cadalign.fuse.run import REPORT
 from cadalign.io import read_json
+from cadalign.train.datasets import DepthDataset, SegmentationDataset
 
 PLAIN = ("rgb", "depth", "scene_camera.json", "scene_gt.json")
 ARGS = ["--voxel", "0.04", "--ids", "0:3", "--no-eval"]

@@ -148,7 +148,7 @@ def test_cli_end_to_end(fuse_sim: Path, tmp_path: Path) -> None:
 
 
 def test_bench_fuse_sweep_measures_new_and_old_in_one_run(fuse_sim: Path) -> None:
-    from cadalign.eval.bench_stages import fuse_measure
+    from cadalign.bench.sweeps.fuse import fuse_measure
     from cadalign.fuse.inputs import open_source
 
     src = open_source(fuse_sim, max_frames=2)
@@ -163,9 +163,9 @@ def test_bench_fuse_sweep_measures_new_and_old_in_one_run(fuse_sim: Path) -> Non
 
 @pytest.mark.parametrize("size", ["tiny", "full"])
 def test_bench_fuse_sweep_has_open3d_alone_as_its_baseline(size: str, tmp_path: Path) -> None:
-    from cadalign.eval.bench import BenchConfig
-    from cadalign.eval.bench_data import SIZES, BenchData
-    from cadalign.eval.bench_stages import FUSE_OPEN3D, fuse_sweep
+    from cadalign.bench.data import SIZES, BenchData
+    from cadalign.bench.registry import BenchConfig
+    from cadalign.bench.sweeps.fuse import FUSE_OPEN3D, fuse_sweep
 
     sweep = fuse_sweep(BenchData(tmp_path, SIZES[size]), BenchConfig(size=size))  # nothing runs yet
     base = [p for p in sweep.points if p.name == sweep.baseline]
@@ -174,7 +174,7 @@ def test_bench_fuse_sweep_has_open3d_alone_as_its_baseline(size: str, tmp_path: 
 
 
 def test_bench_fuse_open3d_alone_setting(fuse_sim: Path) -> None:
-    from cadalign.eval.bench_stages import fuse_measure
+    from cadalign.bench.sweeps.fuse import fuse_measure
     from cadalign.fuse.inputs import open_source
 
     src = open_source(fuse_sim, max_frames=2)

@@ -2,30 +2,22 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-
-from sim_testdata import write_tiny_scene  # noqa: E402
+from cadalign.sim.structure import load_structure
+from cadalign.testing.tiny_scene import simulate_tiny
 
 
 @pytest.fixture(scope="session")
 def tiny_sim(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> Path:
     """``cadalign sim`` output of the tiny scene, effect free; the scene TOML is ``tiny_sim.parent / "tiny.toml"``."""
-    from cadalign.sim.run import simulate
-
-    root = tmp_path_factory.mktemp("infer_sim")
-    scene = write_tiny_scene(root / "tiny.toml", effects=[], frames=4)
-    return simulate(scene, root / "sim", video=True, contact_sheet=False)
+    return simulate_tiny(tmp_path_factory.mktemp("infer_sim"), frames=4, video=True)
 
 
 @pytest.fixture(scope="session")
 def tiny_structure(tiny_sim: Path):
-    from cadalign.build_dataset import load_structure
-
     return load_structure(tiny_sim.parent / "tiny.toml")
 
 

@@ -8,7 +8,7 @@ import numpy as np
 
 from cadalign.cad.model import CadModel
 from cadalign.geometry.rotations import axis_angle_to_matrix
-from cadalign.render.raycast import RaycastRenderer, RenderMesh
+from cadalign.raycast.core import RaycastRenderer, RenderMesh
 from cadalign.types import Camera, Rigid3
 
 

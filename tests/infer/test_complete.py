@@ -15,9 +15,10 @@ from typer.testing import CliRunner
 
 from cadalign.cad.model import CadModel
 from cadalign.cli.main import app
-from cadalign.eval.pose_eval import CroppedMask
-from cadalign.infer.complete import CompleteConfig, TrackCompleter, WorldTrack, project_visible
+from cadalign.infer.complete import TrackCompleter, WorldTrack, project_visible
+from cadalign.infer.config import CompleteConfig
 from cadalign.infer.model_geom import ModelGeometry, render_depth
+from cadalign.metrics.pose_eval import CroppedMask
 from cadalign.types import Rigid3
 
 K = np.array([[100.0, 0, 80], [0, 100.0, 60], [0, 0, 1]])
@@ -266,7 +267,7 @@ class _Misses:
     name = "oracle"
 
     def __init__(self, scene: Path, frame: str) -> None:
-        from cadalign.infer.detect import OracleConfig, OracleDetector
+        from cadalign.testing.oracle import OracleConfig, OracleDetector
 
         self.inner, self.frame, self.current = OracleDetector(scene, OracleConfig()), frame, None
 
@@ -282,8 +283,8 @@ class _Misses:
 
 def _infer_missing(tiny_sim: Path, tiny_structure, out: Path, depth: bool = True, **cfg) -> list[str]:
     """``infer`` on the tiny simulation with completion, the detector missing the hot stab in frame 2; the frames."""
+    from cadalign.infer.config import InferConfig
     from cadalign.infer.detect import resolve_scene_dir
-    from cadalign.infer.pipeline import InferConfig
     from cadalign.infer.run import calibration_from_scene, run
 
     scene = resolve_scene_dir(tiny_sim)
@@ -348,8 +349,8 @@ def test_infer_completes_a_missed_part(tiny_sim: Path, tiny_structure, tmp_path:
 
 
 def test_infer_completes_without_camera_poses_in_the_ego_world(tiny_sim: Path, tiny_structure, tmp_path: Path) -> None:
+    from cadalign.infer.config import TemporalConfig
     from cadalign.infer.run import read_poses
-    from cadalign.infer.temporal import TemporalConfig
     from cadalign.io import read_json
 
     out = tmp_path / "out"  # ego: the camera poses registered on the parts

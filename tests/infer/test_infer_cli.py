@@ -144,12 +144,12 @@ def test_detector_choice_errors(tiny_sim: Path, tmp_path: Path) -> None:
 def test_predicted_depth_from_a_depth_network(tiny_sim: Path, tmp_path: Path) -> None:
     """``--depth RUN`` (a 'cadalign train depth' run): ICP runs on the network's metric depth of each frame, fed
     the raw frame prepared as its training images were, and the network's time is its own stage."""
-    from cadalign.data import image_prep
     from cadalign.infer.dense import load_dense_model, metric_depth
     from cadalign.infer.detect import resolve_scene_dir
     from cadalign.infer.run import _DepthSource, is_depth_run
     from cadalign.io import read_image
     from cadalign.models.dispnet import DispNetConfig
+    from cadalign.sfm import image_prep
     from cadalign.train.augment import AugmentConfig
     from cadalign.train.depth import DepthTrainConfig, train_depth
     from cadalign.train.loop import LoopConfig

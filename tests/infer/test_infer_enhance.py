@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cadalign.config import ConfigError, from_dict
-from cadalign.infer.pipeline import PRESETS, InferConfig
+from cadalign.infer.config import PRESETS, InferConfig
 from cadalign.infer.run import calibration_from_scene, run
 from cadalign.infer.video import iter_frames
 from cadalign.sfm.config import FrameConfig
@@ -68,8 +68,8 @@ def _seen(tiny_sim: Path, tiny_structure, out: Path, info: dict, enhance: str = 
 def test_auto_prepares_frames_as_the_runs_training_images(tiny_sim: Path, tiny_structure, tmp_path: Path) -> None:
     """'auto' reads the preparation the training run recorded (here CLAHE with a non-default clip), and the
     infer record says what was applied; a run naming only its dataset gets the dataset's record."""
-    from cadalign.data.image_prep import write_record
     from cadalign.io import read_json
+    from cadalign.sfm.image_prep import write_record
 
     raw = [f.image for f in iter_frames(tiny_sim / "frames")]
     prep = {"enhance": "clahe", "clahe_clip": 3.0, "clahe_tiles": 4}
@@ -103,9 +103,9 @@ def test_auto_feeds_raw_frames_to_an_oracle_or_a_run_that_says_nothing(tiny_sim:
 
 
 def test_read_prep_finds_the_record_a_simulation_or_an_older_build(tiny_sim: Path, tmp_path: Path) -> None:
-    from cadalign.data.image_prep import RECORD, read_prep
     from cadalign.errors import InputError
     from cadalign.io import write_json
+    from cadalign.sfm.image_prep import RECORD, read_prep
 
     assert read_prep(tiny_sim / "gt" / "sim" / "000000") == {"enhance": "none"}  # a simulator's raw frames
     assert read_prep(tmp_path) is None

@@ -9,10 +9,15 @@ import numpy as np
 import pytest
 
 from cadalign.cad.model import CadModel
-from cadalign.data.bop import BopScene
-from cadalign.data.torch_datasets import load_class_map
-from cadalign.eval import pose_metrics as pm
-from cadalign.eval.pose_eval import (
+from cadalign.formats.bop import BopScene
+from cadalign.formats.class_map import load_class_map
+from cadalign.geometry.rotations import axis_angle_to_matrix
+from cadalign.infer.config import PRESETS
+from cadalign.infer.detect import resolve_scene_dir
+from cadalign.infer.pipeline import PosePipeline
+from cadalign.metrics import pose as pm
+from cadalign.metrics.pose import rotation_error_deg
+from cadalign.metrics.pose_eval import (
     PoseEvalConfig,
     PosePrediction,
     evaluate_scene,
@@ -20,10 +25,7 @@ from cadalign.eval.pose_eval import (
     load_bop_models,
     table_markdown,
 )
-from cadalign.eval.pose_metrics import rotation_error_deg
-from cadalign.geometry.rotations import axis_angle_to_matrix
-from cadalign.infer.detect import OracleConfig, OracleDetector, resolve_scene_dir
-from cadalign.infer.pipeline import PRESETS, PosePipeline
+from cadalign.testing.oracle import OracleConfig, OracleDetector
 from cadalign.types import Rigid3
 
 
@@ -352,7 +354,7 @@ def test_a_track_is_identified_again_on_a_mask_grown_past_reidentify_growth(scen
                                                                             monkeypatch) -> None:
     """Frames 0-2 see half the valve (identified as a decoy), frames 3-5 all of it: with reidentify_growth the
     track's model is checked again on frame 3 and, found wrong, the track retires and the right model goes on."""
-    from cadalign.infer.refine import RefineConfig
+    from cadalign.infer.config import RefineConfig
 
     models = dict(tiny_structure.models)
     models[9] = CadModel("decoy", models[1].vertices_m * 0.3, models[1].faces, class_name="valve")

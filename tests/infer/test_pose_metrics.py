@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 
 from cadalign.cad.symmetry import Symmetry, axis_angle_matrix
 from cadalign.errors import InputError
-from cadalign.eval import pose_metrics as pm
 from cadalign.geometry.rotations import random_rotation
+from cadalign.metrics import pose as pm
 
 SQUARE = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0]])
 I3, Z3 = np.eye(3), np.zeros(3)
@@ -155,7 +155,7 @@ def test_error_stats_and_distance_bins() -> None:
 @settings(max_examples=30, deadline=None)
 @given(seed=st.integers(0, 10_000), density=st.floats(0.0, 1.0))
 def test_cropped_mask_round_trip(seed: int, density: float) -> None:
-    from cadalign.eval.pose_eval import CroppedMask
+    from cadalign.metrics.pose_eval import CroppedMask
 
     mask = np.random.default_rng(seed).random((7, 9)) < density * 0.3
     c = CroppedMask.of(mask)

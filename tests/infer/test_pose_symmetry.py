@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cadalign.cad.symmetry import Symmetry
-from cadalign.eval.pose_symmetry import CANDIDATES, symmetry_deviation, undeclared_symmetries, warn_undeclared
+from cadalign.metrics.pose_symmetry import CANDIDATES, symmetry_deviation, undeclared_symmetries, warn_undeclared
 
 
 def _box(a: float, b: float, c: float, n: int = 6) -> np.ndarray:

@@ -8,9 +8,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from infer_testdata import perturb, render_close_view
 
-from cadalign.eval.pose_metrics import add, rotation_error_deg, translation_error_m
+from cadalign.infer.config import RefineConfig
 from cadalign.infer.model_geom import ModelGeometry, contour_points, render_silhouette
-from cadalign.infer.refine import RefineConfig, SignedDistance, refine, refine_depth_icp, refine_silhouette
+from cadalign.infer.refine import SignedDistance, refine, refine_depth_icp, refine_silhouette
+from cadalign.metrics.pose import add, rotation_error_deg, translation_error_m
 from cadalign.types import Rigid3
 
 EYE = np.array([1.2, -1.0, 0.9])

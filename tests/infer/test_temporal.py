@@ -10,11 +10,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cadalign.cad.symmetry import Symmetry, axis_angle_matrix
-from cadalign.eval.pose_metrics import rotation_error_deg
 from cadalign.geometry.rotations import axis_angle_to_matrix, random_rotation
+from cadalign.infer.config import TemporalConfig
 from cadalign.infer.ego import predict_camera, register_camera
 from cadalign.infer.pose_math import Observation, apply_twist_camera, canonicalize, robust_mean, twist_between
-from cadalign.infer.temporal import TemporalConfig, TemporalFuser
+from cadalign.infer.temporal import TemporalFuser
+from cadalign.metrics.pose import rotation_error_deg
 from cadalign.types import Rigid3
 
 Z2 = Symmetry.from_name("discrete_z2")

@@ -13,8 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 
-from cadalign.infer.detect import TileConfig, TorchDetector, merge_detections, tile_windows
-from cadalign.infer.pipeline import InferConfig
+from cadalign.infer.config import InferConfig, TileConfig
+from cadalign.infer.detect import TorchDetector, merge_detections, tile_windows
 from cadalign.types import Detection
 
 

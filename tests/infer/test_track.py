@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cadalign.align.edge_refine import EdgeRefineConfig, edge_jacobian, motion, search_edges
 from cadalign.errors import InputError
 from cadalign.geometry.camera import project
 from cadalign.geometry.rotations import axis_angle_to_matrix, geodesic_angle
 from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, EdgeTracker, as_gray
 from cadalign.infer.track.run import TrackRunConfig, read_init_pose, track_video
 from cadalign.infer.track.tracker import StructureTracker, TrackerConfig
-from cadalign.render.edge_refine import EdgeRefineConfig, edge_jacobian, motion, search_edges
 from cadalign.types import Camera, Rigid3
 
 sys.path.insert(0, str(Path(__file__).parents[1]))
@@ -35,7 +35,7 @@ def boxes():
     structure's many outlines), seen from 5-6 m at 320x240. Returns (meshes, camera, render(T_world_from_cam))."""
     import trimesh
 
-    from cadalign.render.raycast import RaycastRenderer, RenderMesh
+    from cadalign.raycast.core import RaycastRenderer, RenderMesh
 
     rng = np.random.default_rng(0)
     meshes = []
@@ -280,11 +280,11 @@ class TestTrackBoxes:
 
 class TestTrackTiny:
     def test_a_part_missing_from_the_image_is_not_reported(self, boxes) -> None:
-        from cadalign.build_dataset import Structure
         from cadalign.cad.model import CadModel
         from cadalign.infer.track.run import part_records
-        from cadalign.render.bop_writer import PosedObject
-        from cadalign.render.raycast import RaycastRenderer
+        from cadalign.raycast.bop_writer import PosedObject
+        from cadalign.raycast.core import RaycastRenderer
+        from cadalign.sim.structure import Structure
 
         meshes, cam, render = boxes
         T = _view(1).inverse()
@@ -310,11 +310,11 @@ class TestTrackTiny:
     def test_a_part_whose_outline_separates_no_colours_is_missing(self, boxes) -> None:
         """With colour frames and the default thresholds: box 3 absent from the video (what lies behind it shows
         where the CAD puts it) is reported missing from the first frame on; the others are placed."""
-        from cadalign.build_dataset import Structure
         from cadalign.cad.model import CadModel
         from cadalign.infer.track.run import part_records
-        from cadalign.render.bop_writer import PosedObject
-        from cadalign.render.raycast import RaycastRenderer
+        from cadalign.raycast.bop_writer import PosedObject
+        from cadalign.raycast.core import RaycastRenderer
+        from cadalign.sim.structure import Structure
 
         meshes, cam, _ = boxes
         palette = np.array([(40, 90, 150), (200, 80, 40), (60, 170, 60), (210, 190, 40), (150, 60, 170),
@@ -424,10 +424,10 @@ def test_infer_tracks_rgb_frames_from_an_init_pose(tmp_path: Path, track_sim: Pa
 def test_detector_detections_propose_structure_poses() -> None:
     """Each detection of a class proposes T_cam_from_obj @ inv(T_world_from_obj) for every instance of that
     class, best score first, capped; a class the structure lacks proposes nothing."""
-    from cadalign.build_dataset import Structure
     from cadalign.cad.model import CadModel
     from cadalign.infer.track.start import hypotheses
-    from cadalign.render.bop_writer import PosedObject
+    from cadalign.raycast.bop_writer import PosedObject
+    from cadalign.sim.structure import Structure
     from cadalign.types import Detection
 
     box = CadModel("b", np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]]), np.array([[0, 1, 2]]))
@@ -450,10 +450,10 @@ def test_detector_detections_propose_structure_poses() -> None:
 def test_detected_part_centres_give_the_structure_pose() -> None:
     """PnP + RANSAC of detected centres against the CAD's part centres of the same class: which of a class's
     instances a detection is stays open, a wrong detection is outvoted, and fewer than 4 give nothing."""
-    from cadalign.build_dataset import Structure
     from cadalign.cad.model import CadModel
     from cadalign.infer.track.start import centre_hypotheses
-    from cadalign.render.bop_writer import PosedObject
+    from cadalign.raycast.bop_writer import PosedObject
+    from cadalign.sim.structure import Structure
     from cadalign.types import Detection
 
     tri = CadModel("b", np.array([[-0.1, -0.1, 0], [0.1, -0.1, 0], [0, 0.1, 0.0]]), np.array([[0, 1, 2]]))
@@ -485,9 +485,9 @@ def test_tracker_starts_from_restart_hypotheses_without_an_init_pose(tmp_path: P
     only while lost."""
     import imageio.v3 as iio
 
-    from cadalign.build_dataset import Structure
     from cadalign.cad.model import CadModel
-    from cadalign.render.bop_writer import PosedObject
+    from cadalign.raycast.bop_writer import PosedObject
+    from cadalign.sim.structure import Structure
 
     meshes, cam, render = boxes
     frames = tmp_path / "frames"

@@ -12,15 +12,14 @@ from infer_testdata import look_at
 
 from cadalign.cad.model import CadModel
 from cadalign.cad.procedural import make_part
-from cadalign.eval.pose_metrics import rotation_error_deg
 from cadalign.geometry.rotations import axis_angle_to_matrix
+from cadalign.infer.config import PRESETS, RefitConfig
 from cadalign.infer.depth_icp import depth_fit, masked_depth_points
 from cadalign.infer.model_geom import ModelGeometry, render_depth
-from cadalign.infer.pipeline import PRESETS, PosePipeline
+from cadalign.infer.pipeline import PosePipeline
 from cadalign.infer.pose_math import Observation
 from cadalign.infer.track_fit import (
     FittedTrack,
-    RefitConfig,
     TrackPoints,
     TrackView,
     ViewScoring,
@@ -33,6 +32,7 @@ from cadalign.infer.track_fit import (
     turn_by_view,
     view_score,
 )
+from cadalign.metrics.pose import rotation_error_deg
 from cadalign.types import Rigid3
 
 K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])

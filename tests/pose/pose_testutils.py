@@ -8,8 +8,8 @@ import numpy as np
 import torch
 
 from cadalign.cad.symmetry import Symmetry
-from cadalign.data.torch_datasets import DetectionPoseDataset
 from cadalign.models.maskrcnn import MaskRCNNConfig
+from cadalign.train.datasets import DetectionPoseDataset
 from cadalign.train.pose import _resize_item, load_object_geometry, locate_dataset
 from cadalign.train.pose_crop import masks_to_boxes
 from cadalign.train.pose_losses import ObjectGeometry, PoseLoss, PoseLossConfig

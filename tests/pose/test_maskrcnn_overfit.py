@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from cadalign.data.torch_datasets import detection_collate
 from cadalign.models.maskrcnn import MaskRCNNConfig, MaskRCNNPose
+from cadalign.train.datasets import detection_collate
 from cadalign.train.loop import LoopConfig, train_loop
 from cadalign.train.pose import ResizedDetectionDataset, load_object_geometry, locate_dataset, make_step_fn
 from cadalign.train.pose_eval import evaluate

@@ -8,8 +8,8 @@ import pytest
 import torch
 from pose_testutils import block_target, bop_items, on_mask_fraction, well_visible
 
-from cadalign.data.torch_datasets import detection_collate
 from cadalign.train.augment import AugmentConfig
+from cadalign.train.datasets import detection_collate
 from cadalign.train.loop import LoopConfig
 from cadalign.train.pose import PoseTrainConfig, load_object_geometry, locate_dataset, make_augment, targets_from_batch
 from cadalign.train.pose_crop import crop_batch, draw_paste, masks_to_boxes, paste_instances

@@ -17,13 +17,13 @@ import torch
 from pose_testutils import bop_items, doubled_frame, on_mask_fraction, tiny_cfg, well_visible
 
 from cadalign.cad.symmetry import Symmetry
-from cadalign.data.torch_datasets import DetectionPoseDataset, detection_collate
-from cadalign.eval import pose_metrics as pm
 from cadalign.geometry import matrix_to_euler
 from cadalign.geometry.torch_rotations import matrix_to_rotation_6d
+from cadalign.metrics import pose as pm
 from cadalign.models.maskrcnn import MaskRCNNPose
 from cadalign.models.maskrcnn.detector import PoseRoIs
 from cadalign.models.maskrcnn.pose_head import decode_pose, ego_to_allo, encode_translation
+from cadalign.train.datasets import DetectionPoseDataset, detection_collate
 from cadalign.train.pose import load_object_geometry, locate_dataset, targets_from_batch
 from cadalign.train.pose_crop import crop_batch, crop_target, masks_to_boxes
 

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from cadalign.data.torch_datasets import DetectionPoseDataset
-from cadalign.eval.pose_eval import PoseEvalConfig, PosePrediction, counted, gt_instances
 from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.infer.detect import frame_ids
 from cadalign.infer.pipeline import PoseRecord
 from cadalign.infer.run import evaluate_run
+from cadalign.metrics.pose_eval import PoseEvalConfig, PosePrediction, counted, gt_instances
+from cadalign.train.datasets import DetectionPoseDataset
 from cadalign.train.pose_eval import STAGES, evaluate, stage_recall
 from cadalign.types import Detection, Rigid3
 
@@ -86,7 +86,7 @@ def test_heldout_eval_agrees_with_eval_pose(pose_bop: Path):
     # only false positive of each frame whose class is scored
     ds = DetectionPoseDataset(pose_bop, ids)
     structure = ds.classes.names.index("structure")
-    from cadalign.data.bop import BopScene
+    from cadalign.formats.bop import BopScene
 
     scene = BopScene(pose_bop)
     care = [g for i in ids for g in gt_instances(scene, i, ds.classes.class_of_obj, masks=False)
@@ -135,7 +135,7 @@ def test_stage_recall_names_the_stage_that_loses_a_class(pose_bop: Path):
                             Rigid3(np.eye(3), np.zeros(3)))
              for i in range(len(ds)) for box, lab in zip(ds[i]["boxes"], ds[i]["labels"], strict=True)]
     rec = stage_recall(model, ds, preds, score_thresh=0.5)
-    from cadalign.data.bop import BopScene
+    from cadalign.formats.bop import BopScene
 
     scene = BopScene(pose_bop)
     n = {c: sum(1 for i in ids for g in gt_instances(scene, i, ds.classes.class_of_obj) if g.label == c and counted(

@@ -10,9 +10,9 @@ import torch
 from pose_testutils import block_target, doubled_frame, on_mask_fraction, well_visible
 
 from cadalign.config import from_dict
-from cadalign.data.torch_datasets import detection_collate
 from cadalign.errors import ConfigError
 from cadalign.train.augment import AugmentConfig
+from cadalign.train.datasets import detection_collate
 from cadalign.train.pose import PoseTrainConfig, make_augment, targets_from_batch
 from cadalign.train.pose_crop import crop_batch, draw_roll, masks_to_boxes, roll_frame, roll_matrix
 

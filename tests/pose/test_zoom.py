@@ -8,9 +8,9 @@ import pytest
 import torch
 from pose_testutils import block_target, doubled_frame, on_mask_fraction, well_visible
 
-from cadalign.data.torch_datasets import detection_collate
 from cadalign.models.maskrcnn.pose_head import encode_translation
 from cadalign.train.augment import AugmentConfig
+from cadalign.train.datasets import detection_collate
 from cadalign.train.pose import make_augment, targets_from_batch
 from cadalign.train.pose_crop import crop_batch, draw_zoom, masks_to_boxes, zoom_target
 

@@ -11,17 +11,15 @@ from pathlib import Path
 
 import pytest
 from reliability_testdata import CATALOGUE, markdown_table
-from sim_testdata import write_tiny_scene
+
+from cadalign.sim.run import SCENE_SUBDIR
+from cadalign.testing.tiny_scene import simulate_tiny
 
 
 @pytest.fixture(scope="session")
 def tiny_bop(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> Path:
     """The BOP scene folder of a 2-frame effect-free 160x120 simulation (read-only: copy before corrupting)."""
-    from cadalign.sim.run import SCENE_SUBDIR, simulate
-
-    root = tmp_path_factory.mktemp("rel_bop")
-    scene = write_tiny_scene(root / "tiny.toml", effects=[], frames=2)
-    return simulate(scene, root / "sim", video=False, contact_sheet=False) / SCENE_SUBDIR
+    return simulate_tiny(tmp_path_factory.mktemp("rel_bop"), frames=2) / SCENE_SUBDIR
 
 
 @pytest.fixture(scope="session", autouse=True)

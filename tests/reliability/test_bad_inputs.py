@@ -15,18 +15,18 @@ import numpy as np
 import pytest
 import trimesh
 from reliability_testdata import expect_error, expect_warning
-from sim_testdata import write_tiny_scene
 
 from cadalign.cad import load_cad
 from cadalign.cad.units import check_unit
 from cadalign.config import read_mapping, resolve
-from cadalign.data.bop import BopScene
 from cadalign.errors import ConfigError, DegenerateGeometryError, InputError, UnitError
+from cadalign.formats.bop import BopScene
 from cadalign.io import write_image
 from cadalign.sfm.config import PRESETS as SFM_PRESETS
 from cadalign.sfm.config import FrameConfig, SfMConfig
 from cadalign.sfm.frames import extract_frames, select_frames
 from cadalign.sim.spec import load_scene, resolve_source
+from cadalign.testing.tiny_scene import write_tiny_scene
 from cadalign.types import Camera, Rigid3, Sim3
 
 W, H = 96, 72

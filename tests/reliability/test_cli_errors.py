@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from sim_testdata import write_tiny_scene
 from typer.testing import CliRunner
 
 from cadalign.cli.main import app
+from cadalign.testing.tiny_scene import write_tiny_scene
 
 runner = CliRunner()
 

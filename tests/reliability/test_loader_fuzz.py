@@ -26,8 +26,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from cadalign.cad import load_cad
-from cadalign.data.bop import BopScene
 from cadalign.errors import CadalignError
+from cadalign.formats.bop import BopScene
 from cadalign.sim.spec import load_scene
 
 pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")  # a damaged file must not emit NaN/overflow noise

@@ -20,8 +20,8 @@ from scipy.spatial.transform import Rotation
 
 from cadalign.cad.clean import clean_mesh
 from cadalign.config import from_dict
-from cadalign.data.bop import decode_depth, encode_depth
 from cadalign.errors import CadalignError, ConfigError, DegenerateGeometryError
+from cadalign.formats.bop import decode_depth, encode_depth
 from cadalign.geometry import backproject, depth_to_points, fit_plane, geodesic_angle, project, umeyama
 from cadalign.geometry.transforms import sim3_from_matrix
 from cadalign.sfm.config import FrameConfig

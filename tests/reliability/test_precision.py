@@ -15,7 +15,6 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from cadalign.emulate.raycast_engines import BVHEngine, TorchEngine
-from cadalign.eval.depth_metrics import DepthEvalConfig, depth_errors, frame_depth_errors
 from cadalign.fuse.semantic import bayes_update, clamped_log_probs, probs_from_labels
 from cadalign.geometry import depth_to_points, geodesic_angle, kabsch, pixel_rays, umeyama
 from cadalign.geometry import torch_rotations as tr
@@ -26,6 +25,7 @@ from cadalign.geometry.rotations import (
     rotation_6d_to_matrix,
 )
 from cadalign.geometry.transforms import compose, invert, sim3_from_matrix, transform_points
+from cadalign.metrics.depth import DepthEvalConfig, depth_errors, frame_depth_errors
 from cadalign.types import Rigid3, Sim3
 
 pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")

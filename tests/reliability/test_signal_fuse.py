@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from sim_testdata import write_tiny_scene
 
 from cadalign.fuse.config import FuseConfig
 from cadalign.fuse.inputs import FrameSource
@@ -19,6 +18,7 @@ from cadalign.fuse.map_io import load_map, read_ply
 from cadalign.fuse.run import REPORT, run
 from cadalign.fuse.tsdf import SemanticTSDF
 from cadalign.io import read_json
+from cadalign.testing.tiny_scene import write_tiny_scene
 
 CFG = FuseConfig(voxel_m=0.04, block_count=2000, depth_max_m=12.0)
 

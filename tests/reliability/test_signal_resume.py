@@ -18,10 +18,10 @@ from signal_testdata import (
     run_to_end,
     tree_digest,
 )
-from sim_testdata import write_picks_from_truth, write_tiny_scene
 
 from cadalign.errors import InputError
 from cadalign.io import read_json
+from cadalign.testing.tiny_scene import write_picks_from_truth, write_tiny_scene
 
 BUILD_SCENE_EDITS = (  # the capture of tests/build: a closer orbit round a bigger block (SfM points on it)
     ("width = 160", "width = 320"), ("height = 120", "height = 240"), ("speed_mps = 0.5", "speed_mps = 0.3"),

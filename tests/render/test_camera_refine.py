@@ -9,7 +9,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from cadalign.render.camera_refine import CameraRefineConfig, refine_cameras
+from cadalign.align.camera_refine import CameraRefineConfig, refine_cameras
 from cadalign.types import Sim3
 
 F = 300.0

@@ -11,7 +11,7 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cadalign.render.edge_refine import (
+from cadalign.align.edge_refine import (
     EdgeRefineConfig,
     contour_samples,
     edge_align_frames,
@@ -19,7 +19,7 @@ from cadalign.render.edge_refine import (
     moved_camera,
     search_edges,
 )
-from cadalign.render.raycast import RaycastRenderer, RenderMesh
+from cadalign.raycast.core import RaycastRenderer, RenderMesh
 from cadalign.types import Camera, Rigid3, Sim3
 
 CFG = EdgeRefineConfig()

@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cadalign.errors import InputError
-from cadalign.render import RaycastRenderer, RenderMesh
+from cadalign.raycast import RaycastRenderer, RenderMesh
 from cadalign.types import Camera, Rigid3
 
 CAM = Camera(np.array([[80.0, 0, 40.0], [0, 80.0, 30.0], [0, 0, 1]]), 80, 60)

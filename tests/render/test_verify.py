@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from cadalign.render.raycast import RaycastRenderer, RenderMesh, pixel_rays_cam
-from cadalign.render.verify import (
+from cadalign.align.verify.core import (
     FreeSpaceRays,
     HypothesisEvidence,
     VerifyConfig,
@@ -17,6 +16,7 @@ from cadalign.render.verify import (
     decide,
     verify,
 )
+from cadalign.raycast.core import RaycastRenderer, RenderMesh, pixel_rays_cam
 from cadalign.types import Camera, Rigid3, Sim3
 
 CAM = Camera(np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]]), 160, 120)
@@ -67,7 +67,7 @@ def scene() -> tuple[list[View], RenderMesh, FreeSpaceRays]:
                                                           seed=0)[0]])
     import open3d as o3d
 
-    from cadalign.render.verify_evidence import cad_scene, free_space_evidence
+    from cadalign.align.verify.evidence import cad_scene, free_space_evidence
 
     scene_obj, origin = cad_scene([obj])
     for k, az in enumerate(np.radians(np.arange(0, 360, 60) + 15)):

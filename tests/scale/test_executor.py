@@ -14,12 +14,12 @@ from hypothesis import strategies as st
 from scale_testdata import dataset_bytes, fresh_out, jobs_args, write_jobs
 from typer.testing import CliRunner
 
+from cadalign.build import ExecutorConfig, RayExecutor, executor_config, make_executor
+from cadalign.build.executor import chunks
+from cadalign.build.frames import CameraModel
 from cadalign.cli.main import app
 from cadalign.errors import ConfigError
 from cadalign.io import read_json
-from cadalign.scale import ExecutorConfig, RayExecutor, executor_config, make_executor
-from cadalign.scale.executor import chunks
-from cadalign.scale.frames import CameraModel
 
 
 def test_executor_config_from_cli_values() -> None:
@@ -54,7 +54,7 @@ def test_ray_executor_without_ray_installed_is_refused_before_any_work(monkeypat
 def test_unreachable_cluster_is_a_config_error_naming_the_address(monkeypatch: pytest.MonkeyPatch) -> None:
     """Ray's own connection error (after its retries) becomes the project's error with the fix."""
     ray = pytest.importorskip("ray")
-    from cadalign.scale.executor import ensure_ray
+    from cadalign.build.executor import ensure_ray
 
     def refuse(**kwargs: object) -> None:
         raise ConnectionError(f"could not reach {kwargs['address']}")
@@ -85,7 +85,7 @@ def test_chunks_keep_order_and_size(n: int, size: int) -> None:
 def test_camera_model_rebuilds_the_same_rays() -> None:
     import pycolmap
 
-    from cadalign.render.camera_refine import rays_of
+    from cadalign.align.camera_refine import rays_of
 
     cam = pycolmap.Camera(model="SIMPLE_RADIAL", width=8, height=6, params=[7.5, 4.0, 3.0, -0.05])
     model = CameraModel.of(cam)
@@ -131,7 +131,7 @@ def test_local_build_does_not_import_ray(local_build: Path, scale_capture: tuple
 
 
 def test_read_jobs_resolves_paths_defaults_and_names(tmp_path: Path) -> None:
-    from cadalign.scale.videos import VideoJob, read_jobs
+    from cadalign.build.videos import VideoJob, read_jobs
 
     jobs = write_jobs(tmp_path / "jobs.toml", [{"source": "dives/d1.mp4", "init": "p1.json"},
                                                {"source": "/abs/d2", "name": "second", "cad": "other.ply",
@@ -149,7 +149,7 @@ def test_read_jobs_resolves_paths_defaults_and_names(tmp_path: Path) -> None:
     ([], "expected only \\[\\[video\\]\\] entries"),
 ])
 def test_read_jobs_refuses_bad_files(tmp_path: Path, entries: list, message: str) -> None:
-    from cadalign.scale.videos import read_jobs
+    from cadalign.build.videos import read_jobs
 
     jobs = write_jobs(tmp_path / "jobs.toml", entries)
     with pytest.raises(ConfigError, match=message):

@@ -15,9 +15,9 @@ import pytest
 from scale_testdata import dataset_bytes, fresh_out, write_jobs
 from typer.testing import CliRunner
 
+from cadalign.build import ExecutorConfig, FrameJob, FrameShared, RayExecutor, render_chunk
 from cadalign.cli.main import app
 from cadalign.io import read_json
-from cadalign.scale import ExecutorConfig, FrameJob, FrameShared, RayExecutor, render_chunk
 
 ray = pytest.importorskip("ray")
 
@@ -107,7 +107,7 @@ def test_cli_ray_executor_uses_the_running_ray(local_build: Path, scale_capture:
 
 
 def _build(local_build: Path, capture: tuple[Path, Path], out: Path, executor: RayExecutor) -> Path:
-    from cadalign.build_dataset import build_dataset
+    from cadalign.build.run import build_dataset
 
     spec, sim = capture
     fresh_out(local_build, out)
@@ -174,7 +174,7 @@ def test_many_videos_one_ray_task_each(local_build: Path, scale_capture: tuple[P
                                        ray_two_cpus: None) -> None:
     """Two videos of a jobs file: each is built in a Ray worker (not this process) into ROOT/<name>/, with
     the reference bytes, and the report lists both."""
-    from cadalign.scale.videos import VideoJob, VideoResult, build_one, build_videos, read_jobs
+    from cadalign.build.videos import VideoJob, VideoResult, build_one, build_videos, read_jobs
 
     spec, sim = scale_capture
     root, pids = tmp_path / "root", tmp_path / "pids"

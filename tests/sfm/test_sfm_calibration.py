@@ -12,7 +12,7 @@ import pytest
 from sfm_synthetic import synthetic_model
 
 from cadalign.errors import InputError
-from cadalign.eval.sfm_metrics import pose_errors
+from cadalign.evaluate.sfm import pose_errors
 from cadalign.sfm.config import PRESETS
 from cadalign.sfm.refine import refine
 from cadalign.sfm.report import cameras_json, intrinsics_from_cameras_json

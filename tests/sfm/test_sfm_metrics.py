@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cadalign.errors import InputError
-from cadalign.eval.sfm_metrics import depth_errors, median_scene_distance, pose_errors
+from cadalign.evaluate.sfm import depth_errors, median_scene_distance, pose_errors
 from cadalign.types import Sim3
 
 

@@ -42,7 +42,7 @@ def test_preset_maps_the_default_orbit(preset: str, default_orbit: Path, tmp_pat
     registered with no break. (At 0.5 frame/s, 64 frames: 0.061 deg / 1.24 cm and 0.066 deg / 1.28 cm.)"""
     import json
 
-    from cadalign.eval.sfm_metrics import run as evaluate
+    from cadalign.evaluate.sfm import run as evaluate
     from cadalign.sfm import run
     from cadalign.sfm.report import intrinsics_from_cameras_json
     from cadalign.sim.spec import default_scene_path, load_scene

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 
 from cadalign.cli.main import app
 from cadalign.config import from_dict
-from cadalign.eval.sfm_metrics import GT_SCENE, pose_errors
+from cadalign.evaluate.sfm import GT_SCENE, pose_errors
 from cadalign.io import read_json
 from cadalign.sfm import mapping
 from cadalign.sfm.config import SfMConfig

@@ -18,7 +18,7 @@ GT_SCENE = Path("gt") / "sim" / "000000"
 
 @pytest.fixture(scope="module")
 def sfm_with_gt(five_frames: Path, tiny_dive: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from cadalign.eval.sfm_metrics import run as evaluate
+    from cadalign.evaluate.sfm import run as evaluate
     from cadalign.sfm import PRESETS, run
 
     cfg = dataclasses.replace(PRESETS["fast"], num_threads=1)  # one thread: deterministic

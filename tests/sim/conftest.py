@@ -5,7 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from sim_testdata import ALL_EFFECTS, write_tiny_scene
+
+from cadalign.sim.run import simulate
+from cadalign.testing.tiny_scene import ALL_EFFECTS, write_tiny_scene
 
 
 @pytest.fixture(scope="session")
@@ -16,8 +18,6 @@ def tiny_scene_file(tmp_path_factory: pytest.TempPathFactory, shared_data: Path)
 @pytest.fixture(scope="session")
 def tiny_sim(tmp_path_factory: pytest.TempPathFactory, tiny_scene_file: Path) -> Path:
     """A finished simulation of the tiny scene with every effect on."""
-    from cadalign.sim.run import simulate
-
     return simulate(tiny_scene_file, tmp_path_factory.mktemp("sim") / "out")
 
 

@@ -9,7 +9,7 @@ import pytest
 
 from cadalign.config import ConfigError
 from cadalign.sim.spec import load_scene, resolve_source
-from tests.sim_testdata import write_tiny_scene
+from cadalign.testing.tiny_scene import write_tiny_scene
 
 MESH = "v 0 0 0\nv 0.4 0 0\nv 0 0.4 0\nv 0 0 0.4\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
 

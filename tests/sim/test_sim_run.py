@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from sim_testdata import ALL_EFFECTS, write_tiny_scene
 
-from cadalign.data.bop import BopScene
 from cadalign.errors import ConfigError
+from cadalign.formats.bop import BopScene
 from cadalign.io import read_image, read_json
 from cadalign.sim.run import SCENE_SUBDIR, simulate
+from cadalign.testing.tiny_scene import ALL_EFFECTS, write_tiny_scene
 
 
 def _ray_mask(mesh_m: trimesh.Trimesh, T_cam_from_obj: np.ndarray, K: np.ndarray, w: int, h: int) -> np.ndarray:

@@ -5,17 +5,15 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from sim_testdata import write_tiny_scene
+
+from cadalign.sim.run import SCENE_SUBDIR
+from cadalign.testing.tiny_scene import simulate_tiny
 
 
 @pytest.fixture(scope="session")
 def tiny_dense(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> Path:
     """The BOP scene folder; its derived time-block split is 4 train, 1 val, 1 test frames."""
-    from cadalign.sim.run import SCENE_SUBDIR, simulate
-
-    root = tmp_path_factory.mktemp("dense")
-    scene = write_tiny_scene(root / "tiny.toml", effects=[], frames=6)
-    return simulate(scene, root / "sim", video=False, contact_sheet=False) / SCENE_SUBDIR
+    return simulate_tiny(tmp_path_factory.mktemp("dense"), frames=6) / SCENE_SUBDIR
 
 
 TINY_TOML = """

@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cadalign.errors import InputError
-from cadalign.eval.depth_metrics import DepthAccumulator, DepthEvalConfig, depth_errors, frame_depth_errors
-from cadalign.eval.seg_metrics import confusion_matrix, seg_metrics
+from cadalign.metrics.depth import DepthAccumulator, DepthEvalConfig, depth_errors, frame_depth_errors
+from cadalign.metrics.seg import confusion_matrix, seg_metrics
 
 
 def test_confusion_and_iou_by_hand():

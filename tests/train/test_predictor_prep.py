@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cadalign.data.image_prep import RAW, prep_named, to_feed
 from cadalign.fuse.predictors import depth_predictor, seg_predictor
 from cadalign.infer.dense import load_dense_model, metric_depth, seg_probabilities
 from cadalign.io import read_json, write_json
@@ -16,6 +15,7 @@ from cadalign.models.dispnet import DispNetConfig
 from cadalign.models.resunet import ResUNetConfig
 from cadalign.sfm.config import FrameConfig
 from cadalign.sfm.frames import enhance
+from cadalign.sfm.image_prep import RAW, prep_named, to_feed
 from cadalign.train.augment import AugmentConfig
 from cadalign.train.depth import DepthTrainConfig, train_depth
 from cadalign.train.loop import LoopConfig
@@ -46,7 +46,7 @@ def runs(tiny_dense: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Pa
 
 def _frame(tiny_dense: Path) -> np.ndarray:
     """The scene's first frame, read as fusion reads it."""
-    from cadalign.data.bop import BopScene
+    from cadalign.formats.bop import BopScene
 
     scene = BopScene(tiny_dense)
     return scene.rgb(scene.ids[0])
@@ -88,7 +88,7 @@ def test_emulate_prepares_an_image_source_as_the_networks_training_images(runs, 
     """``cadalign emulate ... --model-seg/--model-depth``: a simulator's raw frame gets the CLAHE the networks
     were trained with (the source's preparation is read from its scene), like fusion's predictors."""
     from cadalign.cli.emulate import _predictors
-    from cadalign.data.bop import BopScene
+    from cadalign.formats.bop import BopScene
 
     seg_run, depth_run = runs
     scene = BopScene(tiny_dense)

@@ -12,11 +12,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
+from cadalign.align.edge_refine import EdgeRefineConfig, contour_samples
 from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.infer.track.edges import EdgeTracker
-from cadalign.render.edge_refine import EdgeRefineConfig, contour_samples
 from cadalign.types import Rigid3
 
 
@@ -40,8 +41,6 @@ class AcquireConfig:
 
 
 def _edge_strength(gray: np.ndarray, blur_px: float) -> np.ndarray:
-    import cv2
-
     gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
     m = np.sqrt(gx * gx + gy * gy)
@@ -56,7 +55,6 @@ def candidates(tracker: EdgeTracker, gray: np.ndarray, T_world_from_cam: Rigid3,
                cfg: AcquireConfig | None = None) -> list[tuple[float, Rigid3]]:
     """(score, ``T_world_from_cam``) of the best (pan, tilt, roll) turns of the camera at a rough pose, best
     first; empty when the CAD shows no contour there. ``gray``: the full-resolution frame (float32 0-255)."""
-    import cv2
 
     cfg = cfg or AcquireConfig()
     r = tracker.renderer(tracker.usable(cfg.scale))

@@ -18,10 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from cadalign.build_dataset import Structure
+from cadalign.config import resolve
+from cadalign.infer.detect import TorchDetector
 from cadalign.infer.track.edges import as_gray
 from cadalign.infer.track.tracker import StructureTracker, TrackerConfig
 from cadalign.infer.video import iter_frames
+from cadalign.sim.structure import Structure
 from cadalign.types import Camera, Rigid3
 
 
@@ -74,19 +76,16 @@ def time_tracker(frames: list[np.ndarray], structure: Structure, camera: Camera,
 def time_detector(frames: list[np.ndarray], camera: Camera, model: Path | None, classes: tuple[str, ...],
                   recipe: Path | None = None) -> tuple[list[float], str]:
     """CPU s per frame of the detector alone, and what it was."""
-    import torch
-
-    from cadalign.infer.detect import TorchDetector
+    import torch  # lazy: heavy dependency (torch)
 
     if model is not None:
-        from cadalign.models.maskrcnn.detector import load_pose_model
+        from cadalign.models.maskrcnn.detector import load_pose_model  # lazy: pulls torch
 
         net, _ = load_pose_model(model)
         what = f"trained network {model}"
     else:
-        from cadalign.config import resolve
-        from cadalign.models.maskrcnn.detector import MaskRCNNPose
-        from cadalign.train.pose import PRESETS, PoseTrainConfig
+        from cadalign.models.maskrcnn.detector import MaskRCNNPose  # lazy: pulls torch
+        from cadalign.train.pose import PRESETS, PoseTrainConfig  # lazy: pulls kornia, torch
 
         cfg = resolve(PoseTrainConfig, PRESETS, "fast", recipe)
         torch.manual_seed(0)

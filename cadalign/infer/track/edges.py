@@ -2,9 +2,9 @@
 
 At each level (a scale of the image) the CAD is ray-cast at the current pose with a camera of that size, its
 occluding contours are sampled with their image-plane normals
-(:func:`cadalign.render.edge_refine.contour_samples`), the image is searched along each normal for the edge of
-the expected contrast sign (:func:`~cadalign.render.edge_refine.search_edges`), and one rigid motion is
-fitted to the offsets by Tukey IRLS (:func:`~cadalign.render.edge_refine.fit_correction`). A coarse level
+(:func:`cadalign.align.edge_refine.contour_samples`), the image is searched along each normal for the edge of
+the expected contrast sign (:func:`~cadalign.align.edge_refine.search_edges`), and one rigid motion is
+fitted to the offsets by Tukey IRLS (:func:`~cadalign.align.edge_refine.fit_correction`). A coarse level
 with a long search range captures motions of tens of pixels; the finer levels finish to sub-pixel.
 
 The quality of the result is read at the finest level with a short search: the share of contour samples
@@ -16,11 +16,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import cv2
 import numpy as np
 
-from cadalign.geometry.camera import project
-from cadalign.infer.track.region import RegionConfig, RegionModel, sample_instances
-from cadalign.render.edge_refine import (
+from cadalign.align.edge_refine import (
     EdgeRefineConfig,
     contour_samples,
     edge_jacobian,
@@ -29,7 +28,9 @@ from cadalign.render.edge_refine import (
     moved_camera,
     search_edges,
 )
-from cadalign.render.raycast import RaycastRenderer, RenderMesh
+from cadalign.geometry.camera import project
+from cadalign.infer.track.region import RegionConfig, RegionModel, sample_instances
+from cadalign.raycast.core import RaycastRenderer, RenderMesh
 from cadalign.types import Camera, Rigid3
 
 
@@ -166,7 +167,6 @@ class EdgeTracker:
         Each level renders the CAD once, at the pose it starts from; its rounds move the contour samples' 3-D
         points with the pose and search again (the contour generator hardly moves within a level's
         correction), as model-based edge trackers do."""
-        import cv2
 
         T = T_world_from_cam
         last: tuple[Any, np.ndarray, Any] | None = None
@@ -219,8 +219,6 @@ class EdgeTracker:
         """(the colour frame at the level's size, each contour sample's part) when the region term is on."""
         if self.colour_frame is None or not self.region.ready:
             return None
-        import cv2  # lazy: cv2 is only needed once a frame is fitted
-
         rgb = self.colour_frame
         if rgb.shape[1] != r.camera.width:
             rgb = cv2.resize(rgb, (r.camera.width, r.camera.height), interpolation=cv2.INTER_AREA)
@@ -310,8 +308,7 @@ def _pixels(K: np.ndarray, X_cam: np.ndarray) -> np.ndarray:
 def as_gray(image: np.ndarray, colour: bool = False) -> np.ndarray:
     """The frame as the edge search reads it: (H, W) float32 grey levels 0-255 of an RGB uint8 (or already
     grey) image, or with ``colour`` the (H, W, 3) channels as float32 (each edge sample then takes its strongest
-    channel, :func:`~cadalign.render.edge_refine.search_edges`)."""
-    import cv2
+    channel, :func:`~cadalign.align.edge_refine.search_edges`)."""
 
     if image.ndim == 3 and colour:
         return np.ascontiguousarray(image[..., :3], dtype=np.float32)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from cadalign.types import Rigid3
@@ -61,8 +62,6 @@ class FlowPredictor:
     def remember(self, gray: np.ndarray, depth_m: np.ndarray, instance: np.ndarray,
                  T_world_from_cam: Rigid3) -> None:
         """Keep a tracked frame: ``gray`` (H, W), the CAD's z-depth and instance map at its pose (same size)."""
-        import cv2  # lazy: cv2 is only needed once a frame is tracked
-
         if not self.cfg.enabled or depth_m.shape != gray.shape:
             self._gray = None
             return
@@ -85,8 +84,6 @@ class FlowPredictor:
     def predict(self, gray: np.ndarray, guess: Rigid3 | None) -> Rigid3 | None:
         """``T_world_from_cam`` of ``gray`` from the flow, or None (no kept frame, too few corners followed, or
         PnP found too few inliers). ``guess``: a prior pose for PnP (e.g. the constant-velocity one)."""
-        import cv2  # lazy: cv2 is only needed once a frame is tracked
-
         if not self.ready:
             return None
         assert self._gray is not None and self._pts is not None and self._X_w is not None

@@ -10,13 +10,14 @@ pixel a foreground probability ``pf``; the contour's position ``d`` along the no
     E(d) = sum_{t < d} log pf(t) + sum_{t > d} log(1 - pf(t))
 
 and the mean of ``exp(E)`` over ``d`` is the sample's region offset: a 1-D correspondence along the normal
-like the edge search's, fitted by the same IRLS (:func:`cadalign.render.edge_refine.fit_correction`).
+like the edge search's, fitted by the same IRLS (:func:`cadalign.align.edge_refine.fit_correction`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 
@@ -103,8 +104,6 @@ class RegionModel:
                 search_px: float) -> np.ndarray:
         """Region offset (pixels of ``rgb``'s scale, along ``normal``; NaN: the colours do not place the
         contour) of each contour sample at ``uv`` (array convention, the predicted contour)."""
-        import cv2  # lazy: cv2 is only needed once a frame is fitted
-
         S = max(int(round(search_px)), 1)
         t = np.arange(-S, S) + 0.5  # pixel centres along the line, the predicted contour at 0
         p = uv[:, None, :] + t[None, :, None] * normal[:, None, :]

@@ -23,18 +23,20 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
-from cadalign.build_dataset import Structure
 from cadalign.errors import InputError
 from cadalign.formats.calibration import CameraCalibration, Undistorter
+from cadalign.geometry.rotations import geodesic_angle
 from cadalign.infer.pipeline import PoseRecord
-from cadalign.infer.run import video_writer
+from cadalign.infer.run import evaluate_run, video_writer
 from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, as_gray, with_levels
 from cadalign.infer.track.start import pose_from_picks
 from cadalign.infer.track.tracker import StructureTracker, TrackerConfig, TrackStep
 from cadalign.infer.video import iter_frames
 from cadalign.io import atomic_path, prepare_stage_dir, read_json, write_json
+from cadalign.sim.structure import Structure
 from cadalign.types import Camera, Progress, Rigid3
 
 log = logging.getLogger(__name__)
@@ -149,8 +151,6 @@ def part_records(step: TrackStep, frame_index: int, name: str, structure: Struct
 
 
 def _draw(image: np.ndarray, step: TrackStep) -> np.ndarray:
-    import cv2
-
     img = image.copy()
     f = step.fit
     if step.state == "ok" and f is not None and f.uv is not None and len(f.uv):
@@ -236,8 +236,6 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
     log.info("track: %d frames, %d tracked, %d lost, %d poses -> %s", len(names), states["ok"], states["lost"],
              len(records), poses_path)
     if gt_scene is not None:
-        from cadalign.infer.run import evaluate_run
-
         evaluate_run(records, names, gt_scene, out_dir)
     return poses_path
 
@@ -288,7 +286,6 @@ def truth_report(out_dir: Path, structure: Structure, truth: dict[str, Rigid3]) 
     """Per-frame errors of each part's tracked pose against reference camera poses (``truth_errors.json``) and
     their plot (``truth_errors.png``): the part's centre in the camera (mm) and its rotation (deg); a lost
     frame has none."""
-    from cadalign.geometry.rotations import geodesic_angle
 
     rows = []
     for line in (Path(out_dir) / "track.jsonl").read_text(encoding="utf-8").splitlines():
@@ -320,7 +317,7 @@ def truth_report(out_dir: Path, structure: Structure, truth: dict[str, Rigid3]) 
 
 
 def _plot_truth(path: Path, rows: list[dict], names: list[str]) -> None:
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # lazy: heavy dependency (matplotlib)
 
     fig = Figure(figsize=(9, 5), dpi=100)
     ax1, ax2 = fig.subplots(2, 1, sharex=True)

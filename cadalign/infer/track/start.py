@@ -12,9 +12,13 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+import cv2
 import numpy as np
 
-from cadalign.build_dataset import Structure
+from cadalign.infer import detect as det
+from cadalign.infer.run import resolve_prep
+from cadalign.sfm import image_prep
+from cadalign.sim.structure import Structure
 from cadalign.types import Camera, Rigid3
 
 
@@ -42,8 +46,6 @@ def centre_hypotheses(detections: list, structure: Structure, class_names: tuple
     class with several instances makes each detection ambiguous, so each RANSAC sample also draws which
     instance each of its 4 detections is. Returns ``[("detector:centres", T_cam_from_world)]`` when at least 4
     detections agree within ``inlier_px`` (default: 4 % of the image width), else ``[]``."""
-    import cv2  # lazy: cv2 is only needed once detections arrive
-
     tol = 0.04 * camera.width if inlier_px is None else inlier_px
     uv, cls = [], []
     for d in detections:
@@ -117,10 +119,7 @@ def detector_restarts(model: Path | tuple, structure: Structure, camera: Camera,
     """A restart source for :func:`cadalign.infer.track.run.track_video` from a trained pose network (its run
     folder, or ``(network, meta)`` as :func:`~cadalign.models.maskrcnn.detector.load_pose_model` returns them),
     and the record of what it is."""
-    from cadalign.data import image_prep
-    from cadalign.infer import detect as det
-    from cadalign.infer.run import resolve_prep
-    from cadalign.models.maskrcnn.detector import load_pose_model
+    from cadalign.models.maskrcnn.detector import load_pose_model  # lazy: pulls torch
 
     net, meta = load_pose_model(model, device) if isinstance(model, Path) else model
     class_names = tuple(meta.get("classes", structure.class_names))
@@ -144,8 +143,6 @@ def pose_from_picks(uv_px: np.ndarray, xyz_world_m: np.ndarray, camera: Camera,
     on the CAD, scene frame, metres (N >= 4; 6 or more spread over the structure are safer). Returns the pose
     and the picks' RMS reprojection error, pixels. Raises ``ValueError`` when the picks are too few, degenerate,
     or disagree by more than ``max_error_px`` RMS (a point picked on the wrong corner)."""
-    import cv2  # lazy: cv2 is only needed for this start
-
     uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2) + 0.5  # to the intrinsics' convention
     X = np.asarray(xyz_world_m, dtype=np.float64).reshape(-1, 3)
     if len(uv) != len(X):

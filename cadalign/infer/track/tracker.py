@@ -19,7 +19,7 @@ from cadalign.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_ang
 from cadalign.infer.track.acquire import AcquireConfig, candidates
 from cadalign.infer.track.edges import EdgeFit, EdgeLevel, EdgeTrackConfig, EdgeTracker
 from cadalign.infer.track.flow import FlowConfig, FlowPredictor
-from cadalign.render.raycast import RenderMesh
+from cadalign.raycast.core import RenderMesh
 from cadalign.types import Camera, Rigid3
 
 log = logging.getLogger(__name__)
@@ -114,7 +114,7 @@ class StructureTracker:
     """Online tracker of the whole CAD structure (one rigid assembly) in RGB frames.
 
     ``meshes``: the structure's parts placed in the world frame (ray-cast instances, as
-    :meth:`cadalign.build_dataset.Structure.render_meshes` gives). ``camera``: intrinsics and frame size.
+    :meth:`cadalign.sim.structure.Structure.render_meshes` gives). ``camera``: intrinsics and frame size.
     """
 
     def __init__(self, meshes: list[RenderMesh], camera: Camera, cfg: TrackerConfig | None = None) -> None:

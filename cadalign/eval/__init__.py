@@ -1,1 +1,0 @@
-"""Metrics, the accuracy-versus-time benchmark and the HTML report."""
