@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# The tracker measurements of docs/tuning/tracker.md (session 50), RGB only: intrinsics from each capture's
+# calibration.json, the start from --init-pose (the first frame's true pose turned 10 deg about a random axis and
+# moved 0.5 m, seed 1: a navigation fix), --gt for scoring only. Run from the repository root:
+#   docs/tuning/tracker_runs.sh OUT
+# Simulations are made when missing (`cadalign sim`, ~4 min each on 2 cores); visp_rbt is read from
+# ../shared/data (set CADALIGN_DATA_DIR elsewhere).
+set -euo pipefail
+OUT=${1:?usage: tracker_runs.sh OUT}
+PY=${PY:-.venv/bin/python}
+CA=${CA:-.venv/bin/cadalign}
+mkdir -p "$OUT"
+run_sim() {  # scene name, simulation folder, scene file the tracker gets
+  local scene=$1 sim=$2 cad=$3
+  [ -d "$sim/frames" ] || $CA sim "datasets/scenes/$scene.toml" --out "$sim"
+  $PY -c "import json, sys; from pathlib import Path; from cadalign.demo.stages import simulated_navigation_pose as nav
+cams = json.loads(Path(sys.argv[1], 'gt/sim/000000/cameras.json').read_text())['frames']
+json.dump({'T_cam_from_world': nav(Path(sys.argv[1]), sorted(cams)[0], seed=1).matrix().tolist()}, open(sys.argv[2], 'w'))" \
+    "$sim" "$OUT/init_$scene.json"
+  $CA infer "$sim/frames" --cad "$cad" --calib "$sim/calibration.json" --init-pose "$OUT/init_$scene.json" \
+    --gt "$sim" --out "$OUT/$scene" --overwrite
+}
+for s in default two_pass turbid_lawnmower cluttered_hover; do
+  run_sim $s "$OUT/sim_$s" datasets/scenes/$s.toml
+done
+# the missing part: the video has no hot_stab_1, the CAD has it
+run_sim default_without_hot_stab_1 "$OUT/sim_default_without_hot_stab_1" datasets/scenes/default.toml
+# the real clip
+$PY datasets/real/visp_rbt_truth.py ../shared/data/visp_rbt "$OUT/visp_truth.json"
+$CA infer ../shared/data/visp_rbt/frames --cad datasets/real/visp_rbt.toml --calib datasets/real/visp_rbt_calibration.json \
+  --init-pose datasets/real/visp_rbt_init.json --gt-poses "$OUT/visp_truth.json" --out "$OUT/visp" --overwrite
