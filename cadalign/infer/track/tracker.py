@@ -42,11 +42,9 @@ class TrackerConfig:
         EdgeLevel(1.0, 3, 2.5, 1.5),
     )
     """The contour fit of a restart hypothesis: a wider basin than a tracked frame's (a 1/8 level, more rounds)."""
-    flow_levels: tuple[EdgeLevel, ...] = (
-        EdgeLevel(0.5, 4, 4.0, 2.5),
-        EdgeLevel(1.0, 3, 2.5, 1.5),
-    )
-    """The contour fit of a frame the flow predicted (within a few pixels): the coarse level is skipped."""
+    flow_levels: tuple[EdgeLevel, ...] | None = None
+    """The contour fit of a frame the flow predicted; None: the same levels as any frame. Skipping the 1/4 level
+    there saved ~13 % CPU but cost accuracy on the default orbit (F1 0.976 against 0.983, fp 11 against 5)."""
     orbit_step_deg: float = 30.0
     """While lost, with nothing else to restart from, the last view is also tried turned round the structure's
     vertical axis (world z) in steps of this many degrees (a cut to another side of the structure); 0: off."""
@@ -55,6 +53,8 @@ class TrackerConfig:
     orbit_every: int = 4
     """The turned views are tried on the first lost frame and every this many after (about 10 s of CPU each on
     the default orbit): a return is regained within this many frames."""
+    rank_min_samples: int = 30
+    """Contour samples a part needs to count in :meth:`StructureTracker.rank`."""
     start_margin: float = 0.05
     """A restart hypothesis' own fit is kept unless a candidate of the search round it has this much more
     support (on a cluttered desk, wrong candidates reached the right pose's support)."""
@@ -152,6 +152,15 @@ class StructureTracker:
                 region = max(region, c.relative_region * float(np.median(self._regions)))
             return fit.region_support >= region and fit.residual_px <= c.max_residual_region_px
         return fit.residual_px <= c.max_residual_px
+
+    def rank(self, fit: EdgeFit) -> float:
+        """How restart candidates are ranked: the mean of the edge support over all samples and of the parts'
+        own supports (parts with ``rank_min_samples``). The structure's frame holds most contour samples, and
+        a lattice frame fits itself turned by its symmetry; its parts then land on nothing (default orbit,
+        started by the 300-step detector: support 0.71 at such a pose, 0.75 at the right one, but the parts'
+        mean 0.46 against 0.70)."""
+        parts = [share for n, share, _ in fit.instance_support.values() if n >= self.cfg.rank_min_samples]
+        return 0.5 * (fit.support + (float(np.mean(parts)) if parts else fit.support))
 
     def _typical_support(self) -> float:
         return float(np.median(self._supports)) if self._supports else 0.0
@@ -256,7 +265,7 @@ class StructureTracker:
         for name, T_cw in hypotheses:
             fit, n = self._search(gray, T_cw.inverse())
             tried += n
-            if fit is not None and (best is None or fit.support > best[0].support):
+            if fit is not None and (best is None or self.rank(fit) > self.rank(best[0])):
                 best = (fit, name)
         return best, tried
 
@@ -274,7 +283,7 @@ class StructureTracker:
             for _, T_wc in candidates(self.edges, gray, start, self.cfg.acquire):
                 tried += 1
                 fit = self.edges.fit(gray, T_wc, self.cfg.restart_levels)
-                if self.good(fit, start=True) and (best is None or fit.support > best.support + (
+                if self.good(fit, start=True) and (best is None or self.rank(fit) > self.rank(best) + (
                         self.cfg.start_margin if best is own else 0.0)):
                     best = fit
                 if fit.support > top.support:
