@@ -11,7 +11,7 @@ Example:
     >>> run(PRESETS["balanced"], "sparse/0", ["frame.obj"], "runs/align")  # doctest: +SKIP
 """
 
-from cadalign.align.config import PRESETS, AlignConfig, GateConfig, GlobalRegConfig, RefineConfig, Sim3ICPConfig
+from cadalign.align.config import PRESETS, AlignConfig, GateConfig, GlobalRegConfig, PointToPlaneConfig, Sim3ICPConfig
 from cadalign.align.core import align
 from cadalign.align.gates import AlignmentGateError, check_gates, measure
 from cadalign.align.global_reg import Candidate, global_registration
@@ -37,7 +37,7 @@ __all__ = [
     "GlobalRegConfig",
     "IcpStep",
     "Picks",
-    "RefineConfig",
+    "PointToPlaneConfig",
     "Sim3ICPConfig",
     "align",
     "check_gates",

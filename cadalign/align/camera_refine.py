@@ -70,7 +70,7 @@ class RefinedCamera:
 
 
 @dataclass(frozen=True)
-class RefineResult:
+class CameraRefineResult:
     """Per-frame cameras (metres, CAD world frame), the anchored model (SfM units) and a summary.
 
     ``model`` is a ``pycolmap.Reconstruction`` whose cameras carry the refined intrinsics: render with
@@ -89,7 +89,7 @@ def _world_pose(T_cam_from_world_sfm: Any, cad_from_sfm: Sim3) -> Rigid3:
 
 
 def refine_cameras(rec: Any, cad_from_sfm: Sim3, vertices_m: np.ndarray, faces: np.ndarray,
-                   cfg: CameraRefineConfig) -> RefineResult:
+                   cfg: CameraRefineConfig) -> CameraRefineResult:
     """Refine the registered cameras of ``rec`` (a ``pycolmap.Reconstruction``, left unchanged) against the
     CAD mesh (world frame, metres); see the module doc."""
     import pycolmap  # lazy: heavy dependency (pycolmap)
@@ -141,7 +141,7 @@ def refine_cameras(rec: Any, cad_from_sfm: Sim3, vertices_m: np.ndarray, faces: 
     log.info("CAD-anchored refinement: %d of %d SfM points on the CAD, reprojection %.3f -> %.3f px, "
              "%d of %d frames verified", summary["points_on_cad"], summary["points"], err_before,
              summary["reprojection_px"]["after"], summary["frames_verified"], summary["frames"])
-    return RefineResult(frames, model, summary)
+    return CameraRefineResult(frames, model, summary)
 
 
 def _anchored_bundle_adjustment(model: Any, opts: Any) -> None:

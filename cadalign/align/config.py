@@ -100,7 +100,7 @@ class Sim3ICPConfig:
 
 
 @dataclass(frozen=True)
-class RefineConfig:
+class PointToPlaneConfig:
     """Rigid robust point-to-plane ICP (Open3D) after the Sim(3) stage, with its scale held fixed."""
 
     enabled: bool = True
@@ -170,7 +170,7 @@ class AlignConfig:
     """Global registration knobs."""
     icp: Sim3ICPConfig = field(default_factory=Sim3ICPConfig)
     """Sim(3) ICP knobs."""
-    refine: RefineConfig = field(default_factory=RefineConfig)
+    refine: PointToPlaneConfig = field(default_factory=PointToPlaneConfig)
     """Point-to-plane refinement knobs."""
     gates: GateConfig = field(default_factory=GateConfig)
     """Quality gates."""

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from cadalign.align.config import RefineConfig, Sim3ICPConfig
+from cadalign.align.config import PointToPlaneConfig, Sim3ICPConfig
 from cadalign.align.result import IcpStep
 from cadalign.align.surface import CadSurface, query_workers
 from cadalign.errors import DegenerateGeometryError
@@ -132,7 +132,7 @@ def sim3_icp(
 
 
 def refine_point_to_plane(
-    points_sfm: np.ndarray, surface: CadSurface, init: Sim3, cfg: RefineConfig
+    points_sfm: np.ndarray, surface: CadSurface, init: Sim3, cfg: PointToPlaneConfig
 ) -> tuple[Sim3, IcpStep | None]:
     """Rigid robust point-to-plane ICP (Open3D) on the scaled cloud; the scale of ``init`` is kept.
 

@@ -10,7 +10,7 @@ from align_testdata import make_cloud, sim3_errors
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cadalign.align import PRESETS, RefineConfig, Sim3ICPConfig, align, refine_point_to_plane, sim3_icp
+from cadalign.align import PRESETS, PointToPlaneConfig, Sim3ICPConfig, align, refine_point_to_plane, sim3_icp
 from cadalign.align.icp import _guard_scale, subsample
 from cadalign.geometry import axis_angle_to_matrix, random_rotation
 from cadalign.types import Sim3
@@ -49,7 +49,7 @@ def test_icp_recovers_any_sim3_from_a_nearby_start(small_cloud, surface, log_sca
     gt = sfm_from_cad.inverse()
     init = _perturb(np.radians(rot_deg), trans_m, dscale, seed) @ gt
     T, _ = sim3_icp(pts, surface, init, Sim3ICPConfig())
-    T, _ = refine_point_to_plane(pts, surface, T, RefineConfig())
+    T, _ = refine_point_to_plane(pts, surface, T, PointToPlaneConfig())
     rot, trans, scale = sim3_errors(T, gt, pts)
     assert rot < 0.1 and trans < 0.01 and scale < 1e-3
 
@@ -126,7 +126,7 @@ def test_guard_off_passes_the_step_through():
 
 def test_refine_keeps_the_scale_and_improves(small_cloud, surface):
     init = _perturb(np.radians(0.3), 0.03, 1.0) @ small_cloud.cad_from_sfm
-    T, step = refine_point_to_plane(small_cloud.points_sfm, surface, init, RefineConfig())
+    T, step = refine_point_to_plane(small_cloud.points_sfm, surface, init, PointToPlaneConfig())
     assert T.s == pytest.approx(init.s, rel=1e-12)
     assert step is not None and step.stage == "refine"
     before = sim3_errors(init, small_cloud.cad_from_sfm, small_cloud.points_sfm)
@@ -136,7 +136,7 @@ def test_refine_keeps_the_scale_and_improves(small_cloud, surface):
 
 def test_refine_without_pairs_returns_the_start(small_cloud, surface):
     far = Sim3(1.0, np.eye(3), np.array([1e3, 0.0, 0.0])) @ small_cloud.cad_from_sfm
-    T, step = refine_point_to_plane(small_cloud.points_sfm, surface, far, RefineConfig())
+    T, step = refine_point_to_plane(small_cloud.points_sfm, surface, far, PointToPlaneConfig())
     assert step is None and np.allclose(T.matrix(), far.matrix())
 
 

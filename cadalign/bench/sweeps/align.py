@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from cadalign.align import RefineConfig, Sim3ICPConfig, refine_point_to_plane, sample_surface, sim3_icp
+from cadalign.align import PointToPlaneConfig, Sim3ICPConfig, refine_point_to_plane, sample_surface, sim3_icp
 from cadalign.bench.data import BenchData
 from cadalign.bench.framework import BenchConfig, Metric, Sweep, SweepPoint
 from cadalign.geometry import axis_angle_to_matrix, geodesic_angle, random_rotation
@@ -68,7 +68,7 @@ def align_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
                             iters_per_level=knobs["iters_per_level"], max_points=n_points)
         T, _ = sim3_icp(s["points"], s["surface"], s["init"], icp)
         if knobs["refine"]:
-            T, _ = refine_point_to_plane(s["points"], s["surface"], T, RefineConfig())
+            T, _ = refine_point_to_plane(s["points"], s["surface"], T, PointToPlaneConfig())
         on = s["on"]
         err = np.linalg.norm(T.apply(s["points"][on]) - s["truth"].apply(s["points"][on]), axis=1)
         return {"pose_rms_mm": 1000 * float(np.sqrt(np.mean(err**2))),
