@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from cadalign.geometry.camera import project
 from cadalign.infer import detect as det
 from cadalign.infer.run import resolve_prep
 from cadalign.sfm import image_prep
@@ -105,7 +106,7 @@ def _centre_inliers(T: Rigid3, U: np.ndarray, C: list[np.ndarray], camera: Camer
         front = Xc[:, 2] > 1e-6
         if not front.any():
             continue
-        p = Xc[front, :2] / Xc[front, 2:] * np.diag(camera.K)[:2] + camera.K[:2, 2]
+        p, _ = project(camera.K, Xc[front])
         d = np.linalg.norm(p - u, axis=1)
         k = int(np.argmin(d))
         if d[k] <= tol:
@@ -160,7 +161,7 @@ def pose_from_picks(uv_px: np.ndarray, xyz_world_m: np.ndarray, camera: Camera,
     Xc = T.apply(X)
     if np.any(Xc[:, 2] <= 0):
         raise ValueError("the pose that fits the picks puts some points behind the camera")
-    proj = Xc[:, :2] / Xc[:, 2:] * np.diag(camera.K)[:2] + camera.K[:2, 2]
+    proj, _ = project(camera.K, Xc)
     rms = float(np.sqrt(np.mean(np.sum((proj - uv) ** 2, axis=1))))
     if rms > max_error_px:
         raise ValueError(f"the picks disagree: {rms:.1f} px RMS reprojection error (limit {max_error_px} px)")
