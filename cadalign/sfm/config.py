@@ -33,6 +33,11 @@ class FrameConfig:
     blur_ratio: float = bounded(0.35, ge=0, le=1)
     """A candidate whose sharpness (variance of the Laplacian) is below this fraction of the median
     sharpness of the recent candidates is skipped as blurred; 0 turns the check off."""
+    blur_keep_matches: float = bounded(0.25, ge=0, le=1)
+    """A candidate softer than ``blur_ratio`` is kept anyway when its verified ORB matches with the last kept frame
+    reach this fraction of those of the last two kept frames: it would register (:mod:`cadalign.sfm.blur`). On a
+    textured pan a 2 px Gaussian blur keeps ~29 % of the matches, a 3 px one or a 15 px motion blur under 10 %;
+    0 lets sharpness alone decide."""
     blur_window: int = bounded(15, ge=1)
     """Number of recent candidates whose median sharpness is the reference for ``blur_ratio``."""
     min_sharpness: float = bounded(0.0, ge=0)
