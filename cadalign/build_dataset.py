@@ -308,7 +308,7 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
                   overwrite: bool = False, progress: Progress | None = None, executor: RayExecutor | None = None,
                   sfm_set: Mapping[str, Any] | None = None, topic: str | None = None,
                   hypothesis: int | None = None, verify: VerifyConfig | None = DEFAULT_VERIFY,
-                  roi: Path | None = None) -> Path:
+                  roi: Path | None = None, sfm_preset: str | None = None) -> Path:
     """Run frames -> SfM -> align -> render -> write; returns ``out``. See the module doc for the layout.
 
     ``calib``: the camera's known intrinsics and lens distortion, any format of
@@ -320,6 +320,7 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     which moves every object ~4 cm in its camera frame; calibrate the ROV camera underwater and pass it.
     ``executor``: render the
     frames with Ray (:mod:`cadalign.scale`); None renders them here. The dataset files are the same.
+    ``sfm_preset``: the SfM preset when it differs from ``preset`` (which then names the alignment's only).
     ``sfm_set``: SfM settings over the preset's (nested keys of :class:`cadalign.sfm.SfMConfig`, e.g.
     ``{"mapper": {"repair_frames": 20}}``), checked strictly.
     ``topic``: the image topic when ``source`` is a ROS bag (None: the bag's only image topic).
@@ -344,13 +345,15 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     from cadalign.sfm import run as sfm_run
     from cadalign.sfm.colmap_log import colmap_log
 
-    if preset not in SFM_PRESETS or preset not in ALIGN_PRESETS:
-        raise ConfigError(f"unknown preset {preset!r}; allowed values: {', '.join(SFM_PRESETS)}")
+    sfm_preset = sfm_preset or preset
+    if preset not in ALIGN_PRESETS or sfm_preset not in SFM_PRESETS:
+        raise ConfigError(f"unknown preset {preset if preset not in ALIGN_PRESETS else sfm_preset!r}; allowed "
+                          f"values: {', '.join(SFM_PRESETS)}")
     out = Path(out)
     structure = load_structure(cad, cad_unit)
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
-    sfm_cfg = SFM_PRESETS[preset]
+    sfm_cfg = SFM_PRESETS[sfm_preset]
     if calib is not None:  # any --calib format; frames are undistorted by its lens distortion at extraction
         from cadalign.sfm.known_camera import with_calibration
 

@@ -259,9 +259,10 @@ def _preset(**sections: dict) -> SfMConfig:
 
 PRESETS: dict[str, SfMConfig] = {
     "fast": _preset(
-        features={"max_num_features": 2048, "max_image_size": 1024},
-        matching={"overlap": 5, "max_num_trials": 2000},
-        mapper={"ba_global_max_num_iterations": 25, "ba_global_max_refinements": 2, "refine_iterations": 2},
+        features={"max_num_features": 1024, "max_image_size": 1024, "first_octave": 0},
+        matching={"overlap": 5, "max_num_trials": 2000, "loop_remap": False},
+        mapper={"ba_global_max_num_iterations": 25, "ba_global_max_refinements": 2, "refine_iterations": 1,
+                "refine_max_num_iterations": 30},
     ),
     "balanced": SfMConfig(),
     "accurate": _preset(
@@ -269,8 +270,10 @@ PRESETS: dict[str, SfMConfig] = {
         mapper={"ba_global_max_num_iterations": 100, "refine_iterations": 6},
     ),
 }
-"""Named trade-offs: 'fast' (few features, short overlap), 'balanced' (default), 'accurate' (more features,
-longer bundle adjustment, more refinement rounds). 'accurate' pairs frames like 'balanced': with overlap 12 and
+"""Named trade-offs: 'fast' (SIFT from the image's own size, 1024 features, short overlap, loop closure by merging
+tracks into the first model, one short refinement round: on the default orbit at 0.67-1.14x plain pycolmap's time
+in the same run, with a third of its rotation and centre error, docs/tuning/sfm_speed.md), 'balanced' (default),
+'accurate' (more features, longer bundle adjustment, more refinement rounds). 'accurate' pairs frames like 'balanced': with overlap 12 and
 guided matching it folded the default orbit (then 64 frames at 0.5 frame/s) at frames 54/55 with all three seeds
 (31 frames kept), and with overlap 12 alone at the same place (55 kept). On that orbit, pairs more than ~6 frames
 (34 deg) apart are mostly false matches on repeated parts (in 174 of the 190 verified pairs 7-12 frames apart, over
