@@ -104,3 +104,16 @@ def test_rerun_reuses_finished_settings(tiny_bench):
 def test_other_config_in_same_folder_is_refused(tiny_bench):
     res = runner.invoke(app, ["bench", "render", "--size", "tiny", "--repeats", "2", "--out", str(tiny_bench)])
     assert res.exit_code == 1 and "--overwrite" in res.output
+
+
+def test_bench_sfm_runs_plain_pycolmap_as_its_baseline(tmp_path, shared_data):
+    res = runner.invoke(app, ["bench", "sfm", "--size", "tiny", "--repeats", "1", "--out", str(tmp_path)])
+    assert res.exit_code == 0, res.output
+    st = load_bench(tmp_path)["stages"]["sfm"]
+    recs = {st["points"][k]["name"]: st["points"][k] for k in st["current"]}
+    assert st["baseline"] == "plain pycolmap" and list(recs)[0] == "plain pycolmap"
+    assert all(r["status"] == "done" for r in recs.values()), [r.get("error") for r in recs.values()]
+    assert recs["plain pycolmap"]["cost_ratio"] == pytest.approx(1.0)
+    assert all(r["cost_ratio"] > 0 and r["metrics"]["registration_rate"] > 0.5 for r in recs.values())
+    html = (tmp_path / "bench.html").read_text()
+    assert "cost / plain pycolmap" in html.split("<div class='plotrow'>")[1]
