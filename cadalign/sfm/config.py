@@ -272,11 +272,12 @@ PRESETS: dict[str, SfMConfig] = {
     ),
 }
 """Named trade-offs: 'fast' (SIFT from the image's own size, 1024 features, short overlap, loop closure by merging
-tracks into the first model, one short refinement round: on the default orbit at 0.67-1.14x plain pycolmap's time in
-the same run, with a third of its rotation and centre error, docs/tuning/sfm_speed.md), 'balanced' (default),
-'accurate' (more features, longer bundle adjustment, more refinement rounds). 'accurate' pairs frames like
-'balanced': with overlap 12 and guided matching it folded the default orbit (then 64 frames at 0.5 frame/s) at
-frames 54/55 with all three seeds (31 frames kept), and with overlap 12 alone at the same place (55 kept). On that
-orbit, pairs more than ~6 frames (34 deg) apart are mostly false matches on repeated parts (in 174 of the 190
-verified pairs 7-12 frames apart, over 30 % of the inliers are off the true epipolar geometry by > 4 px), and guided
-matching re-matches under the false geometry (3x their inliers)."""
+tracks into the first model, one short refinement round: on the default orbit at 0.67-1.47x plain pycolmap's time
+(median 0.98 over seven pairs) in the same run, with a third of its rotation and centre error,
+docs/tuning/sfm_speed.md), 'balanced' (default), 'accurate' (more features, longer bundle adjustment, more
+refinement rounds). 'accurate' pairs frames like 'balanced': with overlap 12 and guided matching it folded the
+default orbit (then 64 frames at 0.5 frame/s) at frames 54/55 with all three seeds (31 frames kept), and with
+overlap 12 alone at the same place (55 kept). On that orbit, pairs more than ~6 frames (34 deg) apart are mostly
+false matches on repeated parts (in 174 of the 190 verified pairs 7-12 frames apart, over 30 % of the inliers are
+off the true epipolar geometry by > 4 px), and guided matching re-matches under the false geometry (3x their
+inliers)."""

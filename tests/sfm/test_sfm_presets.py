@@ -61,7 +61,7 @@ def test_preset_maps_the_default_orbit(preset: str, default_orbit: Path, tmp_pat
 def test_fast_is_as_good_as_plain_pycolmap_on_the_default_orbit(default_orbit: Path, tmp_path: Path):
     """'fast' registers as many frames as plain pycolmap (SIFT, sequential matching, incremental mapping, defaults)
     on the same frames, with no larger rotation or centre error. Measured (2 threads, shared machine): plain 0.26
-    deg / 3.4 cm, fast 0.11 deg / 1.4 cm, 128/128 each, fast in 0.67-1.14x plain's time (docs/tuning/sfm_speed.md;
+    deg / 3.4 cm, fast 0.11 deg / 1.4 cm, 128/128 each, fast in 0.67-1.47x plain's time (docs/tuning/sfm_speed.md;
     time is not asserted)."""
     import json
 
