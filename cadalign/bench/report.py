@@ -1,6 +1,7 @@
 """``DIR/bench.html``: one self-contained page (plots inlined as base64) of a benchmark folder.
 
-Per stage: what was swept, the Pareto plot, the recommended setting (within 5 % of the best accuracy at
+Per stage: what was swept, the Pareto plot with, beside it, every setting's cost as a ratio of the stage's
+baseline (run in the same process on the same data), the recommended setting (within 5 % of the best accuracy at
 the least time) and a table of every setting; then the low-visibility robustness section when
 ``robustness.json`` is there.
 """
@@ -40,6 +41,32 @@ def _stage_order(bench: dict[str, Any]) -> list[str]:
     return known + sorted(s for s in bench["stages"] if s not in known)
 
 
+RATIO_KEYS = {"fps_vs_open3d": "Open3D VBG alone frames/s / setting's (interleaved)",
+              "cost_vs_open3d": "setting's s / Open3D alone on its rays"}
+"""Per-record ratios some sweeps time against their baseline inside each measurement (column titles)."""
+
+
+def baseline_rows(bench: dict[str, Any], stage: str) -> list[dict[str, Any]]:
+    """Each current setting's cost as a ratio of the stage's baseline (and the in-measurement ratios of
+    ``RATIO_KEYS`` when the records have them); empty when the stage has no baseline."""
+    st = bench["stages"][stage]
+    if not st.get("baseline"):
+        return []
+    recs = [st["points"][k] for k in st.get("current", list(st["points"])) if k in st["points"]]
+    extra = [k for k in RATIO_KEYS if any(k in (r.get("metrics") or {}) for r in recs)]
+    return [{"setting": r["name"], f"cost / {st['baseline']}": num(r.get("cost_ratio")),
+             **{RATIO_KEYS[k]: num((r.get("metrics") or {}).get(k)) for k in extra}} for r in recs]
+
+
+def _baseline_box(bench: dict[str, Any], stage: str) -> str:
+    rows = baseline_rows(bench, stage)
+    if not rows:
+        return ""
+    name = html.escape(str(bench["stages"][stage]["baseline"]))
+    return (f"<div class='baseline'><p><b>Against the baseline</b> '{name}', measured in the same run on the same "
+            f"data (a ratio, not an absolute time, is the result on a shared machine):</p>{table(rows)}</div>")
+
+
 def _stage_section(out: Path, bench: dict[str, Any], stage: str) -> str:
     st = bench["stages"][stage]
     rec = st.get("recommended")
@@ -50,7 +77,8 @@ def _stage_section(out: Path, bench: dict[str, Any], stage: str) -> str:
             f"<p><b>Recommended:</b> <span class='rec'>{html.escape(str(rec))}</span> (within "
             f"{100 * st.get('tolerance', 0.05):.0f}% of the best {html.escape(st['accuracy']['label'])}, least "
             f"{html.escape(st['cost']['label'])})</p>{errs}"
-            + img_tag(out / st.get("plot", f"pareto_{stage}.png"), f"Pareto plot {stage}")
+            + "<div class='plotrow'>" + img_tag(out / st.get("plot", f"pareto_{stage}.png"), f"Pareto plot {stage}")
+            + _baseline_box(bench, stage) + "</div>"
             + table(stage_rows(bench, stage)))
 
 
@@ -66,7 +94,8 @@ def write_bench_report(out_dir: Path) -> Path:
     """Write ``out_dir/bench.html`` from ``bench.json`` (and ``robustness.json`` if present); returns its path."""
     out = Path(out_dir)
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>cadalign bench</title><style>{CSS}"
-             ".rec{color:#a00;font-weight:bold}</style></head><body><h1>cadalign accuracy-vs-time benchmark</h1>"]
+             ".rec{color:#a00;font-weight:bold}.plotrow{display:flex;gap:1em;align-items:flex-start}"
+             ".baseline{max-width:40em}</style></head><body><h1>cadalign accuracy-vs-time benchmark</h1>"]
     bench = load_bench(out) if (out / BENCH_JSON).is_file() else None
     if bench is not None:
         c = bench["config"]

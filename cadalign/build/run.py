@@ -278,7 +278,7 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
                   overwrite: bool = False, progress: Progress | None = None, executor: RayExecutor | None = None,
                   sfm_set: Mapping[str, Any] | None = None, topic: str | None = None,
                   hypothesis: int | None = None, verify: VerifyConfig | None = DEFAULT_VERIFY,
-                  roi: Path | None = None) -> Path:
+                  roi: Path | None = None, sfm_preset: str | None = None) -> Path:
     """Run frames -> SfM -> align -> render -> write; returns ``out``. See the module doc for the layout.
 
     ``calib``: the camera's known intrinsics and lens distortion, any format of
@@ -290,6 +290,7 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
     which moves every object ~4 cm in its camera frame; calibrate the ROV camera underwater and pass it.
     ``executor``: render the
     frames with Ray (:mod:`cadalign.build`); None renders them here. The dataset files are the same.
+    ``sfm_preset``: the SfM preset when it differs from ``preset`` (which then names the alignment's only).
     ``sfm_set``: SfM settings over the preset's (nested keys of :class:`cadalign.sfm.SfMConfig`, e.g.
     ``{"mapper": {"repair_frames": 20}}``), checked strictly.
     ``topic``: the image topic when ``source`` is a ROS bag (None: the bag's only image topic).
@@ -305,12 +306,14 @@ def build_dataset(source: Path, cad: Path, out: Path, *, preset: str = "balanced
             confirm it (no dataset is written; ``OUT/verify/`` holds the evidence and the picture).
         InputError, ConfigError: unusable inputs, or ``out`` holds results of another config.
     """
-    if preset not in SFM_PRESETS or preset not in ALIGN_PRESETS:
-        raise ConfigError(f"unknown preset {preset!r}; allowed values: {', '.join(SFM_PRESETS)}")
+    sfm_preset = sfm_preset or preset
+    if preset not in ALIGN_PRESETS or sfm_preset not in SFM_PRESETS:
+        raise ConfigError(f"unknown preset {preset if preset not in ALIGN_PRESETS else sfm_preset!r}; allowed "
+                          f"values: {', '.join(SFM_PRESETS)}")
     out = Path(out)
     structure = load_structure(cad, cad_unit)
     seconds: dict[str, float] = {}
-    sfm_cfg, sfm_dir = _sfm(preset, source, out, calib=calib, sfm_set=sfm_set, overwrite=overwrite,
+    sfm_cfg, sfm_dir = _sfm(sfm_preset, source, out, calib=calib, sfm_set=sfm_set, overwrite=overwrite,
                             progress=progress, topic=topic, seconds=seconds)
     align_json, cad_from_sfm, verification = _align_and_verify(
         preset, structure, sfm_dir, out, picks=picks, roi=roi, verify=verify, hypothesis=hypothesis,

@@ -70,6 +70,7 @@ def extraction_options(cfg: SfMConfig) -> Any:
     sift = opts.sift
     sift.max_num_features = cfg.features.max_num_features
     sift.peak_threshold = cfg.features.peak_threshold
+    sift.first_octave = cfg.features.first_octave
     sift.estimate_affine_shape = cfg.features.estimate_affine_shape
     sift.domain_size_pooling = cfg.features.domain_size_pooling
     return opts

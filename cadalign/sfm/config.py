@@ -33,6 +33,11 @@ class FrameConfig:
     blur_ratio: float = bounded(0.35, ge=0, le=1)
     """A candidate whose sharpness (variance of the Laplacian) is below this fraction of the median
     sharpness of the recent candidates is skipped as blurred; 0 turns the check off."""
+    blur_keep_matches: float = bounded(0.25, ge=0, le=1)
+    """A candidate softer than ``blur_ratio`` is kept anyway when its verified ORB matches with the last kept frame
+    reach this fraction of those of the last two kept frames: it would register (:mod:`cadalign.sfm.blur`). On a
+    textured pan a 2 px Gaussian blur keeps ~29 % of the matches, a 3 px one or a 15 px motion blur under 10 %;
+    0 lets sharpness alone decide."""
     blur_window: int = bounded(15, ge=1)
     """Number of recent candidates whose median sharpness is the reference for ``blur_ratio``."""
     min_sharpness: float = bounded(0.0, ge=0)
@@ -65,6 +70,12 @@ class FeatureConfig:
     """Difference-of-Gaussians peak threshold; lower finds more features in low-contrast water."""
     max_image_size: int = bounded(1600, ge=64)
     """Images are downscaled so their longest side is at most this many pixels before extraction."""
+    first_octave: int = bounded(-1, ge=-1, le=1)
+    """First octave of the SIFT pyramid: -1 (COLMAP's default) doubles the image first, for small-scale features;
+    0 starts at the image's own size. Extraction time grows with the pyramid's pixels: on the default scene's
+    640x480 CLAHE frames 0 extracts ~3x faster (1,000-1,200 features per frame, more than plain pycolmap finds
+    at -1 on the raw frames), and halves the matching time with them. Small frames need -1: 160x120 textures
+    gave 44-56 features at 0."""
     estimate_affine_shape: bool = False
     """Affine-adapted SIFT (more robust to viewpoint change, ~2x slower)."""
     domain_size_pooling: bool = False
@@ -104,6 +115,10 @@ class MatchConfig:
     """Sequential pairing only: after a first model, match frames that the model puts close together
     but that are far apart in time (the ROV came back), then map again. Candidates come from the
     model's poses, not from appearance, so look-alike views of symmetric structures are not matched."""
+    loop_remap: bool = True
+    """After loop pairs are verified, map again from scratch (True), or merge the loop's tracks into the first
+    model and re-adjust it globally (False; :mod:`cadalign.sfm.loop_merge`), which costs one global bundle
+    adjustment instead of a second mapping pass (on the default orbit, 9 s against 30-45 s under load)."""
     loop_num_neighbors: int = bounded(8, ge=1)
     """Nearest registered frames (by camera centre) each frame is checked against for loop pairs."""
     loop_max_distance: float = bounded(3.0, gt=0)
@@ -245,9 +260,10 @@ def _preset(**sections: dict) -> SfMConfig:
 
 PRESETS: dict[str, SfMConfig] = {
     "fast": _preset(
-        features={"max_num_features": 2048, "max_image_size": 1024},
-        matching={"overlap": 5, "max_num_trials": 2000},
-        mapper={"ba_global_max_num_iterations": 25, "ba_global_max_refinements": 2, "refine_iterations": 2},
+        features={"max_num_features": 1024, "max_image_size": 1024, "first_octave": 0},
+        matching={"overlap": 5, "max_num_trials": 2000, "loop_remap": False},
+        mapper={"ba_global_max_num_iterations": 25, "ba_global_max_refinements": 2, "refine_iterations": 1,
+                "refine_max_num_iterations": 30},
     ),
     "balanced": SfMConfig(),
     "accurate": _preset(
@@ -255,10 +271,13 @@ PRESETS: dict[str, SfMConfig] = {
         mapper={"ba_global_max_num_iterations": 100, "refine_iterations": 6},
     ),
 }
-"""Named trade-offs: 'fast' (few features, short overlap), 'balanced' (default), 'accurate' (more features,
-longer bundle adjustment, more refinement rounds). 'accurate' pairs frames like 'balanced': with overlap 12 and
-guided matching it folded the default orbit (then 64 frames at 0.5 frame/s) at frames 54/55 with all three seeds
-(31 frames kept), and with overlap 12 alone at the same place (55 kept). On that orbit, pairs more than ~6 frames
-(34 deg) apart are mostly false matches on repeated parts (in 174 of the 190 verified pairs 7-12 frames apart, over
-30 % of the inliers are off the true epipolar geometry by > 4 px), and guided matching re-matches under the false
-geometry (3x their inliers)."""
+"""Named trade-offs: 'fast' (SIFT from the image's own size, 1024 features, short overlap, loop closure by merging
+tracks into the first model, one short refinement round: on the default orbit at 0.67-1.47x plain pycolmap's time
+(median 0.98 over seven pairs) in the same run, with a third of its rotation and centre error,
+docs/tuning/sfm_speed.md), 'balanced' (default), 'accurate' (more features, longer bundle adjustment, more
+refinement rounds). 'accurate' pairs frames like 'balanced': with overlap 12 and guided matching it folded the
+default orbit (then 64 frames at 0.5 frame/s) at frames 54/55 with all three seeds (31 frames kept), and with
+overlap 12 alone at the same place (55 kept). On that orbit, pairs more than ~6 frames (34 deg) apart are mostly
+false matches on repeated parts (in 174 of the 190 verified pairs 7-12 frames apart, over 30 % of the inliers are
+off the true epipolar geometry by > 4 px), and guided matching re-matches under the false geometry (3x their
+inliers)."""

@@ -7,7 +7,10 @@ copy resized to ``analysis_width``:
 
 - *blurred*: the variance of the Laplacian (a standard focus measure) is below
   ``blur_ratio`` times the median of the recent candidates (relative, so it
-  adapts to murky water where every frame is soft), or below ``min_sharpness``;
+  adapts to murky water where every frame is soft), and the frame's verified ORB
+  matches with the last kept frame are fewer than ``blur_keep_matches`` times those
+  of the last two kept frames (:mod:`cadalign.sfm.blur`: a softer frame that still
+  matches would register, so it is kept); or below ``min_sharpness`` (off by default);
 - *near-duplicate*: the median motion of tracked corners (pyramidal Lucas-Kanade)
   since the last kept frame is below ``min_motion`` of the image diagonal; when
   too few corners can be tracked, the mean absolute grey difference is used.
@@ -31,6 +34,7 @@ import numpy as np
 from cadalign.errors import InputError
 from cadalign.formats.bag import is_bag, iter_bag_frames, resolve_topic
 from cadalign.io import link_or_copy, read_image, write_image
+from cadalign.sfm.blur import MatchCheck
 from cadalign.sfm.config import FrameConfig
 from cadalign.types import Progress
 
@@ -57,6 +61,8 @@ class FrameDecision:
             '' when kept.
         sharpness: variance of the Laplacian at analysis size.
         motion: median corner motion since the last kept frame (fraction of the diagonal); -1 for the first.
+        matches: verified ORB matches with the last kept frame, counted only for a frame softer than
+            ``blur_ratio`` of its neighbours (:mod:`cadalign.sfm.blur`); -1 when not counted.
         stamp_ns: the message's header stamp in nanoseconds since the epoch (ROS bags); None for videos and
             folders, which carry no capture time.
     """
@@ -68,6 +74,7 @@ class FrameDecision:
     sharpness: float
     motion: float
     stamp_ns: int | None = None
+    matches: int = -1
 
 
 def sharpness(gray: np.ndarray) -> float:
@@ -137,7 +144,8 @@ def select_frames(
 
     Pure apart from reading the iterator: the same candidates and config always give the same
     decisions. Black and overexposed frames (see :func:`exposure_problem`) are rejected first; blur
-    is judged against the median sharpness of the last ``blur_window`` usable candidates (causal),
+    is judged against the median sharpness of the last ``blur_window`` usable candidates (causal) and, for a
+    softer frame, against the matches of the last kept frames (:class:`~cadalign.sfm.blur.MatchCheck`),
     duplicates against the last kept frame; in 'motion' sampling a frame is kept only once the motion
     reaches ``keyframe_motion``.
 
@@ -148,6 +156,7 @@ def select_frames(
     last_kept: np.ndarray | None = None
     first: tuple[str, tuple[int, ...]] | None = None
     n_kept = 0
+    check = MatchCheck(cfg.blur_keep_matches)
     min_motion = cfg.keyframe_motion if cfg.sampling == "motion" else cfg.min_motion
     for candidate in candidates:
         name, source, rgb = candidate[:3]
@@ -163,9 +172,14 @@ def select_frames(
         reference = float(np.median(recent)) if recent else sharp
         recent.append(sharp)
         motion = -1.0 if last_kept is None else motion_between(last_kept, gray)
+        matches = -1
+        soft = cfg.blur_ratio > 0 and sharp < cfg.blur_ratio * reference
+        if soft and not (cfg.max_frames and n_kept >= cfg.max_frames):
+            keep_soft, matches = check.matches_enough(gray)
+            soft = not keep_soft
         if cfg.max_frames and n_kept >= cfg.max_frames:
             reason = "max_frames"
-        elif sharp < cfg.min_sharpness or (cfg.blur_ratio > 0 and sharp < cfg.blur_ratio * reference):
+        elif sharp < cfg.min_sharpness or soft:
             reason = "blurred"
         elif motion >= 0 and min_motion > 0 and motion < min_motion:
             reason = "near-duplicate"
@@ -173,8 +187,9 @@ def select_frames(
             reason = ""
         if not reason:
             last_kept = gray
+            check.kept(gray)
             n_kept += 1
-        yield FrameDecision(name, source, not reason, reason, sharp, motion, stamp), rgb
+        yield FrameDecision(name, source, not reason, reason, sharp, motion, stamp, matches), rgb
 
 
 def enhance(rgb: np.ndarray, cfg: FrameConfig) -> np.ndarray:

@@ -20,6 +20,7 @@ from cadalign.sfm import colmap, repair, segments
 from cadalign.sfm.config import SfMConfig
 from cadalign.sfm.consistency import Consistency, keep_largest_piece, sequence_consistency
 from cadalign.sfm.layout import Layout
+from cadalign.sfm.loop_merge import merge_loop_tracks
 from cadalign.sfm.refine import model_loop_pairs
 from cadalign.sfm.report import model_stats, registered_images
 from cadalign.types import Progress
@@ -175,9 +176,13 @@ def _map_once(cfg: SfMConfig, lay: Layout, names: list[str], work: Path,
             info["loop_pairs"] = len(pairs)
             info["loop_pairs_verified"] = num_verified(cfg, lay.database) - before
             log.info("loop closure: %d candidate pairs, %d verified", len(pairs), info["loop_pairs_verified"])
-            if info["loop_pairs_verified"]:  # map again with the mapper that worked
+            if info["loop_pairs_verified"] and cfg.matching.loop_remap:  # map again with the mapper that worked
                 again = dataclasses.replace(cfg, mapper=dataclasses.replace(cfg.mapper, kind=result.mapper))
                 models = colmap.reconstruct(again, lay.database, lay.images, work, names, progress).models
+            elif info["loop_pairs_verified"]:  # the loop's tracks into the first model, one global adjustment
+                info["loop_merge"] = merge_loop_tracks(first, lay.database, colmap.incremental_options(cfg, names),
+                                                       cfg.mapper.refine_loss_scale_px)
+                models = [first, *models[1:]]
         info["seconds_loop_closure"] = time.perf_counter() - t0
     return models, info
 

@@ -22,6 +22,7 @@ import logging
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from cadalign.errors import DegenerateGeometryError
 from cadalign.sfm.colmap_log import stderr_captured
 from cadalign.sfm.consistency import Consistency, pieces
 
@@ -108,7 +109,12 @@ def repair_breaks(rec: Any, names: Sequence[str], cons: Consistency, frames: int
     adds: list[set[str] | None] = []  # a window gives the poses of frames no piece holds; it joins the rest
     for k, (lo, hi) in enumerate(spans):
         sub = list(names[lo:hi])
-        win, wcons = map_window(sub, k)
+        try:
+            win, wcons = map_window(sub, k)
+        except DegenerateGeometryError as exc:  # a window with no model is a failed repair, not a failed run
+            report["windows"].append({"frames": [sub[0], sub[-1]], "registered": 0, "breaks": 0})
+            report["why_not"] = f"the window {sub[0]}..{sub[-1]} found no model on its own ({exc})"
+            return None, report
         win_reg = {im.name for im in win.images.values() if im.has_pose}
         report["windows"].append({"frames": [sub[0], sub[-1]], "registered": len(win_reg),
                                   "breaks": len(wcons.breaks)})

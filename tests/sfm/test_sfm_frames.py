@@ -70,6 +70,58 @@ def test_select_frames_rejects_blur_and_duplicates():
     assert decisions[0].motion == -1.0 and decisions[1].motion > 0
 
 
+def _pan(soft: dict[int, np.ndarray], n: int = 10) -> list[tuple[str, str, np.ndarray]]:
+    """Crops panning right 10 px per frame; frame k is filtered with the kernel ``soft[k]`` when given."""
+    tex = _texture()
+    out = []
+    for k in range(n):
+        img = tex[100 : 100 + H, 10 * (k + 1) : 10 * (k + 1) + W].copy()
+        if k in soft:
+            img = cv2.filter2D(img, -1, soft[k])
+        out.append((f"{k:06d}.png", str(k), img))
+    return out
+
+
+def _gauss(sigma: float) -> np.ndarray:
+    g = cv2.getGaussianKernel(int(6 * sigma) | 1, sigma)
+    return (g @ g.T).astype(np.float32)
+
+
+def _motion(length: int) -> np.ndarray:
+    k = np.zeros((length, length), np.float32)
+    k[length // 2, :] = 1 / length
+    return k
+
+
+def test_softer_frames_that_still_match_are_kept():
+    # sigma 1.5 px: under a third of the neighbours' sharpness (below blur_ratio 0.35), yet most matches survive
+    frames = _pan({3: _gauss(1.5), 7: _gauss(1.5)})
+    gray = [cv2.cvtColor(f[2], cv2.COLOR_RGB2GRAY) for f in frames]
+    assert sharpness(gray[3]) < 0.35 * sharpness(gray[2])
+    decisions = [d for d, _ in select_frames(frames, FrameConfig())]
+    assert all(d.kept for d in decisions), [(d.name, d.reason) for d in decisions]
+    assert decisions[3].matches > 0 and decisions[7].matches > 0
+    assert decisions[2].matches == -1  # sharp frames are not match-checked
+    # sharpness alone (the check off) drops them: the match check is what keeps them
+    alone = [d for d, _ in select_frames(frames, FrameConfig(blur_keep_matches=0.0))]
+    assert [d.name for d in alone if d.reason == "blurred"] == ["000003.png", "000007.png"]
+
+
+@pytest.mark.parametrize("kernel", [_gauss(3.0), _motion(15), _motion(25)], ids=["gauss3", "motion15", "motion25"])
+def test_a_truly_blurred_frame_among_sharp_ones_is_dropped(kernel: np.ndarray):
+    frames = _pan({5: kernel})
+    decisions = [d for d, _ in select_frames(frames, FrameConfig())]
+    assert [d.name for d in decisions if not d.kept] == ["000005.png"]
+    assert decisions[5].reason == "blurred" and 0 <= decisions[5].matches
+
+
+def test_the_match_check_is_relative_to_the_sequence():
+    # the same soft frame in a sequence that is soft everywhere (murky water) is not judged against sharp frames
+    frames = _pan({k: _gauss(1.5) for k in range(10)} | {5: _gauss(3.0)})
+    decisions = [d for d, _ in select_frames(frames, FrameConfig())]
+    assert [d.name for d in decisions if not d.kept] == ["000005.png"]
+
+
 def test_select_frames_checks_off_keeps_everything():
     frames, _ = _sequence()
     cfg = FrameConfig(blur_ratio=0.0, min_motion=0.0)

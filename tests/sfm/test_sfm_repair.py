@@ -16,6 +16,7 @@ from typer.testing import CliRunner
 
 from cadalign.cli.main import app
 from cadalign.config import from_dict
+from cadalign.errors import DegenerateGeometryError
 from cadalign.evaluate.sfm import GT_SCENE, pose_errors
 from cadalign.io import read_json
 from cadalign.sfm import mapping
@@ -133,6 +134,21 @@ def test_a_window_that_breaks_too_gives_no_repair_and_says_why(mapped: Path):
                                 lambda models, adds: merged.append(models), lambda m: cons)
     assert out is None and not report["repaired"] and not merged
     assert report["why_not"] == f"the window {names[2]}..{names[7]} mapped on its own breaks too"
+
+
+def test_a_window_with_no_model_gives_no_repair_instead_of_failing_the_run(mapped: Path):
+    # seen on opensfm_lund (street, forward motion) with the fast preset: a 16-frame window had no initial pair
+    rec = pycolmap.Reconstruction(str(mapped / "sparse" / "0"))
+    names = sorted(im.name for im in rec.images.values())
+    cons = Consistency(9, 0.3, 9.0, (Break(names[4], names[5], 100, 9.0),))
+
+    def no_model(sub: list[str], k: int):
+        raise DegenerateGeometryError("SfM found no model")
+
+    out, report = repair_breaks(rec, names, cons, 6, no_model, lambda models, adds: None, lambda m: cons)
+    assert out is None and not report["repaired"]
+    assert report["why_not"].startswith(f"the window {names[2]}..{names[7]} found no model on its own")
+    assert report["windows"] == [{"frames": [names[2], names[7]], "registered": 0, "breaks": 0}]
 
 
 def test_a_broken_first_pass_is_repaired_before_it_proposes_loop_pairs(mapped: Path, tmp_path: Path,
