@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
 
 import pytest
@@ -28,7 +29,8 @@ def test_sfm_settings_reach_the_sfm_stage_and_bad_ones_are_named(tmp_path: Path,
         seen.append(cfg)
         raise _Stop
 
-    monkeypatch.setattr(sfm, "run", run)
+    # build_dataset calls cadalign.sfm.run under the name it imported it as, in its own module
+    monkeypatch.setattr(importlib.import_module("cadalign.build.run"), "sfm_run", run)
     args = ["build-dataset", str(frames), "--cad", str(spec), "--out", str(tmp_path / "out")]
     res = runner.invoke(app, [*args, "--sfm-set", "mapper.repair_frames=20", "--sfm-set", "matching.overlap=12"])
     assert isinstance(res.exception, _Stop), res.output
