@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from cadalign.sfm import colmap, repair, segments
+from cadalign.sfm.colmap_log import stderr_captured
 from cadalign.sfm.config import SfMConfig
 from cadalign.sfm.consistency import Consistency, keep_largest_piece, sequence_consistency
 from cadalign.sfm.layout import Layout
@@ -172,7 +173,8 @@ def _map_once(cfg: SfMConfig, lay: Layout, names: list[str], work: Path,
         pairs = model_loop_pairs(first, names, cfg)
         if pairs:
             before = num_verified(cfg, lay.database)
-            colmap.match_pairs(cfg, lay.database, pairs, work / "loop_pairs.txt")
+            with stderr_captured():  # the loop pairs' matching logs at INFO whatever glog's flags say
+                colmap.match_pairs(cfg, lay.database, pairs, work / "loop_pairs.txt")
             info["loop_pairs"] = len(pairs)
             info["loop_pairs_verified"] = num_verified(cfg, lay.database) - before
             log.info("loop closure: %d candidate pairs, %d verified", len(pairs), info["loop_pairs_verified"])
@@ -180,8 +182,10 @@ def _map_once(cfg: SfMConfig, lay: Layout, names: list[str], work: Path,
                 again = dataclasses.replace(cfg, mapper=dataclasses.replace(cfg.mapper, kind=result.mapper))
                 models = colmap.reconstruct(again, lay.database, lay.images, work, names, progress).models
             elif info["loop_pairs_verified"]:  # the loop's tracks into the first model, one global adjustment
-                info["loop_merge"] = merge_loop_tracks(first, lay.database, colmap.incremental_options(cfg, names),
-                                                       cfg.mapper.refine_loss_scale_px)
+                with stderr_captured():  # the database cache and the global adjustment log at INFO regardless
+                    info["loop_merge"] = merge_loop_tracks(first, lay.database,
+                                                           colmap.incremental_options(cfg, names),
+                                                           cfg.mapper.refine_loss_scale_px)
                 models = [first, *models[1:]]
         info["seconds_loop_closure"] = time.perf_counter() - t0
     return models, info
