@@ -205,6 +205,9 @@ BOXES_TRACKER = TrackerConfig(edges=EdgeTrackConfig(levels=(EdgeLevel(0.5, 5, 5.
                               restart_levels=(EdgeLevel(0.25, 8, 4.0, 3.0), EdgeLevel(0.5, 6, 5.0, 3.0),
                                               EdgeLevel(1.0, 4, 3.0, 1.5)))
 CENTRE = np.array([0.0, 0.0, 0.5])
+PALETTE = np.array([(40, 90, 150), (200, 80, 40), (60, 170, 60), (210, 190, 40), (150, 60, 170), (200, 200, 200),
+                    (90, 90, 90)], np.float32)
+"""Colours of the boxes by instance (and of the background, 0) for the colour-region tests."""
 
 
 class TestTrackBoxes:
@@ -317,8 +320,6 @@ class TestTrackTiny:
         from cadalign.sim.structure import Structure
 
         meshes, cam, _ = boxes
-        palette = np.array([(40, 90, 150), (200, 80, 40), (60, 170, 60), (210, 190, 40), (150, 60, 170),
-                            (200, 200, 200), (90, 90, 90)], np.float32)
         light = np.array([0.3, -0.5, -0.8]) / np.linalg.norm([0.3, -0.5, -0.8])
         without = RaycastRenderer([m for m in meshes if m.instance != 3], cam)
 
@@ -326,7 +327,7 @@ class TestTrackTiny:
             T = _view(k).inverse()
             f = without.render(T.inverse(), with_full_masks=False)
             shade = np.where(f.instance > 0, 0.5 + 0.5 * np.abs(f.normals_cam @ (T.R @ light)), 1.0)
-            rgb = np.clip(palette[f.instance % len(palette)] * shade[..., None], 0, 255).astype(np.float32)
+            rgb = np.clip(PALETTE[f.instance % len(PALETTE)] * shade[..., None], 0, 255).astype(np.float32)
             return as_gray(rgb.astype(np.uint8)), rgb
 
         structure = Structure(
@@ -563,9 +564,7 @@ class TestRegion:
         T = _view(0).inverse()
         grey = render(T.inverse())
         f = tr.edges.renderer().render(T.inverse(), with_full_masks=False)
-        palette = np.array([(40, 90, 150), (200, 80, 40), (60, 170, 60), (210, 190, 40), (150, 60, 170),
-                            (200, 200, 200), (90, 90, 90)], np.float32)
-        rgb = palette[f.instance % len(palette)] * (grey[..., None] / 160.0)
+        rgb = PALETTE[f.instance % len(PALETTE)] * (grey[..., None] / 160.0)
         rgb = np.clip(rgb, 0, 255).astype(np.float32)
         assert not tr.edges.region.ready
         first = tr.step(grey, [("init", T)], rgb)

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from cadalign.geometry.camera import backproject
 from cadalign.types import Rigid3
 
 
@@ -77,8 +78,7 @@ class FlowPredictor:
         x, y = np.round(pts[:, 0]).astype(int), np.round(pts[:, 1]).astype(int)
         z = depth_m[y, x].astype(np.float64)
         ok = z > 0
-        pix = np.stack([pts[ok, 0] + 0.5, pts[ok, 1] + 0.5, np.ones(ok.sum())], axis=1)  # K's convention
-        X_cam = (np.linalg.solve(self.K, pix.T).T) * z[ok, None]
+        X_cam, _ = backproject(self.K, pts[ok].astype(np.float64) + 0.5, z[ok])  # + 0.5: to K's convention
         self._gray, self._pts, self._X_w = img, pts[ok].astype(np.float32), T_world_from_cam.apply(X_cam)
 
     def predict(self, gray: np.ndarray, guess: Rigid3 | None) -> Rigid3 | None:
