@@ -59,12 +59,12 @@ class RefineConfig:
     yaw_hypotheses: int = bounded(1, ge=1)
     """Depth ICP restarts from the pose turned about the model's z axis by multiples of P / n, keeping the best depth
     fit (1 = the detector's pose only), where P is the yaw range the model's symmetry leaves distinct (360 deg, 180 deg
-    for a half-turn symmetry about z; :mod:`cadalign.infer.hypotheses`). Measurements:
+    for a half-turn symmetry about z; :mod:`cadalign.infer.refine.hypotheses`). Measurements:
     docs/tuning/infer_config.md#refineconfigyaw_hypotheses."""
     half_turn_check: bool = False
     """After refinement, also refine the pose turned half a turn about the model's z axis and keep whichever disagrees
     with the view in fewer pixels (rendered model depth against the observed depth: see-through and unexplained mask
-    pixels; silhouette XOR mask without depth; :mod:`cadalign.infer.half_turn`). Measurements:
+    pixels; silhouette XOR mask without depth; :mod:`cadalign.infer.refine.half_turn`). Measurements:
     docs/tuning/infer_config.md#refineconfighalf_turn_check."""
     half_turn_tol: float = bounded(0.05, gt=0)
     """Depth tolerance of the half-turn check, in model diameters (observed depth this far behind the rendered
@@ -277,8 +277,8 @@ class CompleteConfig:
     docs/tuning/infer_config.md#completeconfigreproject."""
     refit: RefitConfig = field(default_factory=RefitConfig)
     """Before completion, each track's world pose is fitted again to the masked depth of all its detections at once
-    (:mod:`cadalign.infer.track_fit`; tracks of at least ``min_obs`` detections), and a second track of the same part is
-    dropped. Measurements: docs/tuning/infer_config.md#completeconfigrefit."""
+    (:mod:`cadalign.infer.refine.track_fit`; tracks of at least ``min_obs`` detections), and a second track of the
+    same part is dropped. Measurements: docs/tuning/infer_config.md#completeconfigrefit."""
     smooth: bool = True
     """A completed track's detections report its final world pose too (fused from all its frames, later ones included)
     instead of the running mean of the frames up to theirs. Measurements:
