@@ -50,13 +50,9 @@ class EdgeRefineConfig:
     min_contrast: float = 4.0
     """Weakest accepted edge: intensity step (0-255 grey levels) across the contour."""
     tukey_px: float = 1.5
-    """Tukey biweight scale of the edge offsets in the last round, pixels. The first round uses twice this
-    (it must see offsets of the error being corrected), later rounds shrink it linearly. Measured on two
-    default-orbit builds (per-part mask IoU of the thinnest part, a hot stab 3.7 px wide / object pose
-    median): 0.5 (6 rounds, every pixel) -> 0.857 / 0.044 deg; 0.75 -> 0.943 / 0.021 deg on both;
-    1.0 -> 0.955-0.968; 1.5 -> 0.962-0.969 / 0.018-0.020 deg; 2.0 -> 0.97 / 0.018 deg (one build). A narrow
-    scale keeps too few contour samples of each frame; the image edge's inward skew at silhouettes (shading
-    falls off at grazing angles) did not pull the wider fits."""
+    """Tukey biweight scale of the edge offsets in the last round, pixels; the first round uses twice this, later rounds
+    shrink it linearly. Narrower scales keep too few contour samples: the thinnest part's mask IoU fell on two
+    default-orbit builds (docs/tuning/align_edge_refine.md#edgerefineconfigtukey_px)."""
     min_edges: int = 500
     """Fewer matched edges than this in all frames together: no correction."""
     max_turn_deg: float = 0.5
@@ -70,14 +66,9 @@ class EdgeRefineConfig:
     per_frame: bool = True
     """Then fit each frame's own correction (its pose error after the shared one is about as large)."""
     frame_prior_px: float = 0.0
-    """Weight of a frame's starting pose in its own fit, as the image error (pixels, over all its contour samples
-    together) that a correction of ``frame_prior_deg`` / ``frame_prior_m`` is worth; 0: no prior. One view's fit
-    has a flat valley (a camera shift trades with a turn for all but the nearest contours), where image noise
-    alone moves the camera by up to ~1 cm; the prior holds the SfM pose there. Measured on the two-lap capture
-    (datasets/scenes/two_pass.toml; worst parts' mask IoU, object pose median): 0 -> panel valves 0.923-0.940,
-    hot stab 0.950, 0.023 deg; 3 -> 0.939-0.952, 0.955, 0.032 deg; 10 -> panel valves 0.959+, hot stabs 0.928 /
-    0.937, 0.051 deg; no per-frame fit -> 0.949 / 0.909, 0.054 deg. No value brought every part over 0.95 there,
-    so it is off."""
+    """Weight of a frame's starting pose in its own fit, as the image error (pixels, all its contour samples together)
+    that a correction of ``frame_prior_deg`` / ``frame_prior_m`` is worth; 0: no prior, since no weight brought every
+    part over 0.95 mask IoU on the two-lap capture (docs/tuning/align_edge_refine.md#edgerefineconfigframe_prior_px)."""
     frame_prior_deg: float = 0.05
     """Typical size of a frame's pose error before its own fit (rotation), degrees."""
     frame_prior_m: float = 0.01
@@ -89,10 +80,9 @@ class EdgeRefineConfig:
     """A frame's own correction turning the camera more than this is not applied (the frame keeps its pose).
     On a few boxes (tests/render) single-view fits that turn more trade rotation for translation."""
     max_frame_shift_m: float = 0.05
-    """A frame's own correction moving the centroid of its contours by more than this in the camera frame is
-    not applied, metres. (Before, 3 cm measured at the camera centre, where a 0.2 deg turn about a structure
-    12 m away alone moves it 4 cm: after an SfM model whose break was repaired, 14 frames of the default orbit
-    kept poses up to 4.4 cm off and a hot stab's mask IoU fell to 0.61; three of them need 3.1-3.5 cm.)"""
+    """A frame's own correction moving the centroid of its contours by more than this (camera frame, metres) is not
+    applied; 5 cm lets through the 3-4 cm corrections after a repaired SfM model
+    (docs/tuning/align_edge_refine.md#edgerefineconfigmax_frame_shift_m)."""
 
 
 @dataclass(frozen=True)

@@ -145,8 +145,8 @@ def track_speed(
     out: Path = OUT,
 ) -> None:
     """The structure tracker's frames/s and restart time against the detector alone, same frames, same run."""
+    from cadalign.bench.track_timing import bench_track  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.formats.calibration import read_calibration  # lazy: pulls cv2; keeps `cadalign --help` light
-    from cadalign.infer.track.bench import bench_track  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.infer.track.run import read_init_pose  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.infer.video import iter_frames  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.sim.structure import load_structure  # lazy: pulls cv2; keeps `cadalign --help` light

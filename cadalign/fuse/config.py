@@ -34,10 +34,9 @@ class FuseConfig:
     from the surface are visited) but Open3D picks blocks from every 4th pixel only, so small blocks miss
     some surface: 95.9% instead of 96.3% of the default scene's CAD within 2 cm."""
     block_count: int = bounded(70000, ge=16)
-    """Initial hash map capacity in blocks (8^3 blocks take ~18 kB each, allocated up front: 1.3 GB). Open3D
-    doubles it as soon as the blocks held plus one frame's blocks exceed it, and that stalls one frame for
-    seconds (10 s measured at 50000: a rehash and copy of every block), so size it for the scene: the default
-    scene ends at 50k 8^3 blocks after its orbit (measured on 64 frames at 0.5 frame/s) and touches ~12k a frame."""
+    """Initial hash map capacity in blocks (8^3 blocks of ~18 kB each, allocated up front). Open3D doubles it when full,
+    stalling a frame for seconds, so it is sized for the default scene's ~50k blocks after its orbit
+    (docs/tuning/fuse_config.md#fuseconfigblock_count)."""
     color_every: int = bounded(1, ge=1)
     """TSDF only: integrate colour on every n-th frame (depth and labels on every frame). Colour is about a
     third of Open3D's TSDF time at 640x480; with n > 1 a voxel's colour is still a weighted average of the
@@ -65,10 +64,9 @@ class FuseConfig:
     distribution per cell, held by its lowest-index voxel. 1 = a distribution per voxel (exact, the first
     implementation, the default: 2 lost more label accuracy than ``label_pixel_stride`` 2 for less speed)."""
     label_pixel_stride: int = bounded(2, ge=1)
-    """Largest pixel stride (both directions) of the label update, its speed knob: a frame fuses the labels of
-    one pixel in s^2, the grid's offset cycling frame by frame; smaller where samples would land > 2 voxels
-    apart, and 1 for sparse depth. 2 keeps fusion with labels >= 0.8x Open3D's grid alone at 640x480, 2 cm
-    (docs/tuning/fuse_labels.md); 1 = every pixel (the first implementation)."""
+    """Largest pixel stride (both directions) of the label update, its speed knob: a frame fuses one pixel in s^2, the
+    offset cycling frame by frame (smaller where samples would land > 2 voxels apart; 1 = every pixel). 2 keeps fusion
+    with labels >= 0.8x Open3D's grid alone at 640x480, 2 cm (docs/tuning/fuse_labels.md)."""
     pred_depth_foreground_only: bool = True
     """With predicted depth and a segmentation model: fuse only pixels segmented as non-background (depth
     networks also predict depths for open water, which would become phantom surfaces)."""

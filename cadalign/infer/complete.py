@@ -7,7 +7,7 @@ frame that registers no part gets no completion). Projected into any frame, it g
 there; the frame's depth map tells which of its pixels are in sight (a model point is seen where it is no farther
 than the observed depth plus a tolerance), so parts hidden behind others are not reported. Before this pass, the
 pipeline fits each track's world pose again to the masked depth of all its detections (``refit``,
-:mod:`cadalign.infer.track_fit`) and marks a track that another explains as its duplicate (``duplicate_of``).
+:mod:`cadalign.infer.refine.track_fit`) and marks a track that another explains as its duplicate (``duplicate_of``).
 A track is completed only when
 
 - it holds at least ``min_obs`` detections (a part the network saw once or twice may be a false positive), and
@@ -55,11 +55,11 @@ class WorldTrack:
     world: int = 0
     """Which world the pose is in (:attr:`cadalign.infer.temporal.TemporalFuser.cameras`)."""
     duplicate_of: int | None = None
-    """The track this one duplicates (the same part: :func:`cadalign.infer.track_fit.duplicates`); when that one is
-    completed, this one's detections are dropped and it is not completed."""
+    """The track this one duplicates (the same part: :func:`cadalign.infer.refine.track_fit.duplicates`); when that
+    one is completed, this one's detections are dropped and it is not completed."""
     fit_rel: float | None = None
-    """How well its CAD model explains its masked depth after the refit (:attr:`cadalign.infer.track_fit.FittedTrack.
-    fit_rel`); None when it was not refitted."""
+    """How well its CAD model explains its masked depth after the refit
+    (:attr:`cadalign.infer.refine.track_fit.FittedTrack.fit_rel`); None when it was not refitted."""
 
 
 @dataclass(frozen=True)

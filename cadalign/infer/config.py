@@ -25,9 +25,8 @@ class RefineConfig:
     min_mask_px: int = bounded(400, ge=1)
     """Silhouette refinement is skipped for smaller masks: their outline says too little about the pose."""
     min_depth_points: int = bounded(10, ge=6)
-    """ICP is skipped with fewer valid depth points inside the mask. Was 50, which left most small detections unrefined
-    (43 of 45 hot stab detections on the two-pass capture). Measurements:
-    docs/tuning/infer_config.md#refineconfigmin_depth_points."""
+    """ICP is skipped with fewer valid depth points inside the mask (50 left most small detections unrefined).
+    Measurements: docs/tuning/infer_config.md#refineconfigmin_depth_points."""
     max_contour_points: int = bounded(400, ge=10)
     """Model contour points per iteration (evenly thinned)."""
     huber_px: float = bounded(2.0, gt=0)
@@ -57,14 +56,12 @@ class RefineConfig:
     visible surface, when that is more than ICP's narrow gate (``icp_max_corr`` diameters). Measurements:
     docs/tuning/infer_config.md#refineconfigdepth_init."""
     yaw_hypotheses: int = bounded(1, ge=1)
-    """Depth ICP restarts from the pose turned about the model's z axis by multiples of P / n, keeping the best depth
-    fit (1 = the detector's pose only), where P is the yaw range the model's symmetry leaves distinct (360 deg, 180 deg
-    for a half-turn symmetry about z; :mod:`cadalign.infer.hypotheses`). Measurements:
-    docs/tuning/infer_config.md#refineconfigyaw_hypotheses."""
+    """Depth ICP restarts from the pose turned about the model's z axis by multiples of P / n (P: the yaw range its
+    symmetry leaves distinct; :mod:`cadalign.infer.refine.hypotheses`), keeping the best depth fit; 1 = the detector's
+    pose only. Measurements: docs/tuning/infer_config.md#refineconfigyaw_hypotheses."""
     half_turn_check: bool = False
     """After refinement, also refine the pose turned half a turn about the model's z axis and keep whichever disagrees
-    with the view in fewer pixels (rendered model depth against the observed depth: see-through and unexplained mask
-    pixels; silhouette XOR mask without depth; :mod:`cadalign.infer.half_turn`). Measurements:
+    with the view in fewer pixels (:mod:`cadalign.infer.refine.half_turn`). Measurements:
     docs/tuning/infer_config.md#refineconfighalf_turn_check."""
     half_turn_tol: float = bounded(0.05, gt=0)
     """Depth tolerance of the half-turn check, in model diameters (observed depth this far behind the rendered
@@ -151,11 +148,8 @@ class RefitConfig:
     coarse_points: int = bounded(300, ge=6)
     """Points of the first, short ICP from every start."""
     coarse_iters: int = bounded(20, ge=1)
-    """ICP iterations from every start. 30 (refit CPU +43%) let improved seed 2's hot stab track (3700 steps, session
-    29's networks; default orbit, 33 held-out frames, true depth, training/infer_hot_stab_03.toml) reach its true pose
-    (from 7 cm / 23 deg off: none of its starts got there in 20 iterations; hot stab F1 0.735 -> 0.852, t / R mean 0.029
-    m / 6.4 deg -> 0.0004 m / 0.7 deg), but seed 0 hot stab F1 0.833 -> 0.792, seed 3 valve F1 0.986 -> 0.956, two more
-    unchanged: not taken. Measurements: docs/tuning/infer_config.md#refitconfigcoarse_iters."""
+    """ICP iterations from every start (30 helped one network's hot stab and hurt two others). Measurements:
+    docs/tuning/infer_config.md#refitconfigcoarse_iters."""
     keep: int = bounded(4, ge=1)
     """Starts (besides the fused pose) taken on to the final ICP."""
     iters: int = bounded(30, ge=1)
@@ -178,10 +172,8 @@ class RefitConfig:
     dup_tol: float = bounded(0.02, gt=0)
     """A point is explained by a pose when within this fraction of the diameter of the model (the duplicate test)."""
     dup_share: float = bounded(0.8, ge=0, le=1)
-    """Two refitted tracks of a class are one part (a second track, often with the wrong model of the class, e.g. the
-    UUV hot stab fitted onto a procedural one's probe, or a retired track and its successor) when one's pose explains at
-    least this share of what the other's own pose explains of the other's points; the one lying closer to both tracks'
-    points is kept, and the other's records are dropped when the kept one is completed (:func:`duplicates`). 0 = off.
+    """Two refitted tracks of a class are one part when one's pose explains at least this share of what the other's own
+    pose explains of the other's points; the one closer to both tracks' points is kept (:func:`duplicates`). 0 = off.
     Measurements: docs/tuning/infer_config.md#refitconfigdup_share."""
     choose_model: Literal["off", "depth", "view"] = "view"
     """Refit every CAD model of the track's class, not only the track's own, and keep the one that fits best
@@ -200,10 +192,8 @@ class RefitConfig:
     coarse points, 10 coarse iterations, 2 kept: :meth:`screening`); a model that wins on that fit is fitted again by
     the full search before it replaces the track's own. Measurements: docs/tuning/infer_config.md#refitconfigscreen."""
     view_turns_deg: tuple[float, ...] = (16.0, 8.0, 4.0)
-    """With ``choose_model = "view"``, the chosen fit is then turned about the model's axes (through its centroid) by
-    these steps, coarse to fine, each turn followed by ``turn_icp_iters`` ICP iterations, while a turn lowers
-    :func:`view_score` and keeps the points' fit within ``tie_rel`` (:func:`turn_by_view`): a turn the points cannot see
-    (the roll of a thin part seen from 7 m) is decided by the views. Measurements:
+    """With ``choose_model = "view"``, turns (deg, coarse to fine) of the chosen fit about the model's axes, taken while
+    a turn lowers :func:`view_score` and keeps the points' fit within ``tie_rel`` (:func:`turn_by_view`). Measurements:
     docs/tuning/infer_config.md#refitconfigview_turns_deg."""
     turn_icp_iters: tuple[int, ...] = (0, 10)
     """The turns of ``view_turns_deg`` are searched once per entry, each turn followed by that many ICP iterations (so
@@ -259,26 +249,23 @@ class CompleteConfig:
     be completed: a false positive that recurs in a few frames at one place is otherwise reported in every frame that
     sees that place. Measurements: docs/tuning/infer_config.md#completeconfigmin_detected."""
     drop_untrusted: bool = False
-    """Drop the detections of tracks that completion does not trust (at least ``min_obs`` detections, but their
-    projection disagrees with them or, with ``min_detected``, they are detected in too few of their views): a false
-    positive recurring at one place makes such a track, and its detections would otherwise stay reported. Measurements:
-    docs/tuning/infer_config.md#completeconfigdrop_untrusted."""
+    """Drop the detections of tracks that completion does not trust (``min_obs`` detections or more, but their
+    projection disagrees with them or, with ``min_detected``, too few of their views detect them): a recurring false
+    positive. Measurements: docs/tuning/infer_config.md#completeconfigdrop_untrusted."""
     max_fit_rel: float = bounded(1.0, gt=0, le=1)
     """A refitted track whose CAD model explains its masked depth worse than this (:attr:`WorldTrack.fit_rel`) is not
-    trusted: a part of the structure taken for a valve in a few neighbouring frames makes a track whose projection
-    agrees with its detections, but the valve's CAD model does not fit its depth. 1.0: off (the fit is capped).
-    Measurements: docs/tuning/infer_config.md#completeconfigmax_fit_rel."""
+    trusted (a part of the structure taken for a valve); 1.0: off (the fit is capped). Measurements:
+    docs/tuning/infer_config.md#completeconfigmax_fit_rel."""
     dedup_iou: float = bounded(0.5, gt=0, le=1)
     """A completion whose box overlaps a reported box of its class by at least this is not added."""
     reproject: bool = True
-    """A completed track's detections report the visible box and mask of its world pose in their frame (as its
-    completions do) instead of the network's: a thin part's box often covers only its handle, or a part and its
-    neighbour, while the pose fused over the video puts it whole; box and pose then agree. Measurements:
+    """A completed track's detections report the visible box and mask of its world pose in their frame instead of the
+    network's (a thin part's box often covers only its handle): box and pose then agree. Measurements:
     docs/tuning/infer_config.md#completeconfigreproject."""
     refit: RefitConfig = field(default_factory=RefitConfig)
     """Before completion, each track's world pose is fitted again to the masked depth of all its detections at once
-    (:mod:`cadalign.infer.track_fit`; tracks of at least ``min_obs`` detections), and a second track of the same part is
-    dropped. Measurements: docs/tuning/infer_config.md#completeconfigrefit."""
+    (:mod:`cadalign.infer.refine.track_fit`; tracks of at least ``min_obs`` detections), and a second track of the
+    same part is dropped. Measurements: docs/tuning/infer_config.md#completeconfigrefit."""
     smooth: bool = True
     """A completed track's detections report its final world pose too (fused from all its frames, later ones included)
     instead of the running mean of the frames up to theirs. Measurements:
@@ -320,11 +307,9 @@ class InferConfig:
     CAD model instead of being identified again (0 = off: identify every detection not on an established track, see
     ``track_init``). Measurements: docs/tuning/infer_config.md#inferconfigreuse_box_iou."""
     track_init: Literal["off", "model", "pose"] = "pose"
-    """Frame-to-frame tracking. A detection whose box holds the projected centre of an established track of its class
-    (fused from at least three frames; with depth, the masked depth within half the part's diameter of that centre)
-    takes the track's CAD model instead of being identified again (``model``), and (``pose``) starts its refinement from
-    the track's pose in this frame instead of the network's (~1 m and tens of degrees off at 10 m). Measurements:
-    docs/tuning/infer_config.md#inferconfigtrack_init."""
+    """Frame-to-frame tracking: a detection on an established track of its class takes the track's CAD model (``model``)
+    and also starts its refinement from the track's pose in this frame (``pose``) instead of the network's.
+    Measurements: docs/tuning/infer_config.md#inferconfigtrack_init."""
     reidentify_growth: float = bounded(0.0, ge=0)
     """A detection on an established track (``track_init``) takes the track's CAD model, decided once by identification,
     mostly on the part's first and smallest or least visible views. Measurements:
@@ -338,9 +323,8 @@ class InferConfig:
     samples_per_model: int = bounded(3000, ge=100)
     """Surface samples per CAD model for ICP."""
     enhance: Literal["auto", "none", "clahe", "clahe_wb"] = "auto"
-    """Pre-processing of each frame before detection, as :func:`cadalign.sfm.frames.enhance`. 'auto': as the network's
-    training images were prepared (:mod:`cadalign.sfm.image_prep`: a built dataset's images were CLAHE-enhanced by SfM,
-    a simulator's are raw), read from the run folder; the others force one (default CLAHE settings). Measurements:
+    """Pre-processing of each frame before detection (:func:`cadalign.sfm.frames.enhance`). 'auto': as the network's
+    training images were prepared (:mod:`cadalign.sfm.image_prep`); the others force one. Measurements:
     docs/tuning/infer_config.md#inferconfigenhance."""
 
     def __post_init__(self) -> None:

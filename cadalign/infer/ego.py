@@ -26,7 +26,7 @@ from cadalign.cad.symmetry import Symmetry
 from cadalign.errors import DegenerateGeometryError
 from cadalign.geometry.umeyama import kabsch
 from cadalign.infer.pose_math import Observation, apply_twist_camera, canonicalize, robust_mean, twist_between
-from cadalign.infer.refine_math import huber_weights
+from cadalign.infer.refine.refine_math import huber_weights
 from cadalign.types import Rigid3
 
 

@@ -24,13 +24,12 @@ from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.infer.complete import WorldTrack
 from cadalign.infer.config import InferConfig, RefitConfig
 from cadalign.infer.detect import Detector
-from cadalign.infer.half_turn import view_disagreement, view_window
-from cadalign.infer.hypotheses import yaw_hypotheses_rad
 from cadalign.infer.model_geom import ModelGeometry, project_points, render_silhouette
 from cadalign.infer.pose_math import Observation
 from cadalign.infer.refine import icp_points, pick_fit, refine, refine_depth_icp, refine_silhouette
-from cadalign.infer.temporal import TemporalFuser
-from cadalign.infer.track_fit import (
+from cadalign.infer.refine.half_turn import view_disagreement, view_window
+from cadalign.infer.refine.hypotheses import yaw_hypotheses_rad
+from cadalign.infer.refine.track_fit import (
     FittedTrack,
     RefitResult,
     TrackPoints,
@@ -41,6 +40,7 @@ from cadalign.infer.track_fit import (
     refit_world_pose,
     turn_track,
 )
+from cadalign.infer.temporal import TemporalFuser
 from cadalign.metrics.pose import rotation_error_deg
 from cadalign.types import Detection, Rigid3
 
@@ -119,7 +119,7 @@ class PosePipeline:
     def world_tracks(self) -> list[WorldTrack]:
         """The tracks fused in a world frame (given or ego camera poses) that have a CAD model, for completion; with
         ``complete.refit`` the world pose of each track of at least ``complete.min_obs`` detections is fitted
-        again to all its points, and duplicates among them are marked (:mod:`cadalign.infer.track_fit`).
+        again to all its points, and duplicates among them are marked (:mod:`cadalign.infer.refine.track_fit`).
 
         Retired tracks are among them when refitted (an ego world left behind, or a model re-identified: with the
         refit, whichever of the old and the new track lies closer to both tracks' points is kept)."""
@@ -143,7 +143,7 @@ class PosePipeline:
     def _refit(self, track_id: int, label: int, obj_id: int, world: int, T: Rigid3) -> FittedTrack | None:
         """A track's world pose fitted to all its points (``complete.refit``), None when it is not refitted (off,
         fewer than ``complete.min_obs`` detections with points, or too few points). With ``refit.choose_model``
-        every model of its class is fitted and the best kept (:func:`~cadalign.infer.track_fit.pick_model`)."""
+        every model of its class is fitted and the best kept (:func:`~cadalign.infer.refine.track_fit.pick_model`)."""
         n = self.points.frames(track_id) if self.points is not None else 0
         if self.points is None or n < self.cfg.complete.min_obs:
             return None
@@ -191,8 +191,8 @@ class PosePipeline:
         return FittedTrack(track_id, label, world, n, self.geometry(k), r.T_world_from_obj, P, k, r.fit_m)
 
     def _pick_model(self, track_id: int, fits: dict[int, RefitResult], P: np.ndarray, own: int) -> int:
-        """:func:`~cadalign.infer.track_fit.pick_model` of a track's fitted models (its views with ``choose_model =
-        "view"``)."""
+        """:func:`~cadalign.infer.refine.track_fit.pick_model` of a track's fitted models (its views with
+        ``choose_model = "view"``)."""
         cfg = self.cfg.complete.refit
         views = self.points.views(track_id) if self.points is not None and cfg.choose_model == "view" else ()
         return pick_model({m: r.T_world_from_obj for m, r in fits.items()}, {m: self.geometry(m) for m in fits}, P,
@@ -212,7 +212,7 @@ class PosePipeline:
         to the model when depth is given, else the largest silhouette IoU with the mask. On the default
         scene's oracle detections (3 cm / 3 deg noise) this picks the right valve type in 94 of 104 cases
         with depth and 92 of 104 by silhouette IoU. With ``refine.yaw_hypotheses`` > 1 each candidate is also
-        tried from the yaw restarts of :func:`cadalign.infer.hypotheses.yaw_hypotheses_rad`: from a network's
+        tried from the yaw restarts of :func:`cadalign.infer.refine.hypotheses.yaw_hypotheses_rad`: from a network's
         45-65 deg yaw error three ICP iterations fit the wrong valve type as well as the right one.
         """
         oid = getattr(det, "obj_id", None)

@@ -20,7 +20,7 @@ from cadalign.geometry.rotations import (
     orthonormalize,
     skew,
 )
-from cadalign.infer.refine_math import huber_weights
+from cadalign.infer.refine.refine_math import huber_weights
 from cadalign.types import Rigid3
 
 
@@ -82,7 +82,7 @@ def twist_between(T_from: Rigid3, T_to: Rigid3) -> np.ndarray:
 
 def apply_twist_camera(xi: np.ndarray, T: Rigid3) -> Rigid3:
     """``T`` moved by the left twist ``xi = (omega, v)`` about the camera origin: ``R' = exp(omega) R``,
-    ``t' = exp(omega) t + v`` (the inverse of :func:`twist_between`; :func:`cadalign.infer.refine_math.apply_twist`
-    turns about the object instead)."""
+    ``t' = exp(omega) t + v`` (the inverse of :func:`twist_between`;
+    :func:`cadalign.infer.refine.refine_math.apply_twist` turns about the object instead)."""
     dR = axis_angle_to_matrix(np.asarray(xi[:3], float))
     return Rigid3(dR @ T.R, dR @ T.t + np.asarray(xi[3:], float))

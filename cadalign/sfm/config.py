@@ -35,9 +35,8 @@ class FrameConfig:
     sharpness of the recent candidates is skipped as blurred; 0 turns the check off."""
     blur_keep_matches: float = bounded(0.25, ge=0, le=1)
     """A candidate softer than ``blur_ratio`` is kept anyway when its verified ORB matches with the last kept frame
-    reach this fraction of those of the last two kept frames: it would register (:mod:`cadalign.sfm.blur`). On a
-    textured pan a 2 px Gaussian blur keeps ~29 % of the matches, a 3 px one or a 15 px motion blur under 10 %;
-    0 lets sharpness alone decide."""
+    reach this fraction of those of the last two kept frames: it would register (:mod:`cadalign.sfm.blur`). 0: sharpness
+    alone decides (docs/tuning/sfm_config.md#frameconfigblur_keep_matches)."""
     blur_window: int = bounded(15, ge=1)
     """Number of recent candidates whose median sharpness is the reference for ``blur_ratio``."""
     min_sharpness: float = bounded(0.0, ge=0)
@@ -71,11 +70,9 @@ class FeatureConfig:
     max_image_size: int = bounded(1600, ge=64)
     """Images are downscaled so their longest side is at most this many pixels before extraction."""
     first_octave: int = bounded(-1, ge=-1, le=1)
-    """First octave of the SIFT pyramid: -1 (COLMAP's default) doubles the image first, for small-scale features;
-    0 starts at the image's own size. Extraction time grows with the pyramid's pixels: on the default scene's
-    640x480 CLAHE frames 0 extracts ~3x faster (1,000-1,200 features per frame, more than plain pycolmap finds
-    at -1 on the raw frames), and halves the matching time with them. Small frames need -1: 160x120 textures
-    gave 44-56 features at 0."""
+    """First octave of the SIFT pyramid: -1 (COLMAP's default) doubles the image first, for small-scale features; 0
+    starts at the image's own size, ~3x faster on 640x480 frames, which keep enough features; small frames need -1
+    (docs/tuning/sfm_config.md#featureconfigfirst_octave)."""
     estimate_affine_shape: bool = False
     """Affine-adapted SIFT (more robust to viewpoint change, ~2x slower)."""
     domain_size_pooling: bool = False
@@ -116,9 +113,9 @@ class MatchConfig:
     but that are far apart in time (the ROV came back), then map again. Candidates come from the
     model's poses, not from appearance, so look-alike views of symmetric structures are not matched."""
     loop_remap: bool = True
-    """After loop pairs are verified, map again from scratch (True), or merge the loop's tracks into the first
-    model and re-adjust it globally (False; :mod:`cadalign.sfm.loop_merge`), which costs one global bundle
-    adjustment instead of a second mapping pass (on the default orbit, 9 s against 30-45 s under load)."""
+    """After loop pairs are verified, map again from scratch (True), or merge the loop's tracks into the first model and
+    re-adjust it globally (False; :mod:`cadalign.sfm.loop_merge`: one global bundle adjustment instead of a second
+    mapping pass, cheaper; docs/tuning/sfm_config.md#matchconfigloop_remap)."""
     loop_num_neighbors: int = bounded(8, ge=1)
     """Nearest registered frames (by camera centre) each frame is checked against for loop pairs."""
     loop_max_distance: float = bounded(3.0, gt=0)
@@ -145,11 +142,9 @@ class CameraConfig:
     refine_intrinsics: bool = False
     """With known ``intrinsics``: let bundle adjustment refine the focal length anyway."""
     known_intrinsics_from: Literal["refinement", "mapping"] = "refinement"
-    """When known ``intrinsics`` take over. 'refinement': map with ``model`` self-calibrated (robust), then
-    set the known calibration and re-adjust the model with it held fixed. 'mapping': a fixed PINHOLE camera
-    from the first pair on (COLMAP's calibrated mode; on the default scene's constant-height orbit it
-    hinged the model with 3 of 3 seeds, while self-calibration alone mis-estimates the focal length by ~0.8 %
-    there: orbits at one height are a critical motion for focal length)."""
+    """When known ``intrinsics`` take over: 'refinement' maps with ``model`` self-calibrated, then re-adjusts with the
+    known calibration fixed; 'mapping' fixes a PINHOLE camera from the first pair on, which hinged the model on
+    constant-height orbits (docs/tuning/sfm_config.md#cameraconfigknown_intrinsics_from)."""
 
 
 @dataclass(frozen=True)
@@ -157,9 +152,8 @@ class MapperConfig:
     """Incremental (COLMAP) or global (GLOMAP) mapping and bundle adjustment."""
 
     kind: Literal["auto", "incremental", "global"] = "auto"
-    """'incremental' registers one image at a time (COLMAP; the most accurate on the simulated orbits);
-    'global' solves all rotations and positions at once (GLOMAP; robust to forward motion, where the
-    incremental initialisation often fails); 'auto' runs incremental and falls back to global when it
+    """'incremental' registers one image at a time (COLMAP; the most accurate on the simulated orbits); 'global' solves
+    all poses at once (GLOMAP; robust to forward motion); 'auto' runs incremental and falls back to global when it
     registers fewer than ``auto_min_registered`` of the frames."""
     auto_min_registered: float = bounded(0.8, ge=0, le=1)
     """For kind='auto': fraction of the frames the incremental model must register to be kept as is."""
@@ -207,10 +201,9 @@ class MapperConfig:
     segment_overlap: int = bounded(8, ge=3)
     """Frames each segment shares with the next (>= 3; the Sim(3) that merges them is fitted on these)."""
     on_break: Literal["repair", "largest_piece", "keep_all"] = "repair"
-    """When every attempt has breaks: 'repair' re-maps a window of ``repair_frames`` frames round each break
-    on its own and merges it with the pieces (:mod:`cadalign.sfm.repair`), and keeps the largest piece when
-    that fails; 'largest_piece' keeps only the largest consistent piece of the sequence (its frames are
-    reliable; the others are reported as dropped); 'keep_all' keeps the whole, inconsistent model."""
+    """When every attempt has breaks: 'repair' re-maps ``repair_frames`` frames round each break and merges them
+    (:mod:`cadalign.sfm.repair`; else the largest piece), 'largest_piece' keeps the largest consistent piece (the other
+    frames reported as dropped), 'keep_all' the whole, inconsistent model."""
     repair_frames: int = bounded(16, ge=6)
     """Length of the window re-mapped round a break (on_break='repair'), half before the seam and half
     after; it must share 3 registered frames with each piece. On the default orbit 16 frames (90 deg of

@@ -45,10 +45,8 @@ class AugmentConfig:
     """Smallest crop side as a fraction of the image side."""
     lamp_prob: float = bounded(0.0, ge=0, le=1)
     """Probability of a lamp hotspot: a tinted Gaussian gain field ``1 + a * tint * exp(-r^2 / 2 sigma^2)`` that
-    brightens one spot the way an ROV lamp lights a near part (inverse-square falloff: close parts are several
-    times brighter than the same part seen from afar). 0 = off. (With seg zoom on the default scene it did not
-    help the lamp-lit test-block hot stab: see ``SegTrainConfig.zoom_prob``; dimming that hot stab back to the
-    training brightness at inference did not make the network find it either, so brightness is not the cause.)"""
+    brightens one spot as an ROV lamp lights a near part. 0 = off: it did not help the lamp-lit hot stab
+    (docs/tuning/train_config.md#augmentconfiglamp_prob)."""
     lamp_gain: float = bounded(2.0, ge=0)
     """Largest extra gain ``a`` at the hotspot centre (drawn uniformly in [0, lamp_gain])."""
     lamp_sigma: tuple[float, float] = (0.05, 0.25)

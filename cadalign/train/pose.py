@@ -69,42 +69,25 @@ class PoseTrainConfig:
     crop_object_prob: float = bounded(0.8, ge=0, le=1)
     """Probability that a crop is placed around a randomly chosen instance (else uniformly)."""
     crop_balance_classes: bool = False
-    """Draw the instance a crop is placed around class-balanced (a class present in the frame uniformly, then
-    one of its instances) instead of uniformly over instances: the default scene's frames hold ~6 valves and
-    ~4 structure parts per hot stab. Measured on the default orbit (training/pose_fast_zoom_improved.toml + amp,
-    6600 steps, 3466 CPU-s; the 33 held-out frames, ``infer --preset accurate`` with true depth): hot stab F1
-    0.394 -> 0.427 (thesis 0.374 -> 0.398), valve F1 unchanged (0.846 -> 0.847), but fused valve rotation error
-    1.12 -> 3.37 deg mean (one ball valve flipped; 1.24 -> 2.91 without the ball valve) and hot stab 47 -> 65 deg.
-    Off by default."""
+    """Draw the instance a crop is placed around class-balanced (a class present in the frame uniformly, then one of its
+    instances) instead of uniformly over instances. Off: hot stab F1 rose a little, fused rotations got worse
+    (docs/tuning/train_config.md#posetrainconfigcrop_balance_classes)."""
     zoom_prob: float = bounded(0.0, ge=0, le=1)
-    """Probability that a training crop is zoomed in: a window ``z`` times smaller than ``crop_hw`` (the whole
-    ``input_hw`` image when ``crop_hw`` is None) upsampled to it, ``z`` log-uniform in ``[1, zoom_max]``. Parts
-    then look as if ``z`` times closer (focal length and principal point scale, the pose stays), so parts that
-    are nearer at inference than in any training frame are not out of distribution; see
-    :mod:`cadalign.train.pose_crop`."""
+    """Probability that a training crop is zoomed in: a window ``z`` times smaller than ``crop_hw`` (or ``input_hw``),
+    ``z`` log-uniform in ``[1, zoom_max]``, upsampled to it, so parts look ``z`` times closer (K scales, the pose stays;
+    :mod:`cadalign.train.pose_crop`)."""
     zoom_max: float = bounded(2.0, ge=1)
     """Largest zoom factor of ``zoom_prob``."""
     rotate_prob: float = bounded(0.0, ge=0, le=1)
-    """Probability that a training frame is rolled: the image the camera would have taken after turning about
-    its optical axis by up to ``rotate_max_deg`` (an exact homography for any K; ``R``, ``t`` turn with it, the
-    depth stays), so thin parts are seen at image orientations the trajectory never gave them; see
-    :mod:`cadalign.train.pose_crop`. Measured on the default orbit (training/pose_fast_zoom_improved.toml + amp,
-    ``rotate_prob = 0.5``, 30 deg, 6600 steps; the 33 held-out frames, ``infer --preset accurate`` with true
-    depth): hot stab recall at score 0.02 rose 0.60 -> 0.72, but at the 0.5 threshold F1 fell 0.394 -> 0.366
-    (valve 0.846 -> 0.851), fused valve error 0.009 m / 1.12 deg -> 0.015 m / 6.10 deg, and a step costs ~7 %
-    more (3279 -> 3574 CPU-s). The thesis head trained the same way: valve / hot stab F1 0.829 / 0.374 ->
-    0.814 / 0.391. Off by default."""
+    """Probability that a training frame is rolled about its optical axis by up to ``rotate_max_deg`` (an exact
+    homography; ``R``, ``t`` turn with it; :mod:`cadalign.train.pose_crop`). Off: recall rose but F1 and fused rotations
+    fell (docs/tuning/train_config.md#posetrainconfigrotate_prob)."""
     rotate_max_deg: float = bounded(30.0, ge=0, le=180)
     """Largest roll of ``rotate_prob`` (degrees, uniform in ``[-max, max]``)."""
     paste_prob: float = bounded(0.0, ge=0, le=1)
     """Probability that a training frame gets instances of the next frame of its batch pasted in where they are
-    (copy-paste; the same camera, so their poses hold exactly; the frame's own instances lose the covered
-    pixels): parts are seen on other backgrounds and rare classes more often; see
-    :func:`cadalign.train.pose_crop.paste_instances`. Needs ``loop.batch_size`` >= 2. Measured on the default
-    orbit (training/pose_fast_zoom_improved.toml + amp, ``paste_prob = 0.5``, 6600 steps; the 33 held-out frames,
-    ``infer --preset accurate`` with true depth): valve / hot stab F1 0.824 / 0.304, against 0.846 / 0.394 and
-    0.853 / 0.426 for the same recipe without pasting (seed 0, session 13; seed 1); precision rises, recall
-    falls. A step costs ~14 % more (0.37 against 0.32 CPU-s). Off by default."""
+    (:func:`cadalign.train.pose_crop.paste_instances`; needs ``loop.batch_size`` >= 2). Off: F1 fell and a step costs
+    more (docs/tuning/train_config.md#posetrainconfigpaste_prob)."""
     paste_max: int = bounded(3, ge=1)
     """Instances pasted per pasted frame at most (class-balanced draws from the donor frame)."""
 

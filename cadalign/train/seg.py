@@ -81,16 +81,14 @@ class SegTrainConfig:
     """Frames per step in that final phase (the first ones of each batch): 1 frame of 640x480 holds the pixels
     of 4 240x320 windows, so a step costs about the same."""
     zoom_prob: float = bounded(0.0, ge=0, le=1)
-    """Share of ``patch`` windows zoomed in (see :func:`cadalign.train.augment.random_patches`): a smaller window
-    around the same (focus) centre, upsampled to ``patch``, so parts are also seen at close-up sizes. 0 = off.
-    (0.5 with zoom_max 2, together with augment.lamp_prob 0.5 / lamp_gain 2.5, on the 1750-step fast preset,
-    default-scene build, seed 0: val IoU structure/valve/hot stab 0.954/0.719/0.403, test 0.946/0.638/0.052,
-    against 0.957/0.800/0.457 and 0.943/0.752/0.100 without: worse valves, no hot-stab gain.)"""
+    """Share of ``patch`` windows zoomed in (:func:`cadalign.train.augment.random_patches`): a smaller window round the
+    same centre upsampled to ``patch``, for close-up sizes. 0 = off: worse valves and no hot-stab gain on the default
+    scene (docs/tuning/train_config.md#segtrainconfigzoom_prob)."""
     zoom_max: float = bounded(2.0, ge=1)
     """Largest zoom factor (log-uniform in [1, zoom_max])."""
     channels_last: bool = True
-    """Train in the channels-last memory layout: the same network and loss, ~25 % less CPU time per step on
-    one thread (measured: 0.74 -> 0.55 s for a batch of 4 240x320 windows at width 12)."""
+    """Train in the channels-last memory layout: the same network and loss, ~25 % less CPU time per step on one thread
+    (docs/tuning/train_config.md#segtrainconfigchannels_last)."""
 
 
 # fast: full-resolution 176x240 windows, 80 % of them centred on a pixel of a small class drawn by inverse pixel

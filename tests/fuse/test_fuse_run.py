@@ -99,7 +99,7 @@ def test_predicted_inputs_plug_in_as_callables(fuse_sim: Path, small_cfg: FuseCo
 
 
 def test_bench_fuse(fuse_sim: Path, small_cfg: FuseConfig, tmp_path: Path) -> None:
-    from cadalign.fuse.bench import bench_fuse
+    from cadalign.bench.fuse_timing import bench_fuse
 
     r = bench_fuse(fuse_sim, small_cfg, frames=2, warmup=1, out=tmp_path)
     assert r["frames_timed"] == 2 and r["frames_per_second_median"] > 0 and r["image"] == "160x120"
@@ -115,7 +115,7 @@ def test_bench_fuse(fuse_sim: Path, small_cfg: FuseConfig, tmp_path: Path) -> No
 
 
 def test_time_interleaved_gives_each_config_its_own_map(fuse_sim: Path, small_cfg: FuseConfig) -> None:
-    from cadalign.fuse.bench import time_interleaved
+    from cadalign.bench.fuse_timing import time_interleaved
     from cadalign.fuse.inputs import open_source
 
     src = open_source(fuse_sim, max_frames=3)

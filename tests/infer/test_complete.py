@@ -171,7 +171,7 @@ def test_short_tracks_are_dropped_and_not_completed(cube: ModelGeometry) -> None
 
 
 def test_a_duplicate_of_a_completed_track_is_dropped(cube: ModelGeometry) -> None:
-    # track 1 marked as the same part as track 0 (cadalign.infer.track_fit.duplicates): its detections go, and it
+    # track 1 marked as the same part as track 0 (cadalign.infer.refine.track_fit.duplicates): its detections go, and it
     # is not completed, as long as track 0 is completed
     recs, cams = _video(cube, {0: [0, 1, 3, 4], 1: [0, 1, 2]})
     tracks = [WorldTrack(0, 2, 7, _at(0.0)), WorldTrack(1, 2, 7, _at(0.0, x=1.0), duplicate_of=0)]

@@ -11,9 +11,9 @@ from cadalign.cad.model import CadModel
 from cadalign.cad.procedural import make_part
 from cadalign.cad.symmetry import Symmetry
 from cadalign.infer.config import RefineConfig
-from cadalign.infer.half_turn import half_turned, needs_half_turn_check, pick_half_turn, view_disagreement
 from cadalign.infer.model_geom import ModelGeometry, render_depth, render_silhouette
 from cadalign.infer.refine import refine
+from cadalign.infer.refine.half_turn import half_turned, needs_half_turn_check, pick_half_turn, view_disagreement
 from cadalign.metrics.pose import rotation_error_deg, translation_error_m
 from cadalign.types import Rigid3
 

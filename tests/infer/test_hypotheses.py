@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cadalign.cad.symmetry import Symmetry
-from cadalign.infer.hypotheses import yaw_hypotheses_rad, yaw_period_rad
+from cadalign.infer.refine.hypotheses import yaw_hypotheses_rad, yaw_period_rad
 
 
 @pytest.mark.parametrize(("name", "period_deg"), [

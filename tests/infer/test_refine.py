@@ -164,7 +164,7 @@ def test_yaw_restarts_spread_over_the_symmetry_period(valve_view, yaw_err_deg: f
 def test_a_thin_mask_still_gives_depth_points_and_icp_runs(valve_view) -> None:
     """A mask two pixels tall is all edge: its one-pixel erosion is empty. With min_points it falls back to
     all of its pixels, so ICP runs (the default scene's hot stabs were never refined before)."""
-    from cadalign.infer.depth_icp import masked_depth_points
+    from cadalign.infer.refine.depth_icp import masked_depth_points
 
     model, geom, view = valve_view
     rows = np.flatnonzero(view.mask.any(1))
@@ -190,7 +190,7 @@ def test_icp_from_a_pose_beside_the_points_starts_again_on_them(valve_view) -> N
     T_gt = view.T_cam_from_obj
     side = np.cross(T_gt.t, [0.0, 1.0, 0.0])
     T0 = Rigid3(T_gt.R, T_gt.t + 1.0 * side / np.linalg.norm(side))
-    from cadalign.infer.depth_icp import masked_depth_points
+    from cadalign.infer.refine.depth_icp import masked_depth_points
 
     Q = masked_depth_points(view.depth_m, view.mask, view.camera.K, 1000, np.random.default_rng(0))
     assert np.min(geom.tree.query(T0.inverse().apply(Q))[0]) > RefineConfig().icp_max_corr_start * geom.diameter_m
@@ -221,7 +221,7 @@ def test_masked_depth_points_look_only_at_the_mask_box_and_give_the_whole_frame_
                                                                                           fill):
     """The points come from the mask's bounding box only; they (and their sampling) equal the whole frame's,
     masks on the frame border, blobs, one pixel, empty masks and NaN / zero depth included."""
-    from cadalign.infer.depth_icp import masked_depth_points
+    from cadalign.infer.refine.depth_icp import masked_depth_points
 
     rng = np.random.default_rng(seed)
     h, w = 24, 32

@@ -1,10 +1,11 @@
-"""refine.py was split into contour_fit / depth_icp / refine_math: the old import paths still work."""
+"""The refinement package (cadalign.infer.refine) re-exports the public names of its modules."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from cadalign.infer import contour_fit, depth_icp, refine, refine_math
+from cadalign.infer import refine
+from cadalign.infer.refine import contour_fit, depth_icp, refine_math
 
 
 def test_refine_reexports_the_moved_names():

@@ -1,4 +1,4 @@
-"""Multi-frame refit of a static part's world pose, duplicate tracks (cadalign.infer.track_fit), and the pipeline
+"""Multi-frame refit of a static part's world pose, duplicate tracks (cadalign.infer.refine.track_fit), and the pipeline
 handing refitted (also retired) tracks to completion."""
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ from cadalign.cad.model import CadModel
 from cadalign.cad.procedural import make_part
 from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.infer.config import PRESETS, RefitConfig
-from cadalign.infer.depth_icp import depth_fit, masked_depth_points
 from cadalign.infer.model_geom import ModelGeometry, render_depth
 from cadalign.infer.pipeline import PosePipeline
 from cadalign.infer.pose_math import Observation
-from cadalign.infer.track_fit import (
+from cadalign.infer.refine.depth_icp import depth_fit, masked_depth_points
+from cadalign.infer.refine.track_fit import (
     FittedTrack,
     TrackPoints,
     TrackView,

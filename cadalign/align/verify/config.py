@@ -28,9 +28,8 @@ class VerifyConfig:
     min_samples: int = 300
     """Fewer contour samples than this over all frames is too little edge evidence to accept a pose."""
     ok_edge: float = 0.45
-    """Smallest edge lift (see the module doc) of an accepted pose. Measured (per-part mean, after the local
-    contour fit): right poses 0.75-0.76 (tiny 12-frame capture, default orbit); turned 180 degrees, whose big
-    symmetric outline still fits, 0.27-0.29; wrong global poses 0.03-0.09 (docs/tuning/verify.md)."""
+    """Smallest edge lift (see the module doc) of an accepted pose: between the right poses' (~0.75) and those turned
+    180 degrees (~0.28), per-part mean after the local contour fit (docs/tuning/verify.md#verifyconfigok_edge)."""
     wrong_edge: float = 0.1
     """Below this edge lift the images contradict the pose (its outline is no likelier than a displaced one)."""
     ok_free: float = 0.1
@@ -48,17 +47,15 @@ class VerifyConfig:
     """A ray meeting the CAD closer than its point by more than this fraction of the range (or the alignment's
     inlier distance, whichever is larger) is a violation; less is noise of a point on the surface."""
     refine: bool = True
-    """Before scoring, move each hypothesis to its nearest fit of the image contours (the shared edge correction of
-    :mod:`cadalign.align.edge_refine`, searched ``refine_search_px`` wide): a right placement from the sparse
-    cloud can be several pixels off on a real capture (on the ViSP desk, 5-10 px), where the ``near_px`` search
-    misses its edges and the displaced one finds them."""
+    """Before scoring, move each hypothesis to its nearest fit of the image contours (:mod:`cadalign.align.edge_refine`,
+    ``refine_search_px`` wide): a right placement from the sparse cloud can be pixels off on a real capture, where the
+    ``near_px`` search misses its edges (docs/tuning/verify.md#verifyconfigrefine)."""
     refine_search_px: float = 8.0
     """Search range of that correction, pixels each way."""
     refine_max_turn_deg: float = 10.0
-    """A correction turning the CAD more than this (or moving it more than ``refine_max_shift_rel`` of its
-    diameter, or scaling it by more than 10 %) is not local: the hypothesis is scored where it was. Set after
-    looking at the ViSP desk (the acceptance case): its cloud alignment with a region of interest was 6.5 deg
-    off and needed a 5.2 deg correction; the simulated wrong hypotheses stay wrong with 10 (docs/tuning)."""
+    """A correction turning the CAD more than this, degrees (or moving it more than ``refine_max_shift_rel`` of its
+    diameter, or scaling it by more than 10 %), is not local: the hypothesis is scored where it was. 10 admits the ViSP
+    desk's correction (docs/tuning/verify.md#verifyconfigrefine_max_turn_deg)."""
     refine_max_shift_rel: float = 0.1
     """See ``refine_max_turn_deg``: largest shift of the correction, fraction of the CAD diameter."""
     min_margin: float = 0.25

@@ -9,7 +9,7 @@ import numpy as np
 
 from cadalign.bench.data import BenchData
 from cadalign.bench.framework import BenchConfig, Metric, Sweep, SweepPoint
-from cadalign.fuse.bench import OPEN3D, Open3DTSDF, baseline_of, load_average, time_interleaved
+from cadalign.bench.fuse_timing import OPEN3D, Open3DTSDF, baseline_of, load_average, time_interleaved
 from cadalign.fuse.config import PRESETS
 from cadalign.fuse.inputs import open_source
 from cadalign.fuse.run import evaluate
@@ -57,8 +57,8 @@ def fuse_sweep(data: BenchData, cfg: BenchConfig) -> Sweep:
 
 
 def fuse_measure(shared: tuple[Any, list[Any]], knobs: dict[str, Any], seed: int) -> dict[str, float]:
-    """One fuse setting: the map and its metrics, and its timing against :func:`~cadalign.fuse.bench.baseline_of`
-    and :class:`~cadalign.fuse.bench.Open3DTSDF` on the same frames (``shared`` = (FrameSource, loaded frames));
+    """One fuse setting: the map and its metrics, and its timing against :func:`~cadalign.bench.fuse_timing.baseline_of`
+    and :class:`~cadalign.bench.fuse_timing.Open3DTSDF` on the same frames (``shared`` = (FrameSource, loaded frames));
     with ``open3d_alone`` in ``knobs``, Open3D's grid alone and its mesh's metrics."""
 
     src, frames = shared

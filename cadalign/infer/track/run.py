@@ -59,10 +59,9 @@ class TrackRunConfig:
     :attr:`~cadalign.infer.track.edges.EdgeFit.instance_support`) is reported missing: near edges of texture or
     clutter where the part should be do not make it present."""
     min_part_region: float = 0.02
-    """Once the parts' colours are learned, a part with ``min_region_samples`` whose contour samples find their
-    colour boundary (:attr:`~cadalign.infer.track.edges.EdgeFit.instance_region`) less often than this, and image
-    edges less often than ``missing_part_edges``, is reported missing: an absent part's outline separates no
-    colours (0.0 in every frame of the scene without hot_stab_1), a present part's seldom (docs/tuning/tracker.md)."""
+    """Once the parts' colours are learned, a part (with ``min_region_samples``) whose contour samples find their colour
+    boundary less often than this, and image edges less often than ``missing_part_edges``, is reported missing: an
+    absent part's outline separates no colours (docs/tuning/tracker.md#missing-parts)."""
     missing_part_edges: float = 0.6
     """See ``min_part_region``: a part whose outline finds image edges this often is not called missing."""
     present_part_region: float = 0.1

@@ -43,8 +43,8 @@ class TrackerConfig:
     )
     """The contour fit of a restart hypothesis: a wider basin than a tracked frame's (a 1/8 level, more rounds)."""
     flow_levels: tuple[EdgeLevel, ...] | None = None
-    """The contour fit of a frame the flow predicted; None: the same levels as any frame. Skipping the 1/4 level
-    there saved ~13 % CPU but cost accuracy on the default orbit (F1 0.976 against 0.983, fp 11 against 5)."""
+    """The contour fit of a frame the flow predicted; None: the same levels as any frame (skipping the 1/4 level there
+    saves CPU but costs accuracy: docs/tuning/tracker.md#trackerconfigflow_levels)."""
     orbit_step_deg: float = 30.0
     """While lost, with nothing else to restart from, the last view is also tried turned round the structure's
     vertical axis (world z) in steps of this many degrees (a cut to another side of the structure); 0: off."""
@@ -65,8 +65,9 @@ class TrackerConfig:
     """Share of the last frame-to-frame motion carried into the prediction (0: the last pose; 1: constant
     velocity, as a survey ROV flies)."""
     min_support: float = 0.35
-    """Lost below this share of contour samples with an image edge (see ``EdgeTrackConfig.support_px``), in any
-    water: right poses measured 0.45-0.75 (turbid to clear simulated water), wrong ones 0.27-0.51."""
+    """Lost below this share of contour samples with an image edge (see ``EdgeTrackConfig.support_px``), in any water: a
+    floor under the right poses of turbid water
+    (docs/tuning/tracker.md#how-the-thresholds-were-chosen-and-what-they-were-chosen-on)."""
     min_start_support: float = 0.45
     """A restart hypothesis is taken only with at least this support (and the best-supported one wins)."""
     relative_support: float = 0.7

@@ -83,35 +83,19 @@ class MaskRCNNConfig:
     roi_pos_fraction: float = bounded(0.25, gt=0, le=1)
     """Largest fraction of positive RoIs in a sample."""
     roi_jitter: int = bounded(0, ge=0)
-    """Randomly moved copies of each ground-truth box added to the training RoI candidates (0 = only the box
-    itself, as Mask R-CNN): the heads of small parts then train on RoIs as far off as the proposals they score.
-    Neutral on the default orbit (training/pose_fast_zoom_improved.toml, 4200 steps, ``infer --preset accurate``,
-    33 held-out frames; valve / hot stab F1 of seeds 0 and 1): 4 copies at sigma 0.15 gave 0.866 / 0.378 and
-    0.828 / 0.358 against 0.817 / 0.367 and 0.838 / 0.386 without, at 4-5 % more CPU per step."""
+    """Randomly moved copies of each ground-truth box added to the training RoI candidates (0 = only the box itself, as
+    Mask R-CNN), so small parts' heads train on RoIs as far off as their proposals. 0: neutral on the default orbit
+    (docs/tuning/train_config.md#maskrcnnconfigroi_jitter)."""
     roi_jitter_sigma: float = bounded(0.1, ge=0)
     """Spread of those copies: centre shift and log-size change, as a fraction of the box's side."""
     roi_balance: bool = False
-    """Draw the second stage's positive RoIs round-robin over the ground-truth instances and weight the box
-    head's losses so each instance counts the same (:func:`~cadalign.models.maskrcnn.roi_heads.sample_rois`).
-    Uniform draws starve the smallest parts: a trained network's proposals (128 RoIs an image, at most 32
-    positive) on the default scene's training crops (training/pose_fast_zoom_improved.toml's 240 x 320, zoomed)
-    give the 87 mm panel valves no positive RoI in 45 % of draws (0.7 on average) and the UUV hot stab in 20 %
-    (2.3), against 0-7 % for the larger parts; balanced, none goes without (1.6 and 3.1), and with the weights
-    each instance of a crop weighs the same. Measured there (3700 steps, ~3360 CPU-s, the 33 held-out frames,
-    ``infer --preset accurate`` with true depth and training/infer_hot_stab_03.toml; valve / hot stab F1):
-    seed 1 0.970 / 0.737 -> 0.986 / 0.964, seed 3 0.948 / 0.774 -> 0.986 / 0.892 (the UUV hot stab and the
-    87 mm panel valves, missed before, found in every frame), seed 0 0.917 / 0.984 -> 0.943 / 0.720 (its UUV hot
-    stab lost); thesis seed 1 0.970 / 0.798 -> 0.977 / 0.728. The network alone (score 0.5, per frame) finds
-    more and also more falsely: hot stab true / false positives 33 / 47 -> 39 / 70 and 41 / 56 -> 45 / 111, valve
-    false positives 22 -> 69 and 17 -> 60; the tracking drops most of those."""
+    """Draw the second stage's positive RoIs round-robin over the ground-truth instances and weight the box head's
+    losses so each instance counts the same (:func:`~cadalign.models.maskrcnn.roi_heads.sample_rois`), not starving
+    the smallest parts. Mixed across seeds (docs/tuning/train_config.md#maskrcnnconfigroi_balance)."""
     box_context: float = bounded(1.0, ge=1)
-    """The box head pools a window this many times each proposal's side (same centre; see ``box_context_px``):
-    a part of a few pixels fills a fraction of one stride-4 feature cell, and the head then also sees what
-    surrounds it. 1 (and ``box_context_px`` 0) = the proposal itself, as Mask R-CNN. Measured negative on the
-    default orbit (training/pose_fast_zoom_improved.toml, 4200 steps, ``infer --preset accurate``, 33 held-out
-    frames; valve / hot stab F1): the proposal itself 0.817 / 0.367, ``box_context_px = 32`` 0.762 / 0.239, with
-    ``box_context = 2`` 0.812 / 0.124 (the head then calls more hot stab proposals background: 0.36 -> 0.22 / 0.19
-    of them get the class at >= 0.5)."""
+    """The box head pools a window this many times each proposal's side (same centre; see ``box_context_px``), so a part
+    of a few pixels is seen with its surroundings; 1 = the proposal itself, as Mask R-CNN, since more context measured
+    worse (docs/tuning/train_config.md#maskrcnnconfigbox_context)."""
     box_context_px: float = bounded(0.0, ge=0)
     """Smallest side (px at ``input_hw``) of the box head's pooling window. When a window differs from its
     proposal, the head also gets ``log(proposal side / window side)`` per axis, so it knows where the proposal

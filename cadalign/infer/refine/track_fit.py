@@ -37,11 +37,11 @@ import numpy as np
 from cadalign.cad.symmetry import Symmetry
 from cadalign.geometry.rotations import axis_angle_to_matrix, orthonormalize
 from cadalign.infer.config import RefitConfig
-from cadalign.infer.depth_icp import FIT_CAP, depth_fit
-from cadalign.infer.half_turn import view_disagreement_parts
 from cadalign.infer.model_geom import ModelGeometry
 from cadalign.infer.pose_math import canonicalize
-from cadalign.infer.refine_math import clamp_step, huber_weights
+from cadalign.infer.refine.depth_icp import FIT_CAP, depth_fit
+from cadalign.infer.refine.half_turn import view_disagreement_parts
+from cadalign.infer.refine.refine_math import clamp_step, huber_weights
 from cadalign.metrics.pose import rotation_error_deg
 from cadalign.types import Rigid3
 
@@ -226,8 +226,8 @@ class ViewScoring:
 def view_score(geom: ModelGeometry, T_world_from_obj: Rigid3, views: Sequence[TrackView],
                scoring: ViewScoring) -> float:
     """Pixels, summed over ``views``, where the model at ``T_world_from_obj`` disagrees with the view
-    (:func:`cadalign.infer.half_turn.view_disagreement`): seen through, plus ``scoring.mask_weight`` times the mask
-    pixels it leaves unexplained (see :class:`ViewScoring`)."""
+    (:func:`cadalign.infer.refine.half_turn.view_disagreement`): seen through, plus ``scoring.mask_weight`` times
+    the mask pixels it leaves unexplained (see :class:`ViewScoring`)."""
     total = 0.0
     for v in views:
         near = None if v.mask_depth_m is None else (v.mask_depth_m, scoring.near_m)
@@ -242,7 +242,7 @@ def turn_by_view(geom: ModelGeometry, T: Rigid3, P: np.ndarray, views: Sequence[
                  scoring: ViewScoring, tie_rel: float, *, max_moves: int = 8, C: np.ndarray | None = None,
                  icp_iters: int = 0, huber_m: float = 0.005, min_gain: float = 0.0) -> Rigid3:
     """``T`` turned about the model's axes through its centroid, by each of ``steps_deg`` in turn, while a turn lowers
-    :func:`view_score` over ``views`` and keeps :func:`~cadalign.infer.depth_icp.depth_fit` of the points ``P``
+    :func:`view_score` over ``views`` and keeps :func:`~cadalign.infer.refine.depth_icp.depth_fit` of the points ``P``
     (N, 3) within ``tie_rel`` of ``T``'s (at most ``max_moves`` turns per step). With ``icp_iters`` and the points'
     camera centres ``C``, each turned pose is first fitted again to the points by that many ICP iterations (its
     position follows the turn). ``T`` itself unless the score falls by more than ``min_gain`` in all."""
@@ -303,7 +303,7 @@ def pick_model(fits: dict[int, Rigid3], geoms: dict[int, ModelGeometry], P: np.n
                min_px: float = 0.0, mask_weight: float = 1.0) -> int:
     """The CAD model whose fitted pose (``fits``: model id -> world pose) agrees best with the track.
 
-    Without ``views``: the smallest :func:`cadalign.infer.depth_icp.depth_fit` of the points ``P`` (N, 3), capped
+    Without ``views``: the smallest :func:`cadalign.infer.refine.depth_icp.depth_fit` of the points ``P`` (N, 3), capped
     at a tenth of the smallest candidate's diameter for all (a big model's looser cap does not favour it). With
     ``views``: the fewest pixels of :func:`view_score` (depth tolerance ``tol_rel`` of each model's diameter,
     mask pixels within the largest candidate's diameter of the median masked depth count for all). ``own`` (the
@@ -343,8 +343,9 @@ class FittedTrack:
 
     @property
     def fit_rel(self) -> float:
-        """How well the fitted model explains the track's points: ``fit_m`` over :func:`~cadalign.infer.depth_icp.
-        depth_fit`'s cap (0: on the surface; 1: every point a cap or more away)."""
+        """How well the fitted model explains the track's points: ``fit_m`` over
+        :func:`~cadalign.infer.refine.depth_icp.depth_fit`'s cap (0: on the surface; 1: every point a cap or more
+        away)."""
         return self.fit_m / (FIT_CAP * self.geom.diameter_m)
 
 

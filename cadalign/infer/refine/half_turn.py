@@ -3,7 +3,7 @@
 A part that is nearly but not exactly invariant to a half turn about z (the default scene's ball valve: a
 symmetric body with its lever off-centre, 0.2 m between the two lever positions) is predicted by a network in
 either orientation, and a depth fit of the observed points to the model (data -> model, what ICP and
-:func:`cadalign.infer.depth_icp.depth_fit` measure) barely prefers the right one: the few lever pixels are all
+:func:`cadalign.infer.refine.depth_icp.depth_fit` measure) barely prefers the right one: the few lever pixels are all
 that differ, and a model lever where nothing is seen costs nothing. The check scores both poses *from the
 model's side* as well: it renders the model's depth and counts the pixels where
 
@@ -30,8 +30,8 @@ from scipy.ndimage import distance_transform_edt
 
 from cadalign.cad.symmetry import Symmetry
 from cadalign.geometry.rotations import axis_angle_to_matrix
-from cadalign.infer.hypotheses import yaw_period_rad
 from cadalign.infer.model_geom import ModelGeometry, project_points, render_depth
+from cadalign.infer.refine.hypotheses import yaw_period_rad
 from cadalign.types import Rigid3
 
 

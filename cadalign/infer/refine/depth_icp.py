@@ -1,7 +1,7 @@
 """Depth refinement: point-to-plane ICP of surface samples of the CAD to the back-projected depth inside the
 (eroded) mask, Huber-weighted, correspondences found in the model frame (one k-d tree per model), after an
 optional slide of the pose along its viewing ray to the observed depth. Configured by
-:class:`cadalign.infer.refine.RefineConfig`.
+:class:`cadalign.infer.config.RefineConfig`.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from scipy.ndimage import binary_erosion
 
 from cadalign.infer.config import RefineConfig
 from cadalign.infer.model_geom import ModelGeometry
-from cadalign.infer.refine_math import apply_twist, clamp_step, huber_weights, pose_prior, small_step, solve_step
+from cadalign.infer.refine.refine_math import apply_twist, clamp_step, huber_weights, pose_prior, small_step, solve_step
 from cadalign.types import Rigid3
 
 ICP_DAMPING = 1e-6

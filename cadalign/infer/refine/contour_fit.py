@@ -5,7 +5,7 @@ sampled at the projections of the model's outline points: points on the occludin
 front- and a back-facing face) that also lie on the outline of the model's own rendered silhouette. Each
 residual is the signed distance (px) of a projected outline point to the mask boundary, so the outline is
 pulled onto the zero level set from both sides (a shrunken or grown silhouette is penalised, unlike a one-sided
-chamfer); residuals are Huber-weighted and truncated. Configured by :class:`cadalign.infer.refine.RefineConfig`.
+chamfer); residuals are Huber-weighted and truncated. Configured by :class:`cadalign.infer.config.RefineConfig`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,14 @@ import numpy as np
 from cadalign.geometry.compare import mask_iou
 from cadalign.infer.config import RefineConfig
 from cadalign.infer.model_geom import ModelGeometry, contour_points, project_points, render_silhouette
-from cadalign.infer.refine_math import apply_twist, huber_weights, pose_prior, proj_jacobian, small_step, solve_step
+from cadalign.infer.refine.refine_math import (
+    apply_twist,
+    huber_weights,
+    pose_prior,
+    proj_jacobian,
+    small_step,
+    solve_step,
+)
 from cadalign.types import Rigid3
 
 
