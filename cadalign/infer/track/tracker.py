@@ -45,6 +45,10 @@ class TrackerConfig:
     flow_levels: tuple[EdgeLevel, ...] | None = None
     """The contour fit of a frame the flow predicted; None: the same levels as any frame (skipping the 1/4 level there
     saves CPU but costs accuracy: docs/tuning/tracker.md#trackerconfigflow_levels)."""
+    steady_heading: bool = True
+    """When the constant-velocity prediction fails, also try the last step's translation (in the camera's own
+    frame) with the last orientation: a survey ROV's heading jitters while it keeps going forward
+    (docs/tuning/tracker.md#prediction-and-turns)."""
     orbit_step_deg: float = 30.0
     """While lost, with nothing else to restart from, the last view is also tried turned round the structure's
     vertical axis (world z) in steps of this many degrees (a cut to another side of the structure); 0: off."""
@@ -53,6 +57,12 @@ class TrackerConfig:
     orbit_every: int = 4
     """The turned views are tried on the first lost frame and every this many after (about 10 s of CPU each on
     the default orbit): a return is regained within this many frames."""
+    turn_step_deg: float = 30.0
+    """While lost, the camera carried on at its last step is also tried turned on the spot about the world
+    vertical in steps of this many degrees (an ROV turning at a survey line's end out of the structure's view);
+    0: off. The best ``orbit_fits`` by the search's score are fitted (docs/tuning/tracker.md#prediction-and-turns)."""
+    turn_frames: int = 4
+    """... on each of the first this many lost frames (dead reckoning drifts by about a step each frame)."""
     rank_min_samples: int = 30
     """Contour samples a part needs to count in :meth:`StructureTracker.rank`."""
     start_margin: float = 0.05
@@ -130,6 +140,7 @@ class StructureTracker:
         self._supports: list[float] = []
         self._regions: list[float] = []  # region support of the last tracked frames (kept over losses)
         self._velocity: Rigid3 | None = None  # the last frame-to-frame motion, in the camera frame
+        self._step: np.ndarray | None = None  # the camera centre's last step, in the camera frame before it
         self._lost_frames = 0
         lo = np.min([m.vertices_m.min(axis=0) for m in meshes], axis=0)
         hi = np.max([m.vertices_m.max(axis=0) for m in meshes], axis=0)
@@ -173,6 +184,16 @@ class StructureTracker:
             return self._last
         return self._last @ self._motion_over(1)
 
+    def _other_predictions(self) -> list[Rigid3]:
+        """When the constant-velocity prediction fails: the last pose, and (``steady_heading``) the last
+        velocity's translation with the last orientation (``T_world_from_cam``)."""
+        assert self._last is not None and self._prev is not None
+        out = [self._last]
+        if self.cfg.steady_heading:
+            step = self._last.R @ (self._prev.R.T @ (self._last.t - self._prev.t))  # the last step, body frame
+            out.insert(0, Rigid3(self._last.R, self._last.t + self.cfg.velocity * step))
+        return out
+
     def _motion_over(self, frames: int) -> Rigid3:
         """The last frame-to-frame motion (scaled by ``velocity``) carried on over ``frames`` frames."""
         d = self._velocity if self._velocity is not None else Rigid3.identity()
@@ -196,17 +217,37 @@ class StructureTracker:
         return out
 
     def _orbit_hypotheses(self, gray: np.ndarray) -> list[tuple[str, Rigid3]]:
+        """The last view turned round the vertical through the structure's centre (a cut to another side)."""
         if self._last is None or self.cfg.orbit_step_deg <= 0:
             return []
         c = self._centre
-        scored = []
+        views = []
         for a in np.arange(self.cfg.orbit_step_deg, 360.0 - 1e-6, self.cfg.orbit_step_deg):
             R = axis_angle_to_matrix(np.array([0.0, 0.0, np.radians(a)]))
-            turn = Rigid3(R, c - R @ c)  # the world turned about the vertical through the centre
-            T_wc = turn @ self._last
+            views.append((f"orbit_{a:.0f}", Rigid3(R, c - R @ c) @ self._last))  # the world turned round c
+        return self._best_views(gray, views)
+
+    def _turn_hypotheses(self, gray: np.ndarray) -> list[tuple[str, Rigid3]]:
+        """The camera carried on at its last step and orientation over the lost frames, then turned on the spot
+        about the world vertical (``turn_step_deg``): a survey's turn while the structure was out of view."""
+        if self._last is None or self._step is None or self.cfg.turn_step_deg <= 0 \
+                or self._lost_frames >= self.cfg.turn_frames:
+            return []
+        c = self._last.t + self.cfg.velocity * (self._lost_frames + 1) * (self._last.R @ self._step)
+        views = []
+        for a in np.arange(0.0, 360.0 - 1e-6, self.cfg.turn_step_deg):  # 0: straight on
+            R = axis_angle_to_matrix(np.array([0.0, 0.0, np.radians(a)]))
+            views.append((f"turn_{a:.0f}", Rigid3(R @ self._last.R, c)))
+        return self._best_views(gray, views)
+
+    def _best_views(self, gray: np.ndarray, views: list[tuple[str, Rigid3]]) -> list[tuple[str, Rigid3]]:
+        """Of (name, ``T_world_from_cam``) views, the best ``orbit_fits`` by the pan/tilt/roll search's score,
+        as (name, ``T_cam_from_world``)."""
+        scored = []
+        for name, T_wc in views:
             cands = candidates(self.edges, gray, T_wc, self.cfg.acquire)
             if cands:
-                scored.append((cands[0][0], f"orbit_{a:.0f}", T_wc))
+                scored.append((cands[0][0], name, T_wc))
         scored.sort(key=lambda x: -x[0])
         return [(name, T.inverse()) for _, name, T in scored[:self.cfg.orbit_fits]]
 
@@ -234,16 +275,20 @@ class StructureTracker:
                     fit = other
             if self.good(fit):
                 return self._accept(gray, k, fit, "track", t0, tried)
-            if self._prev is not None:  # the motion changed: from the last pose itself
-                tried += 1
-                fit = self.edges.fit(gray, self._last)
-                if self.good(fit):
-                    return self._accept(gray, k, fit, "track", t0, tried)
+            if self._prev is not None:  # the motion changed: the other predictions, the best-ranked passing one
+                fits = [self.edges.fit(gray, T) for T in self._other_predictions()]
+                tried += len(fits)
+                fits = [f for f in fits if self.good(f)]
+                if fits:
+                    return self._accept(gray, k, max(fits, key=self.rank), "track", t0, tried)
         own = not restarts and self._last is not None
         if own:  # lost with nothing to restart from: the tracker's own hypotheses
             restarts = self._lost_hypotheses(gray)
         best, n = self._best_of(gray, restarts)
         tried += n
+        if best is None and own:  # turned on the spot while out of view
+            best, n = self._best_of(gray, self._turn_hypotheses(gray))
+            tried += n
         if best is None and own and self._lost_frames % max(self.cfg.orbit_every, 1) == 0:  # round the structure
             best, n = self._best_of(gray, self._orbit_hypotheses(gray))
             tried += n
@@ -301,6 +346,7 @@ class StructureTracker:
         self._last = fit.T_world_from_cam
         if self._prev is not None:
             self._velocity = self._prev.inverse() @ self._last
+            self._step = self._velocity.t
         self._lost_frames = 0
         self.lost = False
         self._supports = (self._supports + [fit.support])[-self.cfg.history:]
