@@ -267,12 +267,20 @@ def _frame_prior(T_start: Rigid3, T_now: Rigid3, centre: np.ndarray, cfg: EdgeRe
                  ) -> tuple[np.ndarray, np.ndarray] | None:
     """(correction already made since ``T_start`` in ``motion``'s parameters about ``centre``, precision) of a
     frame's own fit, or None when ``cfg.frame_prior_px`` is 0."""
-    if cfg.frame_prior_px <= 0:
+    return correction_prior(T_start, T_now, centre, cfg.frame_prior_px, cfg.frame_prior_deg, cfg.frame_prior_m)
+
+
+def correction_prior(T_start: Rigid3, T_now: Rigid3, centre: np.ndarray, prior_px: float, prior_deg: float,
+                     prior_m: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """``prior`` for :func:`fit_correction` holding the correction made since ``T_start`` (camera poses
+    ``T_world_from_cam``; ``motion``'s parameters about ``centre``) near zero: moving ``prior_deg`` or ``prior_m``
+    costs as much as a residual of ``prior_px`` pixels; None when ``prior_px`` is 0."""
+    if prior_px <= 0:
         return None
     H = T_start @ T_now.inverse()  # the world motion with moved_camera(H, T_start) == T_now
     a = np.concatenate([matrix_to_axis_angle(H.R), H.t - centre + H.R @ centre])
-    sig = np.array([np.radians(cfg.frame_prior_deg)] * 3 + [cfg.frame_prior_m] * 3)
-    return a, (cfg.frame_prior_px / sig) ** 2
+    sig = np.array([np.radians(prior_deg)] * 3 + [prior_m] * 3)
+    return a, (prior_px / sig) ** 2
 
 
 def refine_frame(renderer: Any, gray: np.ndarray, T_wc: Rigid3, cfg: EdgeRefineConfig,

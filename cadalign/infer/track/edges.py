@@ -22,6 +22,7 @@ import numpy as np
 from cadalign.align.edge_refine import (
     EdgeRefineConfig,
     contour_samples,
+    correction_prior,
     edge_jacobian,
     fit_correction,
     motion,
@@ -85,6 +86,14 @@ class EdgeTrackConfig:
     region_support_px: float = 3.0
     """A colour boundary within this many full-resolution pixels of a contour sample supports it (the region
     offset is coarser than the edge's: it rests on whole pixels' colours)."""
+    prior_px: float = 0.0
+    """Hold the fit's total correction near its start (a Gaussian prior, see :func:`~cadalign.align.edge_refine.
+    fit_correction`): moving ``prior_deg`` or ``prior_m`` costs as much as one contour sample off by this many
+    pixels. 0: none (a whole structure's contours fix all six degrees of freedom; a lone small part's do not)."""
+    prior_deg: float = 2.0
+    """See ``prior_px``: the rotation scale, degrees."""
+    prior_m: float = 0.05
+    """See ``prior_px``: the translation scale, metres."""
     judge_scale: float = 1.0
     """Scale the quality is read at: 1 renders the frame once more at full resolution; otherwise the last
     level's render is reused (it must be that level's scale)."""
@@ -195,7 +204,9 @@ class EdgeTracker:
                 Xc = T.inverse().apply(X_w)
                 c = X_w[ok | rok].mean(axis=0)
                 J = edge_jacobian(Xc, T.R.T, X_w - c, r.camera.K, n)
-                xi, w = fit_correction([(J[ok], -off[ok]), (J[rok], -roff[rok])], lv.tukey_px)
+                xi, w = fit_correction([(J[ok], -off[ok]), (J[rok], -roff[rok])], lv.tukey_px,
+                                       prior=correction_prior(T_world_from_cam, T, c, self.cfg.prior_px,
+                                                              self.cfg.prior_deg, self.cfg.prior_m))
                 T = moved_camera(motion(xi, c), T)
                 Jw = np.concatenate([J[ok], J[rok]])[w > 0]
                 moved = Jw @ xi if len(Jw) else np.zeros(1)
