@@ -132,6 +132,9 @@ class ObjectSpec:
     symmetry: Literal["none", "continuous_z", "continuous_x", "continuous_y", "discrete_x2", "discrete_y2",
                       "discrete_z2", "discrete_x4", "discrete_y4", "discrete_z4"] = "none"
     """Symmetry of the part in its own frame (BOP symmetries are derived from it)."""
+    movable: bool = False
+    """The part may move relative to the structure (a hot stab tool in an ROV's grip): the tracker follows it
+    on its own instead of placing it by the structure's pose. The simulator draws it where ``position`` says."""
 
 
 @dataclass(frozen=True)

@@ -29,10 +29,16 @@ class Structure:
     objects: tuple[PosedObject, ...]
     models: dict[int, CadModel]
     class_names: tuple[str, ...]
+    movable: frozenset[str] = frozenset()
+    """Names of the parts the scene declares movable (``movable = true``): not part of the rigid assembly."""
 
-    def render_meshes(self) -> list[RenderMesh]:
+    def render_meshes(self, *, movable: bool | None = False) -> list[RenderMesh]:
+        """The parts placed in the world as ray-cast instances (instance id ``i + 1`` for object ``i``).
+        ``movable``: False, the rigid assembly only (without the movable parts); True, the movable parts only;
+        None, all parts."""
         return [RenderMesh(o.T_world_from_obj.apply(self.models[o.obj_id].vertices_m), self.models[o.obj_id].faces,
-                           i + 1, o.class_id) for i, o in enumerate(self.objects)]
+                           i + 1, o.class_id) for i, o in enumerate(self.objects)
+                if movable is None or (o.name in self.movable) == movable]
 
 
 def load_structure(cad: Path, unit: str | None = None) -> Structure:
@@ -41,6 +47,7 @@ def load_structure(cad: Path, unit: str | None = None) -> Structure:
     if cad.suffix.lower() in SPEC_SUFFIXES:
         spec = load_scene(cad)
         scene = build_scene(spec, cad, width=8, height=8)
-        return Structure(tuple(posed_objects(scene)), cad_models(scene), tuple(spec.classes))
+        return Structure(tuple(posed_objects(scene)), cad_models(scene), tuple(spec.classes),
+                         frozenset(o.name for o in spec.objects if o.movable))
     model = load_cad(cad, unit, class_name="structure")
     return Structure((PosedObject(model.name, 1, 1, Rigid3.identity()),), {1: model}, ("background", "structure"))

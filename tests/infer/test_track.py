@@ -99,17 +99,22 @@ TRACK_PARTS = [("box_a", "box", "structure", (-1.2, -1.0, 0.0), 20, (0.8, 0.5, 0
                ("hot_stab_1", "hot_stab", "hot_stab", (1.8, 0.0, 0.3), 30, None)]
 
 
-def write_track_scene(path: Path, without: tuple[str, ...] = ()) -> Path:
+def write_track_scene(path: Path, without: tuple[str, ...] = (), moved: dict | None = None,
+                      movable: tuple[str, ...] = ()) -> Path:
     """A small structure (five boxes, two valves, a hot stab) filmed on a 6-frame orbit at 320x240, effect free:
-    enough contours to fix a camera pose, unlike the 160x120 tiny scene's three small parts."""
+    enough contours to fix a camera pose, unlike the 160x120 tiny scene's three small parts. ``moved``: part ->
+    (offset, m (3,), extra yaw, deg); ``movable``: parts declared ``movable = true``."""
     objs = []
     for name, kind, cls, pos, yaw, size in TRACK_PARTS:
         if name in without:
             continue
+        if moved and name in moved:
+            pos, yaw = tuple(float(a + b) for a, b in zip(pos, moved[name][0], strict=True)), yaw + moved[name][1]
         size_line = "" if size is None else f"size_m = {list(size)}\n"
         objs.append(f'[[objects]]\nname = "{name}"\nsource = "procedural:{kind}"\nclass_name = "{cls}"\n'
                     f"position = {list(pos)}\nrpy_deg = [0.0, 0.0, {float(yaw)}]\n{size_line}"
-                    f'texture = "{"yellow_paint" if cls == "hot_stab" else "painted_steel"}"\n')
+                    f'texture = "{"yellow_paint" if cls == "hot_stab" else "painted_steel"}"\n'
+                    + ("movable = true\n" if name in movable else ""))
     path.write_text(TRACK_SCENE.format(objects="\n".join(objs)))
     return path
 

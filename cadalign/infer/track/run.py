@@ -32,6 +32,7 @@ from cadalign.geometry.rotations import geodesic_angle
 from cadalign.infer.pipeline import PoseRecord
 from cadalign.infer.run import evaluate_run, video_writer
 from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, as_gray, with_levels
+from cadalign.infer.track.parts import MovableConfig, MovableParts, split_hypotheses
 from cadalign.infer.track.start import pose_from_picks
 from cadalign.infer.track.tracker import StructureTracker, TrackerConfig, TrackStep
 from cadalign.infer.video import iter_frames
@@ -69,6 +70,8 @@ class TrackRunConfig:
     it has fewer than ``min_region_samples`` it keeps its verdict)."""
     min_region_samples: int = 20
     """Contour samples a part needs for the region check."""
+    movable: MovableConfig = field(default_factory=MovableConfig)
+    """Parts the scene declares movable, each tracked on its own (:mod:`cadalign.infer.track.parts`)."""
     overlay: bool = True
     """Write overlay.mp4."""
     overlay_fps: float = 5.0
@@ -149,15 +152,21 @@ def part_records(step: TrackStep, frame_index: int, name: str, structure: Struct
     return out, missing
 
 
-def _draw(image: np.ndarray, step: TrackStep) -> np.ndarray:
+def _draw(image: np.ndarray, step: TrackStep, parts: dict[int, TrackStep] | None = None) -> np.ndarray:
+    """The frame with the tracked contours (green: supported by an image edge, red: not; movable parts cyan and
+    magenta) and the track state."""
     img = image.copy()
     f = step.fit
-    if step.state == "ok" and f is not None and f.uv is not None and len(f.uv):
-        p = np.round(f.uv).astype(int)
-        okp = (p[:, 0] >= 0) & (p[:, 0] < img.shape[1]) & (p[:, 1] >= 0) & (p[:, 1] < img.shape[0])
-        sup = f.supported
-        img[p[okp & sup, 1], p[okp & sup, 0]] = (60, 255, 60)
-        img[p[okp & ~sup, 1], p[okp & ~sup, 0]] = (255, 60, 60)
+    drawn = [(step, (60, 255, 60), (255, 60, 60))]
+    drawn += [(s, (60, 230, 255), (255, 60, 255)) for s in (parts or {}).values()]
+    for s, on, off in drawn:
+        g = s.fit
+        if s.state == "ok" and g is not None and g.uv is not None and len(g.uv):
+            p = np.round(g.uv).astype(int)
+            okp = (p[:, 0] >= 0) & (p[:, 0] < img.shape[1]) & (p[:, 1] >= 0) & (p[:, 1] < img.shape[0])
+            sup = g.supported
+            img[p[okp & sup, 1], p[okp & sup, 0]] = on
+            img[p[okp & ~sup, 1], p[okp & ~sup, 0]] = off
     text = (f"ok ({step.source}) support {f.support:.2f} residual {f.residual_px:.2f} px" if step.state == "ok"
             and f is not None else "LOST: no pose reported")
     cv2.putText(img, text, (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255) if step.state == "ok"
@@ -188,7 +197,8 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
     if prepare_stage_dir(out_dir, "infer", rec, overwrite=overwrite) and (out_dir / "timings.json").is_file():
         log.info("infer: %s is complete for this config; reusing it", poses_path)
         return poses_path
-    tracker = StructureTracker(structure.render_meshes(), camera, cfg.tracker)
+    tracker = StructureTracker(structure.render_meshes(), camera, cfg.tracker)  # the rigid assembly
+    parts = MovableParts(structure, camera, cfg.movable)
     records: list[PoseRecord] = []
     names: list[str] = []
     times: dict[str, list[float]] = {"track": [], "restart": [], "detector": [], "overlay": []}
@@ -206,26 +216,32 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                                      f"calibration is {camera.width}x{camera.height}; pass the calibration of this "
                                      "video")
                 image = undistort(vf.image) if undistort is not None else vf.image
-                restarts = []
+                restarts: list[tuple[str, Rigid3]] = []
                 if init_pose is not None and tracker.last_pose is None:  # until the track first starts
                     restarts.append(("init_pose", init_pose))
                 t0 = time.perf_counter()
-                if restart_source is not None and tracker.lost:
-                    restarts += list(restart_source(image, vf.name))
+                part_hyps: dict[str, list] = {}
+                if restart_source is not None and (tracker.lost or parts.lost):
+                    rigid, part_hyps = split_hypotheses(list(restart_source(image, vf.name)), structure)
+                    restarts += rigid if tracker.lost else []
                     times["detector"].append(time.perf_counter() - t0)
                 rgb = image[..., :3] if image.ndim == 3 else None
-                step = tracker.step(as_gray(image, cfg.tracker.edges.colour), restarts, rgb)
+                gray = as_gray(image, cfg.tracker.edges.colour)
+                step = tracker.step(gray, restarts, rgb)
                 (times["restart"] if step.source not in ("track",) else times["track"]).append(step.seconds)
                 states[step.state] += 1
+                part_steps = parts.step(gray, rgb, step.T_cam_from_world, part_hyps)
                 recs, missing = part_records(step, vf.index, vf.name, structure, cfg, missing_before)
+                recs += parts.records(part_steps, vf.index, vf.name, cfg.min_visible_px)
                 for r in recs:
                     fh.write(json.dumps(r.to_json()) + "\n")
                 records.extend(recs)
-                th.write(json.dumps(_step_json(step, vf.name, missing, structure)) + "\n")
+                th.write(json.dumps({**_step_json(step, vf.name, missing, structure),
+                                     **({"movable": parts.summary(part_steps)} if part_steps else {})}) + "\n")
                 if cfg.overlay:
                     t0 = time.perf_counter()
                     writer = writer or video_writer(tmp_video, cfg.overlay_fps)
-                    writer.append_data(_draw(image, step))
+                    writer.append_data(_draw(image, step, part_steps))
                     times["overlay"].append(time.perf_counter() - t0)
                 names.append(vf.name)
         if writer is not None:

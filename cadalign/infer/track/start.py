@@ -25,7 +25,9 @@ from cadalign.types import Camera, Rigid3
 
 def hypotheses(detections: list, structure: Structure, class_names: tuple[str, ...], max_hypotheses: int = 6,
                ) -> list[tuple[str, Rigid3]]:
-    """(name, ``T_cam_from_world``) proposals from detections (best score first), at most ``max_hypotheses``."""
+    """(name, ``T_cam_from_world``) proposals from detections (best score first), at most ``max_hypotheses``,
+    named ``detector:CLASS:PART``. A movable part's proposal is of its own CAD placement, not the structure's
+    (:func:`cadalign.infer.track.parts.split_hypotheses` tells them apart)."""
     out: list[tuple[str, Rigid3]] = []
     for d in sorted(detections, key=lambda d: -float(d.score)):
         cls = class_names[d.label] if 0 <= d.label < len(class_names) else None
@@ -62,6 +64,8 @@ def centre_hypotheses(detections: list, structure: Structure, class_names: tuple
         cls.append(name)
     centres = {}
     for o in structure.objects:
+        if o.name in structure.movable:  # not where the CAD puts it
+            continue
         v = structure.models[o.obj_id].vertices_m
         centres.setdefault(structure.class_names[o.class_id], []).append(
             o.T_world_from_obj.apply(((v.min(axis=0) + v.max(axis=0)) / 2)[None])[0])
