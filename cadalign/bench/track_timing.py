@@ -45,11 +45,14 @@ class TrackSpeed:
         return self.detector_ms / self.track_ms if self.track_ms > 0 else float("nan")
 
     def record(self) -> dict:
-        return {"frames": self.frames, "tracked": self.tracked, "track_ms_cpu": self.track_ms,
-                "track_frames_per_s_cpu": 1e3 / self.track_ms if self.track_ms else None,
+        tracked_on = bool(np.isfinite(self.track_ms) and self.track_ms > 0)
+        return {"frames": self.frames, "tracked": self.tracked, "track_ms_cpu": self.track_ms if tracked_on else None,
+                "track_frames_per_s_cpu": 1e3 / self.track_ms if tracked_on else None,
+                **({} if tracked_on else {"problem": "no frame was tracked on from the one before (each was lost or "
+                                                     "restarted): no tracking rate; give a video the tracker follows"}),
                 "restart_ms_cpu": self.restart_ms, "detector_ms_cpu": self.detector_ms,
                 "detector_frames_per_s_cpu": 1e3 / self.detector_ms if self.detector_ms else None,
-                "tracker_over_detector": self.ratio, "detector": self.detector,
+                "tracker_over_detector": self.ratio if tracked_on else None, "detector": self.detector,
                 "note": "CPU time of this process per frame (torch and Open3D use its threads); same frames, same run"}
 
 

@@ -159,6 +159,11 @@ def track_speed(
         res = bench_track(frames, load_structure(cad), Camera(lens.K, w, h), read_init_pose(init_pose), model=model,
                           recipe=recipe, max_frames=max_frames)
         write_json(out / "bench_track.json", res.record())
+    rec = res.record()
+    if rec["track_ms_cpu"] is None:
+        console.print(f"[yellow]{rec['problem']}[/yellow]; {res.tracked}/{res.frames} tracked, restart "
+                      f"{res.restart_ms:.0f} ms -> {out / 'bench_track.json'}")
+        return
     console.print(f"tracker {1e3 / res.track_ms:.1f} frames/s (CPU), detector alone {1e3 / res.detector_ms:.1f} "
                   f"frames/s: {res.ratio:.2f}x; restart {res.restart_ms:.0f} ms; {res.tracked}/{res.frames} tracked "
                   f"-> {out / 'bench_track.json'}")
