@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from test_track import _frames, _T_cw, write_track_scene
 
-from cadalign.geometry.rotations import geodesic_angle
+from cadalign.geometry.rotations import axis_angle_to_matrix, geodesic_angle
 from cadalign.infer.track.parts import split_hypotheses
 from cadalign.sim.structure import load_structure
 from cadalign.types import Rigid3
@@ -75,3 +75,37 @@ def test_a_movable_part_is_tracked_where_it_is(tmp_path: Path, moved_sim: Path) 
     (r_est, t_est), (r_cad, t_cad) = np.mean(est, axis=0), np.mean(cad_place, axis=0)
     assert t_cad > 0.04 and r_cad > 2.5  # where the CAD puts it ...
     assert t_est < 0.5 * t_cad and r_est < 0.6 * r_cad, (est, cad_place)  # ... and where the tracker finds it
+
+
+def test_a_movable_part_starts_from_its_detection(tmp_path: Path) -> None:
+    """A detection of the part (its true pose turned 1 deg and moved 2 cm, as a refined detector's would be)
+    starts its tracker when the part is 14 cm / 8 deg from its CAD place, and the track holds."""
+    import imageio.v3 as iio
+    from test_track import TINY_TRACKER, _gray
+
+    from cadalign.infer.track.parts import MovableConfig, MovableParts
+    from cadalign.sim.run import simulate
+
+    far = {"box_e": ((0.12, -0.08, 0.0), 8.0)}
+    sim = simulate(write_track_scene(tmp_path / "far.toml", moved=far), tmp_path / "sim", video=False,
+                   contact_sheet=False, frames=3)
+    cam, names, cams = _frames(sim)
+    cad = load_structure(write_track_scene(tmp_path / "cad.toml", movable=("box_e",)))
+    truth = load_structure(tmp_path / "far.toml")
+    k = [o.name for o in cad.objects].index("box_e")
+    T_wo_true, T_wo_cad = truth.objects[k].T_world_from_obj, cad.objects[k].T_world_from_obj
+    part = replace(MovableConfig().tracker, edges=replace(TINY_TRACKER.edges, prior_px=1.0),
+                   restart_levels=TINY_TRACKER.restart_levels, min_samples=TINY_TRACKER.min_samples)
+    parts = MovableParts(cad, cam, MovableConfig(tracker=part))
+    nudge = Rigid3(axis_angle_to_matrix(np.radians([0.0, 0.0, 1.0])), np.array([0.02, 0.0, 0.0]))
+    sources, errors = [], []
+    for name in names:
+        T_co = _T_cw(cams[name]) @ T_wo_true
+        hyps = {"box_e": [("detector:structure:box_e", nudge @ T_co @ T_wo_cad.inverse())]}
+        rgb = iio.imread(sim / "frames" / name)[..., :3]  # the colours: a lone part's edges alone drift
+        step = parts.step(_gray(sim, name), rgb, None, hyps)[k + 1]  # no structure pose: no CAD-place start
+        assert step.T_cam_from_world is not None
+        sources.append(step.source)
+        errors.append(_pose_error(step.T_cam_from_world @ T_wo_cad, T_co))
+    assert sources[0] == "detector:structure:box_e" and sources[1:] == ["track"] * (len(names) - 1)
+    assert all(r < 1.5 and t < 0.03 for r, t in errors), errors
