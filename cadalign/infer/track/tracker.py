@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cadalign.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from cadalign.geometry.rotations import axis_angle_to_matrix, geodesic_angle, matrix_to_axis_angle
 from cadalign.infer.track.acquire import AcquireConfig, candidates
 from cadalign.infer.track.edges import EdgeFit, EdgeLevel, EdgeTrackConfig, EdgeTracker
 from cadalign.infer.track.flow import FlowConfig, FlowPredictor
@@ -46,8 +46,8 @@ class TrackerConfig:
     """The contour fit of a frame the flow predicted; None: the same levels as any frame (skipping the 1/4 level there
     saves CPU but costs accuracy: docs/tuning/tracker.md#trackerconfigflow_levels)."""
     steady_heading: bool = True
-    """When the constant-velocity prediction fails, also try the last step's translation (in the camera's own
-    frame) with the last orientation: a survey ROV's heading jitters while it keeps going forward
+    """When the constant-velocity prediction fails, also try the last step's translation (in the camera's frame
+    and in the world's) with the last orientation: a survey ROV's heading jitters while its track holds
     (docs/tuning/tracker.md#prediction-and-turns)."""
     orbit_step_deg: float = 30.0
     """While lost, with nothing else to restart from, the last view is also tried turned round the structure's
@@ -63,6 +63,10 @@ class TrackerConfig:
     0: off. The best ``orbit_fits`` by the search's score are fitted (docs/tuning/tracker.md#prediction-and-turns)."""
     turn_frames: int = 4
     """... on each of the first this many lost frames (dead reckoning drifts by about a step each frame)."""
+    own_turn_limit: bool = True
+    """Refuse a restart from the tracker's own hypotheses (dead reckoning, turned views) whose fit turned the
+    camera further from the hypothesis than one pan/tilt search reaches: on the turbid survey right restarts
+    turned 4-7 deg, wrong ones 17-89 (docs/tuning/tracker.md#prediction-and-turns)."""
     rank_min_samples: int = 30
     """Contour samples a part needs to count in :meth:`StructureTracker.rank`."""
     start_margin: float = 0.05
@@ -185,13 +189,15 @@ class StructureTracker:
         return self._last @ self._motion_over(1)
 
     def _other_predictions(self) -> list[Rigid3]:
-        """When the constant-velocity prediction fails: the last pose, and (``steady_heading``) the last
-        velocity's translation with the last orientation (``T_world_from_cam``)."""
+        """When the constant-velocity prediction fails: the last pose, and (``steady_heading``) the last step
+        with the last orientation, the step taken in the camera's frame (forward stays forward after a turn) and
+        in the world's (``T_world_from_cam``)."""
         assert self._last is not None and self._prev is not None
         out = [self._last]
         if self.cfg.steady_heading:
-            step = self._last.R @ (self._prev.R.T @ (self._last.t - self._prev.t))  # the last step, body frame
-            out.insert(0, Rigid3(self._last.R, self._last.t + self.cfg.velocity * step))
+            world = self._last.t - self._prev.t  # the last step in the world frame
+            body = self._last.R @ (self._prev.R.T @ world)  # ... and turned with the camera since
+            out = [Rigid3(self._last.R, self._last.t + self.cfg.velocity * d) for d in (body, world)] + out
         return out
 
     def _motion_over(self, frames: int) -> Rigid3:
@@ -284,13 +290,13 @@ class StructureTracker:
         own = not restarts and self._last is not None
         if own:  # lost with nothing to restart from: the tracker's own hypotheses
             restarts = self._lost_hypotheses(gray)
-        best, n = self._best_of(gray, restarts)
+        best, n = self._best_of(gray, restarts, own)
         tried += n
         if best is None and own:  # turned on the spot while out of view
-            best, n = self._best_of(gray, self._turn_hypotheses(gray))
+            best, n = self._best_of(gray, self._turn_hypotheses(gray), True)
             tried += n
         if best is None and own and self._lost_frames % max(self.cfg.orbit_every, 1) == 0:  # round the structure
-            best, n = self._best_of(gray, self._orbit_hypotheses(gray))
+            best, n = self._best_of(gray, self._orbit_hypotheses(gray), True)
             tried += n
         if best is not None:
             self._supports = []  # a restart has no history of support
@@ -302,15 +308,22 @@ class StructureTracker:
         self.lost = True
         return TrackStep(k, "lost", None, None, "", time.perf_counter() - t0, tried)
 
-    def _best_of(self, gray: np.ndarray, hypotheses: Sequence[tuple[str, Rigid3]],
+    def _best_of(self, gray: np.ndarray, hypotheses: Sequence[tuple[str, Rigid3]], own: bool = False,
                   ) -> tuple[tuple[EdgeFit, str] | None, int]:
         """The best-supported passing (fit, name) of searches from (name, ``T_cam_from_world``) hypotheses,
-        and the number of fits tried."""
+        and the number of fits tried. ``own``: the tracker's own hypotheses (where it believes the camera is):
+        a fit that turned the camera further from one than a pan/tilt search reaches (``acquire.max_turn_deg``)
+        ran off it, and is refused (``own_turn_limit``)."""
         best: tuple[EdgeFit, str] | None = None
         tried = 0
         for name, T_cw in hypotheses:
             fit, n = self._search(gray, T_cw.inverse())
             tried += n
+            if fit is not None and own and self.cfg.own_turn_limit and geodesic_angle(
+                    fit.T_world_from_cam.R, T_cw.R.T) > np.radians(self.cfg.acquire.max_turn_deg):
+                log.debug("restart from %s refused: it turned the camera by more than %.0f deg", name,
+                          self.cfg.acquire.max_turn_deg)
+                continue
             if fit is not None and (best is None or self.rank(fit) > self.rank(best[0])):
                 best = (fit, name)
         return best, tried
