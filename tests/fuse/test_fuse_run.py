@@ -218,3 +218,20 @@ def test_views_build_one_raycasting_scene_and_cast_each_view_once(fused_dir: Pat
         for row, by_class in enumerate((True, False)):
             tile = views.render_view(mesh, eye, target, size, by_class=by_class)
             np.testing.assert_array_equal(img[28 + 48 * row: 28 + 48 * (row + 1), 64 * k: 64 * (k + 1)], tile)
+
+
+def test_bop_scene_parses_each_frame_once(fuse_sim: Path, monkeypatch) -> None:
+    """Every mask/depth/rgb read checks its size against its frame: the frame's JSON is parsed once, not per read."""
+    from cadalign.formats.bop import BopScene
+
+    scene = BopScene(fuse_sim / "gt" / "sim" / "000000")
+    parsed = []
+    real = scene._parse_frame
+    monkeypatch.setattr(scene, "_parse_frame", lambda i: parsed.append(i) or real(i))
+    im_id = scene.ids[0]
+    frame = scene.frame(im_id)
+    assert len(frame.instances) >= 2
+    for g in range(len(frame.instances)):
+        scene.mask(im_id, g)
+    scene.depth_m(im_id)
+    assert parsed == [im_id] and scene.frame(im_id) is frame
