@@ -27,6 +27,7 @@ import logging
 import shutil
 import time
 from collections.abc import Mapping
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -55,7 +56,7 @@ from cadalign.formats.coco import coco_annotations, write_coco
 from cadalign.formats.splits import time_block_splits
 from cadalign.geometry import sim3_from_matrix
 from cadalign.io import fingerprint, prepare_stage_dir, read_json, write_json
-from cadalign.raycast.bop_writer import frame_done, merge_scene_files
+from cadalign.raycast.bop_writer import frame_done, merge_scene_files, visible_masks
 from cadalign.raycast.core import RaycastRenderer, RenderMesh
 from cadalign.sfm import PRESETS as SFM_PRESETS
 from cadalign.sfm import SfMConfig
@@ -269,7 +270,8 @@ def write_dataset_extras(ds: Path, structure: Structure, verified: dict[int, boo
     write_json(ds / "splits.json", {"scene": str(SCENE), "block": block, "gap": gap, **splits})
     class_of_obj = {o.obj_id: o.class_id for o in structure.objects}
     for name, ids in splits.items():
-        write_coco(ds / f"coco_{name}.json", coco_annotations(scene, ids, class_of_obj, structure.class_names))
+        write_coco(ds / f"coco_{name}.json", coco_annotations(scene, ids, class_of_obj, structure.class_names,
+                                                              partial(visible_masks, ds / SCENE)))
     return splits
 
 

@@ -252,6 +252,7 @@ class BopScene:
 
     def __init__(self, scene_dir: Path) -> None:
         self.dir = Path(scene_dir)
+        self._frames: dict[int, BopFrame] = {}  # parsed once: every image read checks its size against its frame
         for name in ("scene_camera.json", "scene_gt.json"):
             if not (self.dir / name).is_file():
                 raise InputError(
@@ -310,6 +311,13 @@ class BopScene:
         return img
 
     def frame(self, im_id: int) -> BopFrame:
+        """Image ``im_id``'s camera, pose and instances (parsed on the first call, then remembered)."""
+        im_id = int(im_id)
+        if im_id not in self._frames:
+            self._frames[im_id] = self._parse_frame(im_id)
+        return self._frames[im_id]
+
+    def _parse_frame(self, im_id: int) -> BopFrame:
         key = str(im_id)
         if key not in self._cam:
             raise InputError(f"{self.dir}: no image id {im_id} in scene_camera.json")

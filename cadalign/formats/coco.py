@@ -6,7 +6,7 @@ column-major (Fortran) order, starting with a run of zeros.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -35,19 +35,23 @@ def rle_to_mask(rle: dict) -> np.ndarray:
 
 
 def coco_annotations(scene: BopScene, ids: Sequence[int], class_of_obj: dict[int, int],
-                     class_names: Sequence[str]) -> dict:
+                     class_names: Sequence[str],
+                     visible_masks: Callable[[int, int], Sequence[np.ndarray]] | None = None) -> dict:
     """COCO dict (images, annotations, categories) for frames ``ids`` from their visible masks.
 
     ``category_id`` is the class index (1.. for foreground classes); each annotation also keeps the
-    BOP ``obj_id`` and ``gt_idx`` so the pose can be looked up in ``scene_gt.json``.
+    BOP ``obj_id`` and ``gt_idx`` so the pose can be looked up in ``scene_gt.json``. ``visible_masks``:
+    ``(im_id, n_instances) -> `` the frame's (H, W) bool visible masks by gt index, when the caller has them
+    cheaper than the ``mask_visib`` PNGs (default: those PNGs).
     """
     images, anns = [], []
     for im_id in ids:
         frame = scene.frame(im_id)
         images.append({"id": int(im_id), "file_name": f"rgb/{frame_name(im_id)}",
                        "width": frame.camera.width, "height": frame.camera.height})
+        masks = visible_masks(im_id, len(frame.instances)) if visible_masks is not None else None
         for g, inst in enumerate(frame.instances):
-            mask = scene.mask(im_id, g, visible=True)
+            mask = masks[g] if masks is not None else scene.mask(im_id, g, visible=True)
             area = int(mask.sum())
             if area == 0:
                 continue

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -33,20 +34,27 @@ def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
     return np.stack([x, y, z], axis=1)
 
 
-def render_view(mesh: LabelledGeometry, eye: np.ndarray, target: np.ndarray, size: tuple[int, int],
-                hfov_deg: float = 60.0, by_class: bool = True) -> np.ndarray:
-    """(H, W, 3) uint8 picture of ``mesh`` from ``eye``: class or observed colour, Lambert-shaded, white sky."""
+def _scene(mesh: LabelledGeometry) -> tuple[Any, np.ndarray]:
+    """An Open3D ray-casting scene of ``mesh`` (vertices about their mean, for float32) and that centre."""
     import open3d as o3d  # lazy: heavy dependency (open3d)
 
     if mesh.faces is None or len(mesh.faces) == 0:
         raise InputError("render_view needs a mesh with faces")
-    w, h = size
     centre = mesh.points_m.mean(axis=0)
     scene = o3d.t.geometry.RaycastingScene()
     tm = o3d.t.geometry.TriangleMesh()
     tm.vertex.positions = o3d.core.Tensor((mesh.points_m - centre).astype(np.float32))
     tm.triangle.indices = o3d.core.Tensor(mesh.faces.astype(np.int32))
     scene.add_triangles(tm)
+    return scene, centre
+
+
+def _cast(scene: Any, centre: np.ndarray, eye: np.ndarray, target: np.ndarray, size: tuple[int, int],
+          hfov_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One view's rays cast into ``scene``: (H, W) hit mask, (H, W) hit triangle (0 where none), (H, W) shade."""
+    import open3d as o3d  # lazy: heavy dependency (open3d)
+
+    w, h = size
     f = 0.5 * w / np.tan(np.radians(hfov_deg) / 2)
     uu, vv = np.meshgrid((np.arange(w) + 0.5 - w / 2) / f, (np.arange(h) + 0.5 - h / 2) / f)
     R = _look_at(np.asarray(eye, float), np.asarray(target, float))
@@ -56,12 +64,24 @@ def render_view(mesh: LabelledGeometry, eye: np.ndarray, target: np.ndarray, siz
     ans = scene.cast_rays(o3d.core.Tensor(rays))
     hit = np.isfinite(ans["t_hit"].numpy())
     prim = np.where(hit, ans["primitive_ids"].numpy(), 0).astype(np.int64)
+    shade = np.abs(np.einsum("hwk,hwk->hw", ans["primitive_normals"].numpy(), d))
+    return hit, prim, shade
+
+
+def _paint(mesh: LabelledGeometry, hit: np.ndarray, prim: np.ndarray, shade: np.ndarray,
+           by_class: bool) -> np.ndarray:
     vert = mesh.faces[prim, 0]
     base = class_colors(mesh.labels[vert]) if by_class else mesh.colors[vert]
-    shade = np.abs(np.einsum("hwk,hwk->hw", ans["primitive_normals"].numpy(), d))
     img = (base.astype(np.float32) * (0.35 + 0.65 * shade[..., None])).clip(0, 255).astype(np.uint8)
     img[~hit] = 255
     return img
+
+
+def render_view(mesh: LabelledGeometry, eye: np.ndarray, target: np.ndarray, size: tuple[int, int],
+                hfov_deg: float = 60.0, by_class: bool = True) -> np.ndarray:
+    """(H, W, 3) uint8 picture of ``mesh`` from ``eye``: class or observed colour, Lambert-shaded, white sky."""
+    scene, centre = _scene(mesh)
+    return _paint(mesh, *_cast(scene, centre, eye, target, size, hfov_deg), by_class)
 
 
 def render_views(mesh: LabelledGeometry, path: Path, class_names: Sequence[str], *, n_views: int = 3,
@@ -75,12 +95,14 @@ def render_views(mesh: LabelledGeometry, path: Path, class_names: Sequence[str],
     lo, hi = np.percentile(fg if len(fg) >= 100 else mesh.points_m, [1, 99], axis=0)
     target = (lo + hi) / 2
     radius = max(float(np.linalg.norm(hi - lo)), 1e-3)
-    rows = [[], []]
+    rows: list[list[np.ndarray]] = [[], []]
+    scene, centre = _scene(mesh)  # one BVH for all views; each view cast once, painted both ways
     for k in range(n_views):
         a = 2 * np.pi * k / n_views + np.pi / 6
         eye = target + 1.1 * radius * np.array([np.cos(a), np.sin(a), 0.55])
+        cast = _cast(scene, centre, eye, target, size, 60.0)
         for r, by_class in enumerate((True, False)):
-            rows[r].append(render_view(mesh, eye, target, size, by_class=by_class))
+            rows[r].append(_paint(mesh, *cast, by_class))
     grid = np.concatenate([np.concatenate(r, axis=1) for r in rows], axis=0)
     legend = np.full((28, grid.shape[1], 3), 255, np.uint8)
     x = 8

@@ -79,6 +79,8 @@ def load_dense_model(run: Path, *, task: str | None = None, classes: Sequence[st
     model.load_state_dict(ck["model"])
     dev = torch.device(device)
     model.to(dev).eval()
+    if have == "seg":  # channels-last: see _seg_probs
+        model.to(memory_format=torch.channels_last)
     return DenseModel(have, model, names, float(ident.get("scale", 1.0)), bool(ident.get("mask_input", False)),
                       dev, path, int(ck.get("step", 0)))
 
@@ -122,8 +124,11 @@ def seg_probabilities(dm: DenseModel, images: np.ndarray | torch.Tensor, *, flip
     return prob.cpu()
 
 
+# The ResUNet runs in channels-last memory order: its narrow convolutions (12-192 channels in the 'fast' preset)
+# took 0.73-0.75x the CPU time of NCHW on 640x480 frames (one thread, docs/tuning/demo_time.md), as oneDNN then
+# needs no layout reorder around each layer. Probabilities differ from NCHW by < 1e-6 (summation order).
 def _seg_probs(dm: DenseModel, x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-    logits = dm.model(x).float()
+    logits = dm.model(x.contiguous(memory_format=torch.channels_last)).float().contiguous()
     if logits.shape[-2:] != size:
         logits = F.interpolate(logits, size=size, mode="bilinear", align_corners=False)
     return logits.softmax(1)

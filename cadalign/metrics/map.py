@@ -82,20 +82,30 @@ def sample_surface(truth: CadTruth, spacing_m: float, seed: int) -> tuple[np.nda
     return np.concatenate(pts), np.concatenate(cls)
 
 
+def _in_view(points: np.ndarray, cam: Camera, T: Rigid3, z_min_m: float,
+             z_max_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The points that project into ``cam`` at ``T`` (camera-frame depth in ``(z_min_m, z_max_m]``): their
+    indices, pixel columns and rows (``floor`` of the projection: pixel centres at +0.5) and depths.
+
+    Only the points in the depth range are divided and rounded (the same arithmetic per point as on all of
+    them), so a view that sees a small part of a large cloud costs little beyond the transform."""
+    pc = T.apply(points)
+    z = pc[:, 2]
+    idx = np.flatnonzero((z > z_min_m) & (z <= z_max_m))
+    zi = z[idx]
+    u = np.floor(pc[idx, 0] / zi * cam.fx + cam.cx).astype(np.int64)
+    v = np.floor(pc[idx, 1] / zi * cam.fy + cam.cy).astype(np.int64)
+    keep = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    return idx[keep], u[keep], v[keep], zi[keep]
+
+
 def visible_mask(points: np.ndarray, views: Iterable[tuple[Camera, Rigid3, np.ndarray]], depth_min_m: float,
                  depth_max_m: float, tol_m: float) -> np.ndarray:
     """(N,) bool: the point agrees with the true depth of at least one view ``(camera, T_cam_from_world, depth)``."""
     seen = np.zeros(len(points), dtype=bool)
     for cam, T, depth in views:
-        pc = T.apply(points)
-        z = pc[:, 2]
-        ok = (z > depth_min_m) & (z <= depth_max_m)
-        u = np.floor(np.where(ok, pc[:, 0] / np.where(ok, z, 1) * cam.fx + cam.cx, -1)).astype(np.int64)
-        v = np.floor(np.where(ok, pc[:, 1] / np.where(ok, z, 1) * cam.fy + cam.cy, -1)).astype(np.int64)
-        ok &= (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        idx = np.flatnonzero(ok)
-        d = np.asarray(depth)[v[idx], u[idx]]
-        seen[idx[np.abs(d - z[idx]) <= tol_m]] = True
+        idx, u, v, z = _in_view(points, cam, T, depth_min_m, depth_max_m)
+        seen[idx[np.abs(np.asarray(depth)[v, u] - z) <= tol_m]] = True
     return seen
 
 
@@ -103,17 +113,19 @@ def point_truth_labels(points: np.ndarray, views: Iterable[tuple[Camera, Rigid3,
                        n_classes: int, depth_max_m: float, tol_m: float) -> np.ndarray:
     """(N,) true class of each point: the majority over the views ``(camera, T_cam_from_world, depth, class map)``
     that see it (depth agrees to ``tol_m``); -1 where no view sees it."""
-    votes = np.zeros(len(points) * n_classes, dtype=np.int32)
+    votes = np.zeros(len(points) * n_classes, dtype=np.int64)
+    keys: list[np.ndarray] = []
+    pending = 0
     for cam, T, depth, cls in views:
-        pc = T.apply(points)
-        z = pc[:, 2]
-        ok = (z > 0) & (z <= depth_max_m)
-        u = np.floor(np.where(ok, pc[:, 0] / np.where(ok, z, 1) * cam.fx + cam.cx, -1)).astype(np.int64)
-        v = np.floor(np.where(ok, pc[:, 1] / np.where(ok, z, 1) * cam.fy + cam.cy, -1)).astype(np.int64)
-        ok &= (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        idx = np.flatnonzero(ok)
-        idx = idx[np.abs(np.asarray(depth)[v[idx], u[idx]] - z[idx]) <= tol_m]
-        votes += np.bincount(idx * n_classes + np.asarray(cls)[v[idx], u[idx]], minlength=len(votes)).astype(np.int32)
+        idx, u, v, z = _in_view(points, cam, T, 0.0, depth_max_m)
+        ok = np.abs(np.asarray(depth)[v, u] - z) <= tol_m
+        keys.append(idx[ok] * n_classes + np.asarray(cls)[v[ok], u[ok]])
+        pending += len(keys[-1])
+        if pending > len(votes):  # count in batches: one bincount per view would clear all N x C counters
+            votes += np.bincount(np.concatenate(keys), minlength=len(votes))
+            keys, pending = [], 0
+    if keys:
+        votes += np.bincount(np.concatenate(keys), minlength=len(votes))
     votes = votes.reshape(len(points), n_classes)
     return np.where(votes.sum(axis=1) > 0, votes.argmax(axis=1), -1)
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from cadalign.formats import bop
 from cadalign.formats.tum import TUM_NAME, write_cameras_tum
-from cadalign.io import atomic_path, link_or_copy, read_json, write_image, write_json
+from cadalign.io import atomic_path, link_or_copy, read_image, read_json, write_image, write_json
 from cadalign.raycast.core import RaycastFrame
 from cadalign.types import Camera, Rigid3
 
@@ -75,6 +75,13 @@ def write_bop_frame(scene_dir: Path, k: int, camera: Camera, T_cam_from_world: R
         "object_index": [i - 1 for i in visible],
     }
     write_json(sdir / "frames_json" / f"{k:06d}.json", record, indent=None)
+
+
+def visible_masks(scene_dir: Path, im_id: int, n: int) -> list[np.ndarray]:
+    """The ``n`` visible masks of frame ``im_id`` written by :func:`write_bop_frame`, from its ``instance/`` map: one
+    PNG read instead of ``n`` mask_visib PNGs (the map holds ``g + 1`` exactly where mask_visib ``g`` is set)."""
+    inst = read_image(Path(scene_dir) / "instance" / bop.frame_name(im_id), unchanged=True)
+    return [inst == g + 1 for g in range(n)]
 
 
 def merge_scene_files(scene_dir: Path, objects: Sequence[PosedObject], class_names: Sequence[str]) -> None:

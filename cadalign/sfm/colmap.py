@@ -191,6 +191,8 @@ def incremental_options(cfg: SfMConfig, image_names: list[str]) -> Any:
     opts.multiple_models = mp.multiple_models
     opts.ba_global_max_num_iterations = mp.ba_global_max_num_iterations
     opts.ba_global_max_refinements = mp.ba_global_max_refinements
+    opts.ba_global_frames_ratio = mp.ba_global_frames_ratio
+    opts.ba_global_points_ratio = mp.ba_global_points_ratio
     opts.mapper.init_min_num_inliers = mp.init_min_num_inliers
     opts.mapper.abs_pose_min_num_inliers = mp.abs_pose_min_num_inliers
     opts.mapper.filter_max_reproj_error = mp.filter_max_reproj_error

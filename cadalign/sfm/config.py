@@ -169,6 +169,11 @@ class MapperConfig:
     """Most solver iterations of each global bundle adjustment."""
     ba_global_max_refinements: int = bounded(5, ge=1)
     """Most global bundle adjustment + re-triangulation rounds."""
+    ba_global_frames_ratio: float = bounded(1.1, gt=1)
+    """Incremental mapping adjusts the whole model again once it has this many times the registered frames of the
+    last global adjustment (COLMAP's default 1.1; larger: fewer global adjustments while mapping)."""
+    ba_global_points_ratio: float = bounded(1.1, gt=1)
+    """The same for the model's 3D points (COLMAP's default 1.1)."""
     refine_iterations: int = bounded(4, ge=0)
     """Rounds of robust (Cauchy) bundle adjustment of the kept model, each followed by dropping
     observations above ``refine_max_error_px`` and points below ``refine_min_tri_angle_deg``; 0: none.
@@ -253,10 +258,10 @@ def _preset(**sections: dict) -> SfMConfig:
 
 PRESETS: dict[str, SfMConfig] = {
     "fast": _preset(
-        features={"max_num_features": 1024, "max_image_size": 1024, "first_octave": 0},
+        features={"max_num_features": 640, "max_image_size": 1024, "first_octave": 0},
         matching={"overlap": 5, "max_num_trials": 2000, "loop_remap": False},
         mapper={"ba_global_max_num_iterations": 25, "ba_global_max_refinements": 2, "refine_iterations": 1,
-                "refine_max_num_iterations": 30},
+                "refine_max_num_iterations": 30, "ba_global_frames_ratio": 1.4, "ba_global_points_ratio": 1.4},
     ),
     "balanced": SfMConfig(),
     "accurate": _preset(
@@ -264,9 +269,10 @@ PRESETS: dict[str, SfMConfig] = {
         mapper={"ba_global_max_num_iterations": 100, "refine_iterations": 6},
     ),
 }
-"""Named trade-offs: 'fast' (SIFT from the image's own size, 1024 features, short overlap, loop closure by merging
-tracks into the first model, one short refinement round: on the default orbit at 0.67-1.47x plain pycolmap's time
-(median 0.98 over seven pairs) in the same run, with a third of its rotation and centre error,
+"""Named trade-offs: 'fast' (SIFT from the image's own size, 640 features, short overlap, loop closure by merging
+tracks into the first model, global adjustments only when the model grew by 40 %, one short refinement round: on
+the default orbit 0.79-0.80x plain pycolmap's CPU time in the same run (wall 0.54-0.83x), with less than half its
+rotation and a third of its centre error; on opensfm_lund 28-29 of 29 frames where plain registers none,
 docs/tuning/sfm_speed.md), 'balanced' (default), 'accurate' (more features, longer bundle adjustment, more
 refinement rounds). 'accurate' pairs frames like 'balanced': with overlap 12 and guided matching it folded the
 default orbit (then 64 frames at 0.5 frame/s) at frames 54/55 with all three seeds (31 frames kept), and with

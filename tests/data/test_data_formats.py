@@ -110,3 +110,16 @@ def test_torch_datasets_agree_with_the_ground_truth(tiny_bop: Path) -> None:
 def test_missing_class_map_names_the_file(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="objects.json"):
         load_class_map(tmp_path)
+
+
+def test_coco_from_the_instance_maps_equals_coco_from_mask_visib(tiny_bop: Path) -> None:
+    """The build reads one instance/ PNG per frame for its COCO files, not every mask_visib PNG: the same file."""
+    from functools import partial
+
+    from cadalign.raycast.bop_writer import visible_masks
+
+    scene = BopScene(tiny_bop)
+    cmap = load_class_map(tiny_bop)
+    fast = coco_annotations(scene, scene.ids, cmap.class_of_obj, cmap.names, partial(visible_masks, tiny_bop))
+    assert fast == coco_annotations(scene, scene.ids, cmap.class_of_obj, cmap.names)
+    assert len(fast["annotations"]) >= 3

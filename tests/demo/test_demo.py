@@ -80,3 +80,24 @@ def test_a_build_that_passed_its_gate_is_still_refused_when_unfit_for_learning()
                 {"rotation_deg": float("nan"), "scale_rel": 0.0}):
         assert "off the simulator's truth" in untrusted_build({**good, "vs_truth": {"alignment": bad}})
     assert untrusted_build({"splits": good["splits"]}) is None  # no truth to compare with: the splits decide
+
+
+def test_demo_fusion_saves_each_map_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The demo's maps (128 frames) take seconds to fuse and 0.3-0.4 GB to save: no checkpoint every 50 frames."""
+    from cadalign.demo import stages
+    from cadalign.demo.stages import DemoContext, fuse_stage
+
+    seen = []
+
+    def fake_run(cfg, source, out, **kw):
+        seen.append(kw)
+        out.mkdir(parents=True)
+        (out / "fuse_report.json").write_text("{}")
+        return out
+
+    monkeypatch.setattr(stages, "run", fake_run)
+    monkeypatch.setattr(stages, "_has_ckpt", lambda run: True)
+    ctx = DemoContext(tmp_path, tmp_path / "sim", tmp_path / "scene.toml", tmp_path / "ds", "built", TINY)
+    res = fuse_stage(ctx)
+    assert set(res) == {"dir", "gt", "pred"} and len(seen) == 2
+    assert all(kw["checkpoint_every"] > 10_000 for kw in seen)

@@ -88,3 +88,44 @@ def test_visibility_and_point_truth_hand_case() -> None:
     cls = np.full((10, 10), 2)
     assert visible_mask(pts, [(cam, T, depth)], 0.1, 20.0, 0.05).tolist() == [True, False, False]
     assert point_truth_labels(pts, [(cam, T, depth, cls)], 3, 20.0, 0.05).tolist() == [2, -1, -1]
+
+
+def _reference_votes(points, views, n_classes, depth_max_m, tol_m):
+    """The first implementation: every point projected and rounded in every view, one bincount per view."""
+    votes = np.zeros((len(points), n_classes), dtype=np.int64)
+    for cam, T, depth, cls in views:
+        pc = points @ T.R.T + T.t
+        z = pc[:, 2]
+        ok = (z > 0) & (z <= depth_max_m)
+        u = np.floor(np.where(ok, pc[:, 0] / np.where(ok, z, 1) * cam.fx + cam.cx, -1)).astype(np.int64)
+        v = np.floor(np.where(ok, pc[:, 1] / np.where(ok, z, 1) * cam.fy + cam.cy, -1)).astype(np.int64)
+        ok &= (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        idx = np.flatnonzero(ok)
+        idx = idx[np.abs(depth[v[idx], u[idx]] - z[idx]) <= tol_m]
+        np.add.at(votes, (idx, cls[v[idx], u[idx]]), 1)
+    return np.where(votes.sum(1) > 0, votes.argmax(1), -1), votes.sum(1) > 0
+
+
+def test_point_truth_and_visibility_equal_projecting_every_point() -> None:
+    """Only the points in a view's depth range are rounded, and votes are counted in batches of views: the same
+    labels and visibility as projecting every point in every view (points behind, beside and beyond the camera,
+    more views than counters so the batches flush)."""
+    rng = np.random.default_rng(3)
+    cam = Camera(np.array([[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]]), 32, 24)
+    points = rng.uniform([-3, -3, -2], [3, 3, 9], size=(60, 3))
+    views = []
+    for _ in range(40):
+        T = Rigid3(np.linalg.qr(rng.normal(size=(3, 3)))[0] * [1, 1, 1], rng.normal(scale=0.3, size=3))
+        if np.linalg.det(T.R) < 0:
+            T = Rigid3(-T.R, T.t)
+        depth = rng.uniform(0.5, 9, size=(24, 32))
+        pc = T.apply(points)
+        u = np.floor(pc[:, 0] / pc[:, 2] * 40 + 16).astype(int)
+        v = np.floor(pc[:, 1] / pc[:, 2] * 40 + 12).astype(int)
+        inside = (pc[:, 2] > 0) & (u >= 0) & (u < 32) & (v >= 0) & (v < 24)
+        depth[v[inside], u[inside]] = pc[inside, 2] + rng.normal(scale=0.02, size=inside.sum())  # some agree
+        views.append((cam, T, depth, rng.integers(0, 3, size=(24, 32))))
+    labels, seen = _reference_votes(points, views, 3, 8.0, 0.03)
+    assert 0 < seen.sum() < len(points)
+    np.testing.assert_array_equal(point_truth_labels(points, views, 3, 8.0, 0.03), labels)
+    np.testing.assert_array_equal(visible_mask(points, [v[:3] for v in views], 0.0, 8.0, 0.03), seen)

@@ -183,3 +183,55 @@ def test_bench_fuse_open3d_alone_setting(fuse_sim: Path) -> None:
     assert met["ms_per_frame"] > 0 and met["ms_tsdf"] > 0 and "ms_labels" not in met
     # Open3D's own mesh of the same frames lies on the CAD like ours; not on the accuracy axis (never recommended)
     assert 0 < met["open3d_chamfer_m"] < 0.1 and "chamfer_m" not in met
+
+
+def test_views_build_one_raycasting_scene_and_cast_each_view_once(fused_dir: Path, monkeypatch) -> None:
+    """The picture's two rows are the same views coloured two ways: one BVH, one cast per view, and the same pixels
+    as rendering each tile on its own with ``render_view``."""
+    from cadalign.fuse import views
+    from cadalign.fuse.base import LabelledGeometry
+
+    vert, faces = read_ply(fused_dir / "mesh.ply")
+    pts = np.stack([vert["x"], vert["y"], vert["z"]], 1)
+    labels = vert["class"].astype(np.int64)
+    mesh = LabelledGeometry(pts, np.zeros_like(pts, dtype=np.float32),
+                            np.stack([vert["red"], vert["green"], vert["blue"]], 1), labels,
+                            np.ones((len(pts), 1), np.float32), faces.astype(np.int64))
+    calls = {"scene": 0, "cast": 0}
+    for name in calls:
+        real = getattr(views, f"_{name}")
+
+        def counted(*a, _real=real, _name=name, **k):
+            calls[_name] += 1
+            return _real(*a, **k)
+
+        monkeypatch.setattr(views, f"_{name}", counted)
+    size = (64, 48)
+    img = read_image(views.render_views(mesh, fused_dir / "views_again.png", ["bg", "a", "b"], size=size))
+    assert calls == {"scene": 1, "cast": 3}
+    fg = pts[labels != 0]
+    lo, hi = np.percentile(fg if len(fg) >= 100 else pts, [1, 99], axis=0)
+    target, radius = (lo + hi) / 2, max(float(np.linalg.norm(hi - lo)), 1e-3)
+    for k in range(3):
+        a = 2 * np.pi * k / 3 + np.pi / 6
+        eye = target + 1.1 * radius * np.array([np.cos(a), np.sin(a), 0.55])
+        for row, by_class in enumerate((True, False)):
+            tile = views.render_view(mesh, eye, target, size, by_class=by_class)
+            np.testing.assert_array_equal(img[28 + 48 * row: 28 + 48 * (row + 1), 64 * k: 64 * (k + 1)], tile)
+
+
+def test_bop_scene_parses_each_frame_once(fuse_sim: Path, monkeypatch) -> None:
+    """Every mask/depth/rgb read checks its size against its frame: the frame's JSON is parsed once, not per read."""
+    from cadalign.formats.bop import BopScene
+
+    scene = BopScene(fuse_sim / "gt" / "sim" / "000000")
+    parsed = []
+    real = scene._parse_frame
+    monkeypatch.setattr(scene, "_parse_frame", lambda i: parsed.append(i) or real(i))
+    im_id = scene.ids[0]
+    frame = scene.frame(im_id)
+    assert len(frame.instances) >= 2
+    for g in range(len(frame.instances)):
+        scene.mask(im_id, g)
+    scene.depth_m(im_id)
+    assert parsed == [im_id] and scene.frame(im_id) is frame
