@@ -166,6 +166,15 @@ def _reproj_px(meshes, cam: Camera, T_est: Rigid3, T_true: Rigid3) -> float:
     return float(np.mean(np.linalg.norm(a - b, axis=1)))
 
 
+def _unit_box():
+    from cadalign.raycast.core import RenderMesh
+
+    v = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
+    f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6], [0, 2, 6],
+                  [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    return RenderMesh(v, f, 1, 1)
+
+
 def _perturbed(T_cw: Rigid3, t_m: float, r_deg: float, seed: int) -> Rigid3:
     rng = np.random.default_rng(seed)
     ax = rng.normal(size=3)
@@ -258,6 +267,60 @@ class TestTrackBoxes:
         for s, k in zip(steps, (16, 17, 18), strict=True):
             if s.state == "ok":
                 assert _reproj_px(meshes, cam, s.T_cam_from_world, _view(k).inverse()) < 0.5
+
+    @pytest.mark.parametrize("turns", [True, False])
+    def test_a_turn_while_out_of_view_is_regained_at_once(self, boxes, turns: bool) -> None:
+        """A survey leg along x looking down, two black frames, then the camera, carried on at its speed, has
+        turned 90 deg on the spot: the turned views of the carried-on pose find it on the first frame back
+        (without them the last pose and its motion are 90 deg off, beyond the start search)."""
+        from dataclasses import replace
+
+        from infer_testdata import look_at
+
+        meshes, cam, render = boxes
+
+        def leg(k: int) -> Rigid3:  # T_world_from_cam: 0.3 m a frame along x, looking down-forward (+y)
+            return look_at(np.array([-0.6 + 0.3 * k, -2.0, 6.0]), np.array([-0.6 + 0.3 * k, 0.0, 0.5]))
+
+        tr = StructureTracker(meshes, cam, replace(BOXES_TRACKER, turn_step_deg=30.0 if turns else 0.0))
+        assert tr.step(render(leg(0)), [("init", leg(0).inverse())]).state == "ok"
+        assert tr.step(render(leg(1))).state == "ok"
+        black = np.zeros((cam.height, cam.width), np.float32)
+        assert [tr.step(black).state for _ in range(2)] == ["lost", "lost"]
+        R = axis_angle_to_matrix(np.radians([0.0, 0.0, 90.0]))
+        turned = Rigid3(R @ leg(4).R, leg(4).t)  # where the leg would be, heading turned 90 deg
+        back = tr.step(render(turned))
+        if not turns:
+            assert back.state == "lost" and back.T_cam_from_world is None
+            return
+        assert back.state == "ok" and back.source == "turn_90", back.source
+        assert _reproj_px(meshes, cam, back.T_cam_from_world, turned.inverse()) < 0.5
+
+    def test_own_restarts_that_run_off_their_hypothesis_are_refused(self, boxes, monkeypatch) -> None:
+        """A restart fit from the tracker's own hypothesis that turned the camera by more than one pan/tilt
+        search reaches is refused; the same fit from an outside hypothesis (a navigation fix) is kept."""
+        meshes, cam, render = boxes
+        tr = StructureTracker(meshes, cam, BOXES_TRACKER)
+        img = render(_view(0))
+        fit = tr.edges.fit(img, _view(0))
+        far = Rigid3(axis_angle_to_matrix(np.radians([0.0, 0.0, 40.0])), np.zeros(3)) @ _view(0).inverse()
+        near = Rigid3(axis_angle_to_matrix(np.radians([0.0, 0.0, 5.0])), np.zeros(3)) @ _view(0).inverse()
+        monkeypatch.setattr(tr, "_search", lambda gray, T_wc: (fit, 1))
+        assert tr._best_of(img, [("turn_40", far)], own=True)[0] is None
+        assert tr._best_of(img, [("turn_5", near)], own=True)[0][1] == "turn_5"
+        assert tr._best_of(img, [("nav", far)], own=False)[0][1] == "nav"
+
+    def test_steady_heading_keeps_the_step_and_drops_the_turn(self) -> None:
+        """The predictions after a failed constant-velocity fit: the last step in the camera's frame and in the
+        world's, both with the last orientation, and the last pose."""
+        tr = StructureTracker([_unit_box()], Camera(np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]]), 160, 120))
+        R0 = axis_angle_to_matrix(np.radians([0.0, 0.0, 0.0]))
+        R1 = axis_angle_to_matrix(np.radians([0.0, 0.0, 30.0]))
+        tr._prev, tr._last = Rigid3(R0, np.array([0.0, 0.0, -5.0])), Rigid3(R1, np.array([1.0, 0.0, -5.0]))
+        body, world, last = tr._other_predictions()
+        assert all(np.allclose(T.R, R1) for T in (body, world, last)) and np.allclose(last.t, tr._last.t)
+        assert np.allclose(world.t, [2.0, 0.0, -5.0])
+        assert np.allclose(body.t, tr._last.t + R1 @ np.array([1.0, 0.0, 0.0]))  # forward stays forward
 
     def test_structure_out_of_view_is_lost_without_nan(self, boxes) -> None:
         meshes, cam, render = boxes
