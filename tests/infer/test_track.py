@@ -382,7 +382,7 @@ class TestTrackTiny:
         """With colour frames and the default thresholds: box 3 absent from the video (what lies behind it shows
         where the CAD puts it) is reported missing from the first frame on; the others are placed."""
         from cadalign.cad.model import CadModel
-        from cadalign.infer.track.run import part_records
+        from cadalign.infer.track.run import PartMemory, part_records
         from cadalign.raycast.bop_writer import PosedObject
         from cadalign.raycast.core import RaycastRenderer
         from cadalign.sim.structure import Structure
@@ -403,7 +403,7 @@ class TestTrackTiny:
             {m.instance: CadModel(f"box_{m.instance}", m.vertices_m, m.faces) for m in meshes},
             ("background", "structure"))
         tr = StructureTracker(meshes, cam, BOXES_TRACKER)
-        memory: dict[int, bool] = {}
+        memory = PartMemory()
         for k in range(3):
             g, rgb = frame(k)
             step = tr.step(g, [("init", _perturbed(_view(0).inverse(), 0.03, 1.0, 2))] if k == 0 else [], rgb)
@@ -648,3 +648,23 @@ class TestRegion:
         assert judged.region_support < 0.5 * second.fit.region_support
         assert tr.good(second.fit)
         assert not tr.good(replace(second.fit, region_support=0.1))
+
+
+def test_a_part_seen_present_needs_two_missing_checks() -> None:
+    """The missing-part memory: one check decides for a part never checked (an absent part is missing from the
+    first frame); a part found present is called missing only after ``confirm`` missing checks in a row."""
+    from cadalign.infer.track.run import PartMemory
+
+    m = PartMemory()
+    m.update(1, True, 2)
+    assert m.missing[1]  # never checked: the first verdict holds
+    m.update(2, False, 2)
+    m.update(2, True, 2)
+    assert not m.missing[2]  # seen present: one odd check does not remove it
+    m.update(2, False, 2)
+    m.update(2, True, 2)
+    assert not m.missing[2]  # the streak starts again after a present verdict
+    m.update(2, True, 2)
+    assert m.missing[2]
+    m.update(2, False, 2)
+    assert not m.missing[2]  # found again at once

@@ -70,6 +70,9 @@ class TrackRunConfig:
     it has fewer than ``min_region_samples`` it keeps its verdict)."""
     min_region_samples: int = 20
     """Contour samples a part needs for the region check."""
+    confirm_missing: int = 2
+    """A part last found present is reported missing only after this many missing checks in a row; one check
+    decides for a part never checked: an absent part is missing from frame 0 (docs/tuning/tracker.md#missing-parts)."""
     movable: MovableConfig = field(default_factory=MovableConfig)
     """Parts the scene declares movable, each tracked on its own (:mod:`cadalign.infer.track.parts`)."""
     overlay: bool = True
@@ -114,13 +117,32 @@ def read_init_pose(path: Path, camera: Camera | None = None) -> Rigid3:
                          "the first frame and where they are on the CAD (metres)") from exc
 
 
+@dataclass
+class PartMemory:
+    """What the missing-part check remembers of each part (ray-cast instance) from frame to frame."""
+
+    missing: dict[int, bool] = field(default_factory=dict)
+    """Whether the part was found missing when last checked (no entry: never checked). Parts too small to check
+    in a frame keep this verdict."""
+    doubts: dict[int, int] = field(default_factory=dict)
+    """Missing verdicts in a row of a part last found present (``TrackRunConfig.confirm_missing``)."""
+
+    def update(self, k: int, verdict: bool, confirm: int) -> None:
+        """One check's verdict: it decides for a part never checked or found missing; a part found present is
+        called missing after ``confirm`` missing verdicts in a row."""
+        if k not in self.missing or self.missing[k]:
+            self.missing[k], self.doubts[k] = verdict, 0
+            return
+        self.doubts[k] = self.doubts.get(k, 0) + 1 if verdict else 0
+        self.missing[k] = self.doubts[k] >= confirm
+
+
 def part_records(step: TrackStep, frame_index: int, name: str, structure: Structure, cfg: TrackRunConfig,
-                 missing_before: dict[int, bool] | None = None) -> tuple[list[PoseRecord], list[str]]:
+                 memory: PartMemory | None = None) -> tuple[list[PoseRecord], list[str]]:
     """The records of one tracked frame's visible parts, and the names of parts found missing.
 
-    ``missing_before``: instance -> whether the part was found missing when last checked; read for parts too
-    small to check in this frame and updated for those checked (pass the same dict for every frame)."""
-    memory = {} if missing_before is None else missing_before
+    ``memory``: what earlier frames' checks found (pass the same one for every frame of a video)."""
+    memory = PartMemory() if memory is None else memory
     if step.T_cam_from_world is None or step.fit is None or step.fit.instance is None:
         return [], []
     inst = step.fit.instance
@@ -134,13 +156,14 @@ def part_records(step: TrackStep, frame_index: int, name: str, structure: Struct
         region = step.fit.instance_region.get(k, float("nan"))
         edges_gone = n >= cfg.min_part_samples and (share < cfg.min_part_support or conc < cfg.min_part_concentration)
         if n >= cfg.min_region_samples and np.isfinite(region):
-            if memory.get(k):
-                memory[k] = bool(region < cfg.present_part_region or edges_gone)
+            if memory.missing.get(k):
+                memory.update(k, bool(region < cfg.present_part_region or edges_gone), cfg.confirm_missing)
             else:
-                memory[k] = bool((region < cfg.min_part_region and share < cfg.missing_part_edges) or edges_gone)
+                memory.update(k, bool((region < cfg.min_part_region and share < cfg.missing_part_edges) or edges_gone),
+                              cfg.confirm_missing)
         elif n >= cfg.min_part_samples:
-            memory[k] = bool(edges_gone)
-        if memory.get(k):
+            memory.update(k, bool(edges_gone), cfg.confirm_missing)
+        if memory.missing.get(k):
             missing.append(o.name)
             continue
         ys, xs = np.nonzero(inst == k)
@@ -203,7 +226,7 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
     names: list[str] = []
     times: dict[str, list[float]] = {"track": [], "restart": [], "detector": [], "overlay": []}
     states = {"ok": 0, "lost": 0}
-    missing_before: dict[int, bool] = {}  # per part: found missing when last checked
+    memory = PartMemory()  # per part: what the missing-part checks found so far
     writer = None
     frames = iter_frames(source, max_frames=max_frames, topic=topic)
     video_ctx = atomic_path(out_dir / "overlay.mp4") if cfg.overlay else contextlib.nullcontext(None)
@@ -231,7 +254,7 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                 (times["restart"] if step.source not in ("track",) else times["track"]).append(step.seconds)
                 states[step.state] += 1
                 part_steps = parts.step(gray, rgb, step.T_cam_from_world, part_hyps)
-                recs, missing = part_records(step, vf.index, vf.name, structure, cfg, missing_before)
+                recs, missing = part_records(step, vf.index, vf.name, structure, cfg, memory)
                 recs += parts.records(part_steps, vf.index, vf.name, cfg.min_visible_px)
                 for r in recs:
                     fh.write(json.dumps(r.to_json()) + "\n")
