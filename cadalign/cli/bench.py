@@ -10,11 +10,13 @@ from pathlib import Path
 
 import typer
 
+from cadalign.bench.fuse_timing import bench_fuse
 from cadalign.bench.report import recommendations, write_bench_report
 from cadalign.cli.common import console, track, user_errors
 from cadalign.cli.sim import _resolution
 from cadalign.config import read_mapping, resolve
 from cadalign.errors import InputError
+from cadalign.fuse.config import FuseConfig
 from cadalign.io import write_json
 from cadalign.types import Camera
 
@@ -167,6 +169,24 @@ def track_speed(
     console.print(f"tracker {1e3 / res.track_ms:.1f} frames/s (CPU), detector alone {1e3 / res.detector_ms:.1f} "
                   f"frames/s: {res.ratio:.2f}x; restart {res.restart_ms:.0f} ms; {res.tracked}/{res.frames} tracked "
                   f"-> {out / 'bench_track.json'}")
+
+
+@app.command("fuse-labels")
+def fuse_labels(
+    scene: Path = typer.Argument(..., help="A BOP scene folder with depth and masks (e.g. a real RGB-D capture's "
+                                 "test_targets scene, or a simulation's gt/sim/000000)."),
+    frames: int = typer.Option(64, "--frames", min=2, help="Frames to time (after 2 untimed)."),
+    voxel_m: float | None = typer.Option(None, "--voxel-m", help="Voxel size, metres (default: the fuse config's)."),
+    out: Path = OUT,
+) -> None:
+    """Semantic fusion with labels against Open3D's VoxelBlockGrid alone (no labels) on your scene, interleaved
+    in one run: frames/s of each and their ratio (issue 45's must-show; GT depth and labels)."""
+    cfg = FuseConfig() if voxel_m is None else FuseConfig(voxel_m=voxel_m)
+    with user_errors():
+        r = bench_fuse(scene, cfg, frames=frames, out=out)
+    console.print(f"labels: {r['frames_per_second_median']:.1f} frames/s; Open3D alone: "
+                  f"{r['open3d']['frames_per_second_median']:.1f} frames/s: [bold]{r['fps_vs_open3d']:.2f}x[/] "
+                  f"({r['frames_timed']} frames, {r['image']}, {r['voxel_m']} m voxels) -> {out / 'bench_fuse.json'}")
 
 
 @app.command("all")

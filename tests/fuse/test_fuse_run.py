@@ -235,3 +235,19 @@ def test_bop_scene_parses_each_frame_once(fuse_sim: Path, monkeypatch) -> None:
         scene.mask(im_id, g)
     scene.depth_m(im_id)
     assert parsed == [im_id] and scene.frame(im_id) is frame
+
+
+def test_bench_fuse_labels_command_times_a_users_scene(fuse_sim: Path, tmp_path: Path) -> None:
+    """`cadalign bench fuse-labels SCENE`: fusion with labels against Open3D's grid alone on a given BOP scene."""
+    from typer.testing import CliRunner
+
+    from cadalign.cli.main import app
+
+    res = CliRunner().invoke(app, ["bench", "fuse-labels", str(fuse_sim), "--frames", "2", "--voxel-m", "0.05",
+                                   "--out", str(tmp_path)])
+    assert res.exit_code == 0, res.output
+    saved = read_json(tmp_path / "bench_fuse.json")
+    assert saved["frames_timed"] == 2 and saved["voxel_m"] == 0.05 and saved["fps_vs_open3d"] > 0
+    assert "Open3D alone" in res.output
+    bad = CliRunner().invoke(app, ["bench", "fuse-labels", str(tmp_path / "nowhere"), "--out", str(tmp_path)])
+    assert bad.exit_code != 0 and "Traceback" not in bad.output
