@@ -27,6 +27,16 @@ def moved_sim(tmp_path_factory: pytest.TempPathFactory) -> Path:
                     contact_sheet=False)
 
 
+def _tiny_part_tracker():
+    """The movable-part tracker at the tiny scene's levels (its 320x240 frames are too small for 1/4)."""
+    from test_track import TINY_TRACKER
+
+    from cadalign.infer.track.parts import MovableConfig
+
+    return replace(MovableConfig().tracker, edges=replace(TINY_TRACKER.edges, prior_px=1.0),
+                   restart_levels=TINY_TRACKER.restart_levels, min_samples=TINY_TRACKER.min_samples)
+
+
 def _pose_error(T_est: Rigid3, T_true: Rigid3) -> tuple[float, float]:
     E = T_est @ T_true.inverse()
     return float(np.degrees(geodesic_angle(E.R, np.eye(3)))), float(np.linalg.norm(T_est.t - T_true.t))
@@ -57,8 +67,7 @@ def test_a_movable_part_is_tracked_where_it_is(tmp_path: Path, moved_sim: Path) 
     truth = load_structure(moved_sim.parent / "moved.toml")
     k = [o.name for o in cad.objects].index("box_e")
     T_wo_true, T_wo_cad = truth.objects[k].T_world_from_obj, cad.objects[k].T_world_from_obj
-    part = replace(MovableConfig().tracker, edges=replace(TINY_TRACKER.edges, prior_px=1.0),
-                   restart_levels=TINY_TRACKER.restart_levels, min_samples=TINY_TRACKER.min_samples)
+    part = _tiny_part_tracker()
     cfg = TrackRunConfig(tracker=TINY_TRACKER, movable=MovableConfig(tracker=part), overlay=False)
     track_video(cfg, moved_sim / "frames", cad, cam, tmp_path / "out", init_pose=_T_cw(cams[names[0]]))
     steps = [json.loads(line) for line in (tmp_path / "out" / "track.jsonl").read_text().splitlines()]
@@ -81,7 +90,7 @@ def test_a_movable_part_starts_from_its_detection(tmp_path: Path) -> None:
     """A detection of the part (its true pose turned 1 deg and moved 2 cm, as a refined detector's would be)
     starts its tracker when the part is 14 cm / 8 deg from its CAD place, and the track holds."""
     import imageio.v3 as iio
-    from test_track import TINY_TRACKER, _gray
+    from test_track import _gray
 
     from cadalign.infer.track.parts import MovableConfig, MovableParts
     from cadalign.sim.run import simulate
@@ -94,8 +103,7 @@ def test_a_movable_part_starts_from_its_detection(tmp_path: Path) -> None:
     truth = load_structure(tmp_path / "far.toml")
     k = [o.name for o in cad.objects].index("box_e")
     T_wo_true, T_wo_cad = truth.objects[k].T_world_from_obj, cad.objects[k].T_world_from_obj
-    part = replace(MovableConfig().tracker, edges=replace(TINY_TRACKER.edges, prior_px=1.0),
-                   restart_levels=TINY_TRACKER.restart_levels, min_samples=TINY_TRACKER.min_samples)
+    part = _tiny_part_tracker()
     parts = MovableParts(cad, cam, MovableConfig(tracker=part))
     nudge = Rigid3(axis_angle_to_matrix(np.radians([0.0, 0.0, 1.0])), np.array([0.02, 0.0, 0.0]))
     sources, errors = [], []

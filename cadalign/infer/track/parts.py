@@ -37,6 +37,18 @@ class MovableConfig:
     views (docs/tuning/tracker.md#movable-parts)."""
 
 
+def part_record(structure: Structure, k: int, T_cam_from_world: Rigid3, mask: np.ndarray, score: float,
+                frame_index: int, frame_name: str, source: str) -> PoseRecord:
+    """The pose record of part ``k`` (ray-cast instance, object ``k - 1``) placed by ``T_cam_from_world`` (the
+    structure's, or a movable part's placement), with its visible ``mask`` (H, W) and its box."""
+    o = structure.objects[k - 1]
+    ys, xs = np.nonzero(mask)
+    box = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], dtype=np.float64)
+    T = T_cam_from_world @ o.T_world_from_obj
+    return PoseRecord(frame_index, frame_name, o.obj_id, k, o.class_id, structure.class_names[o.class_id], score,
+                      box, T, T, T, {}, mask, source)
+
+
 def split_hypotheses(hypotheses: list[tuple[str, Rigid3]], structure: Structure,
                      ) -> tuple[list[tuple[str, Rigid3]], dict[str, list[tuple[str, Rigid3]]]]:
     """Restart hypotheses named ``detector:CLASS:PART`` -> (those for the structure, those per movable part)."""
@@ -87,13 +99,8 @@ class MovableParts:
             mask = f.instance == k
             if int(mask.sum()) < min_visible_px:
                 continue
-            o = self.structure.objects[k - 1]
-            ys, xs = np.nonzero(mask)
-            box = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], dtype=np.float64)
-            T = step.T_cam_from_world @ o.T_world_from_obj
-            out.append(PoseRecord(frame_index, frame_name, o.obj_id, k, o.class_id,
-                                  self.structure.class_names[o.class_id], float(f.support), box, T, T, T, {}, mask,
-                                  "tracked_part"))
+            out.append(part_record(self.structure, k, step.T_cam_from_world, mask, float(f.support), frame_index,
+                                   frame_name, "tracked_part"))
         return out
 
     def summary(self, steps: dict[int, TrackStep]) -> dict[str, dict]:

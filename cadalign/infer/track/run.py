@@ -32,7 +32,7 @@ from cadalign.geometry.rotations import geodesic_angle
 from cadalign.infer.pipeline import PoseRecord
 from cadalign.infer.run import evaluate_run, video_writer
 from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, as_gray, with_levels
-from cadalign.infer.track.parts import MovableConfig, MovableParts, split_hypotheses
+from cadalign.infer.track.parts import MovableConfig, MovableParts, part_record, split_hypotheses
 from cadalign.infer.track.start import pose_from_picks
 from cadalign.infer.track.tracker import StructureTracker, TrackerConfig, TrackStep
 from cadalign.infer.video import iter_frames
@@ -166,12 +166,8 @@ def part_records(step: TrackStep, frame_index: int, name: str, structure: Struct
         if memory.missing.get(k):
             missing.append(o.name)
             continue
-        ys, xs = np.nonzero(inst == k)
-        box = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], dtype=np.float64)
-        T = step.T_cam_from_world @ o.T_world_from_obj
         score = float(share) if n else float(step.fit.support)
-        out.append(PoseRecord(frame_index, name, o.obj_id, k, o.class_id, structure.class_names[o.class_id], score,
-                              box, T, T, T, {}, inst == k, "tracked"))
+        out.append(part_record(structure, k, step.T_cam_from_world, inst == k, score, frame_index, name, "tracked"))
     return out, missing
 
 
