@@ -33,6 +33,10 @@ def command(
         None, "--init-pose", help="Tracker start: JSON {\"T_cam_from_world\": 4x4, metres} of the first frame, "
         "rough (a navigation pose, ~0.5 m / 10 deg), or points picked in the first frame: {\"picks\": [{\"uv\": "
         "[col, row], \"xyz\": [x, y, z]}, ...]} (pixels; the same points on the CAD, metres; at least 4)."),
+    nav: Path | None = typer.Option(
+        None, "--nav", help="Tracker: rough navigation poses per frame (INS/USBL/DVL), JSON {\"frames\": {name: "
+        "T_cam_from_world 4x4, metres}}: each bounds its frame's pose and restarts the track while lost (a "
+        "simulation writes one: SIM/navigation.json)."),
     tracker: bool | None = typer.Option(
         None, "--tracker/--no-tracker", help="Track the whole structure in the RGB frames (default whenever there "
         "is no --depth and no metric camera poses in --calib)."),
@@ -67,7 +71,7 @@ def command(
             depth is None and oracle_gt is None and (calib is None or not _has_metric_poses(calib)))
         if use_tracker:
             _track(source, cad, out, model, init_pose, gt, calib, max_frames, cad_unit, device, preset, config,
-                   overwrite, topic, gt_poses)
+                   overwrite, topic, gt_poses, nav)
             return
         if (model is None) == (oracle_gt is None):
             raise InputError("pass exactly one detector: --model RUN (a trained network) or --oracle-gt SIM_DIR")
@@ -131,17 +135,18 @@ def _has_metric_poses(calib: Path) -> bool:
 
 def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Path | None, gt: Path | None,
            calib: Path | None, max_frames: int | None, cad_unit: str | None, device: str, preset: str,
-           config: Path | None, overwrite: bool, topic: str | None, gt_poses: Path | None) -> None:
+           config: Path | None, overwrite: bool, topic: str | None, gt_poses: Path | None,
+           nav: Path | None = None) -> None:
     """The tracker branch of ``infer`` (:mod:`cadalign.infer.track.run`)."""
     # lazy: pulls cv2; keeps `cadalign --help` light
-    from cadalign.infer.track.run import PRESETS, TrackRunConfig, read_init_pose, track_video
+    from cadalign.infer.track.run import PRESETS, TrackRunConfig, read_frame_poses, read_init_pose, track_video
     from cadalign.infer.video import iter_frames  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.sim.structure import load_structure  # lazy: pulls cv2; keeps `cadalign --help` light
 
-    if model is None and init_pose is None:
-        raise InputError("the tracker needs a start: pass --init-pose FILE (a rough first-frame pose) and/or --model "
-                         "RUN (a trained detector); or give --oracle-gt SIM_DIR (tests and demos) or --depth for the "
-                         "detector pipeline")
+    if model is None and init_pose is None and nav is None:
+        raise InputError("the tracker needs a start: pass --init-pose FILE (a rough first-frame pose), --nav FILE "
+                         "(rough poses per frame) and/or --model RUN (a trained detector); or give --oracle-gt "
+                         "SIM_DIR (tests and demos) or --depth for the detector pipeline")
     cfg = resolve(TrackRunConfig, PRESETS, preset if preset in PRESETS else "balanced", config, {})
     restart = None
     info: dict = {"kind": "none"}
@@ -175,15 +180,16 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
 
         restart, info = detector_restarts(network, structure, camera, device)
     T0 = read_init_pose(init_pose, camera) if init_pose is not None else None
+    navigation = read_frame_poses(nav, "navigation poses") if nav is not None else None
     path = track_video(cfg, source, structure, camera, out, init_pose=T0, restart_source=restart, gt_scene=gt_scene,
                        max_frames=max_frames, overwrite=overwrite, progress=track, lens=lens, topic=topic,
-                       record={"detector": info, "cad": str(cad)})
+                       record={"detector": info, "cad": str(cad)}, nav=navigation)
     console.print(f"[green]poses written to {path}[/]")
     if gt_poses is not None:
         # lazy: pulls cv2; keeps `cadalign --help` light
-        from cadalign.infer.track.run import read_truth_poses, truth_report
+        from cadalign.infer.track.run import read_frame_poses, truth_report
 
-        summary = truth_report(out, structure, read_truth_poses(gt_poses))
+        summary = truth_report(out, structure, read_frame_poses(gt_poses))
         for name, v in summary["parts"].items():
             if v["median_mm"] is not None:
                 console.print(f"{name}: median {v['median_mm']:.1f} mm / {v['median_deg']:.2f} deg against "

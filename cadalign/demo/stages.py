@@ -15,18 +15,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from cadalign.config import bounded, resolve
 from cadalign.emulate import run as emulate_run
 from cadalign.fuse.config import PRESETS, FuseConfig
 from cadalign.fuse.run import run
-from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.infer import detect as det
 from cadalign.infer.run import calibration_from_scene
 from cadalign.infer.track.run import TrackRunConfig, track_video
 from cadalign.infer.track.start import detector_restarts
 from cadalign.io import read_image, read_json
+from cadalign.sim.navigation import first_fix
 from cadalign.sim.structure import load_structure
 from cadalign.types import Camera, Rigid3
 
@@ -175,14 +173,9 @@ def infer_stage(ctx: DemoContext) -> dict:
 def simulated_navigation_pose(sim_dir: Path, frame: str, seed: int = 0, turn_deg: float = 10.0,
                               shift_m: float = 0.5) -> Rigid3:
     """``T_cam_from_world`` of a frame as a navigation fix gives it: the simulator's true pose turned by exactly
-    ``turn_deg`` about a random axis and moved by exactly ``shift_m`` (seeded)."""
+    ``turn_deg`` about a random axis and moved by exactly ``shift_m`` (seeded; :mod:`cadalign.sim.navigation`)."""
 
-    e = read_json(Path(sim_dir) / "gt" / "sim" / "000000" / "cameras.json")["frames"][frame]
-    T = Rigid3(np.reshape(e["R_cam_from_world"], (3, 3)), np.asarray(e["t_cam_from_world_m"]))
-    rng = np.random.default_rng(seed)
-    ax, d = rng.normal(size=3), rng.normal(size=3)
-    turn = Rigid3(axis_angle_to_matrix(np.radians(turn_deg) * ax / np.linalg.norm(ax)), shift_m * d / np.linalg.norm(d))
-    return turn @ T
+    return first_fix(sim_dir, frame, seed, turn_deg, shift_m)
 
 
 def fuse_stage(ctx: DemoContext) -> dict:

@@ -11,6 +11,8 @@ Output layout (``OUT``)::
                                  normals/ (npz, camera frame), cameras.json, objects.json
     OUT/calibration.json         the camera's intrinsics, as an underwater calibration of a real ROV camera
                                  would give them (``--calib`` of sfm / build-dataset)
+    OUT/navigation.json          a rough camera pose per frame, as an ROV's navigation gives it (``infer --nav``;
+                                 :mod:`cadalign.sim.navigation`)
     OUT/contact_sheet.png        clean render vs each effect alone vs all effects
     OUT/sim_report.json          frames, seconds per frame per step and per effect
     OUT/cadalign_stage.json      the resolved config and version
@@ -36,6 +38,7 @@ from cadalign.raycast.bop_writer import frame_done, write_bop_frame
 from cadalign.sim.contact_sheet import write_contact_sheet
 from cadalign.sim.effects_chain import build_chain, run_chain
 from cadalign.sim.gt_files import posed_objects, write_models, write_scene_files
+from cadalign.sim.navigation import write_navigation
 from cadalign.sim.render import FrameGT, GroundTruthCaster, RGBRenderer
 from cadalign.sim.scene import SimScene, build_scene, camera_from_spec
 from cadalign.sim.spec import SceneSpec, load_scene
@@ -86,11 +89,14 @@ def simulate(
     report_path = out_dir / "sim_report.json"
     if reused and report_path.is_file():
         log.info("simulation in %s is complete; reusing it", out_dir)
+        if not (out_dir / "navigation.json").is_file():  # a simulation made before the file was written
+            write_navigation(out_dir, spec.seed)
         return out_dir
     scene = build_scene(spec, scene_path)
     write_models(scene, out_dir / "gt" / "models")
     timings = _render_frames(scene, out_dir, progress)
     write_scene_files(scene, out_dir / SCENE_SUBDIR)
+    write_navigation(out_dir, spec.seed)
     if video:
         write_video(
             sorted((out_dir / "frames").glob("*.png")), out_dir / "video.mp4", fps=max(spec.trajectory.fps, 1)

@@ -3,6 +3,8 @@
 # calibration.json, the start from --init-pose (the first frame's true pose turned 10 deg about a random axis and
 # moved 0.5 m, seed 1: a navigation fix), --gt for scoring only. Run from the repository root:
 #   docs/tuning/tracker_runs.sh OUT
+#   START=nav docs/tuning/tracker_runs.sh OUT   # instead of --init-pose: --nav (a rough pose per frame, 10 deg /
+#                                                # 0.5 m off, as `cadalign sim` writes SIM/navigation.json; s52)
 # Simulations are made when missing (`cadalign sim`, ~4 min each on 2 cores); visp_rbt is read from
 # ../shared/data (set CADALIGN_DATA_DIR elsewhere).
 set -euo pipefail
@@ -17,7 +19,13 @@ run_sim() {  # scene name, simulation folder, scene file the tracker gets
 cams = json.loads(Path(sys.argv[1], 'gt/sim/000000/cameras.json').read_text())['frames']
 json.dump({'T_cam_from_world': nav(Path(sys.argv[1]), sorted(cams)[0], seed=1).matrix().tolist()}, open(sys.argv[2], 'w'))" \
     "$sim" "$OUT/init_$scene.json"
-  $CA infer "$sim/frames" --cad "$cad" --calib "$sim/calibration.json" --init-pose "$OUT/init_$scene.json" \
+  local start=(--init-pose "$OUT/init_$scene.json")
+  if [ "${START:-}" = nav ]; then  # seed 1 as the init pose's (frame 0's is the same pose)
+    $PY -c "import sys; from cadalign.sim.navigation import write_navigation as w; w(sys.argv[1], 1, sys.argv[2])" \
+      "$sim" "$OUT/nav_$scene.json"
+    start=(--nav "$OUT/nav_$scene.json")
+  fi
+  $CA infer "$sim/frames" --cad "$cad" --calib "$sim/calibration.json" "${start[@]}" \
     --gt "$sim" --out "$OUT/$scene" --overwrite
 }
 for s in default two_pass turbid_lawnmower cluttered_hover; do

@@ -1,5 +1,5 @@
 """The structure tracker (issue 43): edge Jacobian, recovery of a known offset, lost / restart, missing parts,
-image borders, and the ``infer`` command on RGB frames with ``--init-pose``."""
+image borders, navigation poses, and the ``infer`` command on RGB frames with ``--init-pose`` or ``--nav``."""
 
 from __future__ import annotations
 
@@ -15,8 +15,9 @@ from cadalign.errors import InputError
 from cadalign.geometry.camera import project
 from cadalign.geometry.rotations import axis_angle_to_matrix, geodesic_angle
 from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, EdgeTracker, as_gray
-from cadalign.infer.track.run import TrackRunConfig, read_init_pose, track_video
+from cadalign.infer.track.run import TrackRunConfig, read_frame_poses, read_init_pose, track_video
 from cadalign.infer.track.tracker import StructureTracker, TrackerConfig
+from cadalign.sim.navigation import rough_pose
 from cadalign.types import Camera, Rigid3
 
 sys.path.insert(0, str(Path(__file__).parents[1]))
@@ -310,6 +311,35 @@ class TestTrackBoxes:
         assert tr._best_of(img, [("turn_5", near)], own=True)[0][1] == "turn_5"
         assert tr._best_of(img, [("nav", far)], own=False)[0][1] == "nav"
 
+    def test_a_navigation_pose_bounds_the_track_and_restarts_it(self, boxes) -> None:
+        """With a rough navigation pose per frame (10 deg / 0.5 m off, as ``sim`` writes them): a frame whose
+        navigation pose is far from the image's pose reports nothing, however well the image fits; a cut to
+        the other side (90 deg round) is regained on the cut frame from its navigation pose alone."""
+        from dataclasses import replace
+
+        meshes, cam, render = boxes
+        # no turned views of the tracker's own: what regains the cut is the navigation pose
+        tr = StructureTracker(meshes, cam, replace(BOXES_TRACKER, orbit_step_deg=0.0, turn_step_deg=0.0))
+        rng = np.random.default_rng(4)
+        rough = [rough_pose(_view(k).inverse(), rng) for k in range(20)]
+        first = tr.step(render(_view(0)), nav=rough[0])
+        assert first.state == "ok" and first.source == "nav"
+        assert _reproj_px(meshes, cam, first.T_cam_from_world, _view(0).inverse()) < 0.5
+        assert tr.step(render(_view(1)), nav=rough[1]).state == "ok"
+        # the navigation says the camera is 40 deg further round: the image's (true) pose is refused
+        far = Rigid3(axis_angle_to_matrix(np.radians([0.0, 0.0, 40.0])), np.zeros(3)) @ _view(2).inverse()
+        refused = tr.step(render(_view(2)), nav=far)
+        assert refused.state == "lost" and refused.T_cam_from_world is None
+        cut = tr.step(render(_view(17)), nav=rough[17])
+        assert cut.state == "ok" and cut.source == "nav", cut.source
+        assert _reproj_px(meshes, cam, cut.T_cam_from_world, _view(17).inverse()) < 0.5
+        assert tr.near_nav(cut.T_cam_from_world.inverse()) and not tr.near_nav(far.inverse())
+        # without the navigation pose the cut frame is not regained (the cut is beyond the start search)
+        blind = StructureTracker(meshes, cam, replace(BOXES_TRACKER, orbit_step_deg=0.0, turn_step_deg=0.0))
+        assert blind.step(render(_view(0)), [("init", rough[0])]).state == "ok"
+        assert blind.step(render(_view(1))).state == "ok"
+        assert blind.step(render(_view(17))).state == "lost"
+
     def test_steady_heading_keeps_the_step_and_drops_the_turn(self) -> None:
         """The predictions after a failed constant-velocity fit: the last step in the camera's frame and in the
         world's, both with the last orientation, and the last pose."""
@@ -488,6 +518,49 @@ def test_infer_tracks_rgb_frames_from_an_init_pose(tmp_path: Path, track_sim: Pa
     assert ev["detection"]["tp"] > 0  # accuracy: the boxes tests and the scene benchmarks (a 320x240 orbit of
     # small parts over a flat seabed is near the tracker's limits: see issue 43's note)
     assert (out / "overlay.mp4").is_file() and json.loads((out / "timings.json").read_text())["frames"] == len(names)
+
+
+def test_simulation_writes_rough_navigation_poses(track_sim: Path) -> None:
+    """``sim`` writes navigation.json: each frame's true pose turned exactly 10 deg and its camera moved
+    exactly 0.5 m; frame 0's is the first-frame fix of the same seed."""
+    from cadalign.sim.navigation import first_fix, true_poses
+
+    truth = true_poses(track_sim)
+    nav = read_frame_poses(track_sim / "navigation.json", "navigation poses")
+    assert sorted(nav) == sorted(truth) and len(nav) == 6
+    for name, T in nav.items():
+        E = T @ truth[name].inverse()
+        assert np.degrees(geodesic_angle(E.R, np.eye(3))) == pytest.approx(10.0, abs=1e-6)
+        assert np.linalg.norm(T.inverse().t - truth[name].inverse().t) == pytest.approx(0.5, abs=1e-6)
+    seed = 3  # the scene's
+    assert np.allclose(nav[sorted(nav)[0]].matrix(), first_fix(track_sim, sorted(nav)[0], seed).matrix())
+    assert len({round(float(np.linalg.norm(T.t - truth[n].t)), 6) for n, T in nav.items()}) > 1  # drawn per frame
+
+
+def test_infer_tracks_from_navigation_poses_alone(tmp_path: Path, track_sim: Path) -> None:
+    """``infer --nav`` (no --init-pose, no network) starts from the first frame's navigation pose and tracks;
+    a navigation file without this video's frame names is refused with the names it should have."""
+    from typer.testing import CliRunner
+
+    from cadalign.cli.main import app
+
+    _, names, cams = _frames(track_sim)
+    out = tmp_path / "out"
+    args = ["infer", str(track_sim / "frames"), "--cad", str(track_sim.parent / "structure.toml"),
+            "--calib", str(track_sim / "calibration.json"), "--out", str(out)]
+    # the true poses: this 320x240 scene of small parts is not started even 2 deg / 10 cm off (as
+    # test_infer_tracks_rgb_frames_from_an_init_pose, this checks the command; rough poses: the boxes' test)
+    nav = tmp_path / "navigation.json"
+    nav.write_text(json.dumps({"frames": {n: _T_cw(cams[n]).matrix().tolist() for n in names}}))
+    res = CliRunner().invoke(app, [*args, "--nav", str(nav)])
+    assert res.exit_code == 0, res.output
+    steps = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
+    assert len(steps) == len(names) and steps[0]["state"] == "ok" and steps[0]["source"] == "nav"
+    assert all((s["T_cam_from_world"] is None) == (s["state"] == "lost") for s in steps)
+    wrong = tmp_path / "nav.json"
+    wrong.write_text(json.dumps({"frames": {"frame_0001.jpg": np.eye(4).tolist()}}))
+    res = CliRunner().invoke(app, [*args, "--nav", str(wrong), "--overwrite"])
+    assert res.exit_code != 0 and "frame_0001.jpg" in res.output and names[0] in res.output
 
 
 def test_detector_detections_propose_structure_poses() -> None:

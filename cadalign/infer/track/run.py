@@ -16,6 +16,7 @@ Outputs in ``out_dir`` (the layout of :mod:`cadalign.infer.run`, so ``eval`` and
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import logging
 import time
@@ -197,21 +198,22 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                 init_pose: Rigid3 | None = None, restart_source: Callable[[np.ndarray, str], list] | None = None,
                 gt_scene: Path | None = None, max_frames: int | None = None, overwrite: bool = False,
                 progress: Progress | None = None, record: dict | None = None,
-                lens: CameraCalibration | None = None, topic: str | None = None) -> Path:
+                lens: CameraCalibration | None = None, topic: str | None = None,
+                nav: dict[str, Rigid3] | None = None) -> Path:
     """Track the structure through a video or frame folder; returns ``out_dir / "poses.jsonl"`` (module doc).
 
     ``init_pose``: ``T_cam_from_world`` of the first frame (rough). ``restart_source(image, name)``: restart
     hypotheses (name, ``T_cam_from_world``) for a frame without a track (e.g. from a detector); at least one of
     the two is needed. ``lens``: the calibration read from the user's file; a lens distortion in it is undone
-    on every frame before tracking (``camera`` is then its pinhole part)."""
-    if init_pose is None and restart_source is None:
-        raise InputError("the tracker needs a start: pass --init-pose FILE (a rough first-frame pose) or --model RUN "
-                         "(a trained detector)")
+    on every frame before tracking (``camera`` is then its pinhole part). ``nav``: rough ``T_cam_from_world`` by
+    frame name: each bounds its frame's pose and restarts a lost track (``StructureTracker.step``)."""
+    if init_pose is None and restart_source is None and not nav:
+        raise InputError("the tracker needs a start: pass --init-pose FILE (a rough first-frame pose), --nav FILE "
+                         "(rough poses per frame) or --model RUN (a trained detector)")
     out_dir = Path(out_dir)
     undistort = Undistorter.of(lens) if lens is not None else None
     rec = {"track": cfg, "source": str(source), "topic": topic, "max_frames": max_frames, "camera": camera.K.tolist(),
-           "calibration": None if lens is None else lens.record(),
-           "init_pose": None if init_pose is None else init_pose.matrix().tolist(), **(record or {})}
+           **_start_record(lens, init_pose, nav), **(record or {})}
     poses_path = out_dir / "poses.jsonl"
     if prepare_stage_dir(out_dir, "infer", rec, overwrite=overwrite) and (out_dir / "timings.json").is_file():
         log.info("infer: %s is complete for this config; reusing it", poses_path)
@@ -246,7 +248,7 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                     times["detector"].append(time.perf_counter() - t0)
                 rgb = image[..., :3] if image.ndim == 3 else None
                 gray = as_gray(image, cfg.tracker.edges.colour)
-                step = tracker.step(gray, restarts, rgb)
+                step = tracker.step(gray, restarts, rgb, _nav_pose(nav, vf.name, not names, source))
                 (times["restart"] if step.source not in ("track",) else times["track"]).append(step.seconds)
                 states[step.state] += 1
                 part_steps = parts.step(gray, rgb, step.T_cam_from_world, part_hyps)
@@ -272,6 +274,30 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
     if gt_scene is not None:
         evaluate_run(records, names, gt_scene, out_dir)
     return poses_path
+
+
+def _start_record(lens: CameraCalibration | None, init_pose: Rigid3 | None, nav: dict[str, Rigid3] | None) -> dict:
+    """What a run's record keeps of its calibration and its start (another start: another run)."""
+    return {"calibration": None if lens is None else lens.record(),
+            "init_pose": None if init_pose is None else init_pose.matrix().tolist(),
+            "nav": None if not nav else _poses_digest(nav)}
+
+
+def _nav_pose(nav: dict[str, Rigid3] | None, name: str, first: bool, source: Path) -> Rigid3 | None:
+    """A frame's navigation pose (None without); a first frame without one means the names do not match."""
+    pose = nav.get(name) if nav else None
+    if nav and first and pose is None:
+        raise InputError(f"the navigation poses have no frame named {name!r} (the first frame of {source}); key "
+                         f"them by the frame names (e.g. {sorted(nav)[:2]})")
+    return pose
+
+
+def _poses_digest(poses: dict[str, Rigid3]) -> str:
+    """A short fingerprint of per-frame poses (the run's record: other poses, another run)."""
+    h = hashlib.sha1()
+    for k in sorted(poses):
+        h.update(k.encode() + np.round(poses[k].matrix(), 9).tobytes())
+    return f"{len(poses)} frames, sha1 {h.hexdigest()[:12]}"
 
 
 def _step_json(step: TrackStep, name: str, missing: list[str], structure: Structure) -> dict:
@@ -305,15 +331,20 @@ def _timings(times: dict[str, list[float]], n: int, states: dict[str, int]) -> d
 
 
 
-def read_truth_poses(path: Path) -> dict[str, Rigid3]:
-    """Reference camera poses of a real capture: JSON ``{"frames": {frame name: T_cam_from_world 4x4}}``
-    (metres, the scene file's world frame), e.g. from a fiducial board."""
+def read_frame_poses(path: Path, what: str = "reference poses") -> dict[str, Rigid3]:
+    """Camera poses by frame name from JSON ``{"frames": {frame name: T_cam_from_world 4x4}}`` (metres, the
+    scene file's world frame): a real capture's reference poses (e.g. from a fiducial board), or rough
+    navigation poses per frame (``infer --nav``)."""
     data = read_json(path)
     try:
-        return {str(k): Rigid3.from_matrix(np.asarray(v, dtype=np.float64)) for k, v in data["frames"].items()}
+        out = {str(k): Rigid3.from_matrix(np.asarray(v, dtype=np.float64)) for k, v in data["frames"].items()}
     except (KeyError, ValueError, TypeError, AttributeError) as exc:
-        raise InputError(f"{path}: not reference poses ({exc}); write {{\"frames\": {{\"<frame name>\": 4x4 "
+        raise InputError(f"{path}: not {what} ({exc}); write {{\"frames\": {{\"<frame name>\": 4x4 "
                          "T_cam_from_world, metres}}}}") from exc
+    if not out:
+        raise InputError(f"{path}: no frames in it; write {{\"frames\": {{\"<frame name>\": 4x4 T_cam_from_world, "
+                         "metres}}}}")
+    return out
 
 
 def truth_report(out_dir: Path, structure: Structure, truth: dict[str, Rigid3]) -> dict:

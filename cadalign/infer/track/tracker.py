@@ -107,6 +107,13 @@ class TrackerConfig:
     poses)."""
     max_residual_px: float = 0.7
     """Lost when the supported samples' median offset exceeds this, pixels (a pose near but off the edges)."""
+    nav_max_deg: float = 25.0
+    """With a navigation pose per frame (``infer --nav``): a pose whose camera is turned further than this from
+    the frame's navigation pose is refused, degrees. Twice a rough fix's 10 deg plus the track's own error, and far
+    below the 90 deg of a lattice frame's symmetric fits (docs/tuning/tracker.md#navigation-per-frame)."""
+    nav_max_m: float = 2.5
+    """... or whose camera centre is further than this from the navigation pose's, metres (a rough fix is good
+    to ~0.5 m; the symmetric fits of the turbid survey were 3.5-9 m off)."""
 
 
 @dataclass(frozen=True)
@@ -146,6 +153,7 @@ class StructureTracker:
         self._velocity: Rigid3 | None = None  # the last frame-to-frame motion, in the camera frame
         self._step: np.ndarray | None = None  # the camera centre's last step, in the camera frame before it
         self._lost_frames = 0
+        self._nav: Rigid3 | None = None  # T_world_from_cam of the current frame's navigation pose, when given
         lo = np.min([m.vertices_m.min(axis=0) for m in meshes], axis=0)
         hi = np.max([m.vertices_m.max(axis=0) for m in meshes], axis=0)
         self._centre = (lo + hi) / 2  # the structure's centre, world frame
@@ -160,7 +168,7 @@ class StructureTracker:
         ``min_start_support``, a tracked frame also ``relative_support`` of the track's recent support."""
         c = self.cfg
         floor = c.min_start_support if start else max(c.min_support, c.relative_support * self._typical_support())
-        if not (fit.samples >= c.min_samples and fit.support >= floor):
+        if not (fit.samples >= c.min_samples and fit.support >= floor) or not self.near_nav(fit.T_world_from_cam):
             return False
         if np.isfinite(fit.region_support):  # the colours are learned: they must agree
             region = c.min_region_support
@@ -168,6 +176,14 @@ class StructureTracker:
                 region = max(region, c.relative_region * float(np.median(self._regions)))
             return fit.region_support >= region and fit.residual_px <= c.max_residual_region_px
         return fit.residual_px <= c.max_residual_px
+
+    def near_nav(self, T_world_from_cam: Rigid3) -> bool:
+        """Whether a camera pose agrees with the current frame's navigation pose (``nav_max_deg``,
+        ``nav_max_m``); True when the frame has none."""
+        if self._nav is None:
+            return True
+        return bool(geodesic_angle(T_world_from_cam.R, self._nav.R) <= np.radians(self.cfg.nav_max_deg)
+                    and np.linalg.norm(T_world_from_cam.t - self._nav.t) <= self.cfg.nav_max_m)
 
     def rank(self, fit: EdgeFit) -> float:
         """How restart candidates are ranked: the mean of the edge support over all samples and of the parts'
@@ -258,11 +274,17 @@ class StructureTracker:
         return [(name, T.inverse()) for _, name, T in scored[:self.cfg.orbit_fits]]
 
     def step(self, gray: np.ndarray, restarts: Sequence[tuple[str, Rigid3]] = (),
-             rgb: np.ndarray | None = None) -> TrackStep:
+             rgb: np.ndarray | None = None, nav: Rigid3 | None = None) -> TrackStep:
         """Track one frame (``gray``: (H, W) float32 0-255). ``restarts``: (name, ``T_cam_from_world``)
         hypotheses, tried in order when there is no track or the prediction fails. ``rgb``: the frame in colour
-        (H, W, 3), for the region term (``EdgeTrackConfig.region``); None: edges only."""
+        (H, W, 3), for the region term (``EdgeTrackConfig.region``); None: edges only. ``nav``: the frame's
+        rough navigation pose (``T_cam_from_world``): no pose further from it than ``nav_max_deg`` /
+        ``nav_max_m`` is reported, and while lost it is a restart hypothesis besides ``restarts``, followed by
+        the tracker's own (which the navigation pose then bounds)."""
         t0 = time.perf_counter()
+        self._nav = None if nav is None else nav.inverse()
+        if nav is not None:
+            restarts = [*restarts, ("nav", nav)]
         self.edges.colour_frame = rgb if self.cfg.edges.region.enabled else None
         k = self._frames
         self._frames += 1
@@ -287,11 +309,14 @@ class StructureTracker:
                 fits = [f for f in fits if self.good(f)]
                 if fits:
                     return self._accept(gray, k, max(fits, key=self.rank), "track", t0, tried)
-        own = not restarts and self._last is not None
-        if own:  # lost with nothing to restart from: the tracker's own hypotheses
-            restarts = self._lost_hypotheses(gray)
-        best, n = self._best_of(gray, restarts, own)
+        best, n = self._best_of(gray, restarts)
         tried += n
+        # the tracker's own hypotheses: when lost with nothing else to restart from, or when a navigation pose
+        # bounds where they may go
+        own = self._last is not None and (not restarts or nav is not None)
+        if best is None and own:
+            best, n = self._best_of(gray, self._lost_hypotheses(gray), True)
+            tried += n
         if best is None and own:  # turned on the spot while out of view
             best, n = self._best_of(gray, self._turn_hypotheses(gray), True)
             tried += n
