@@ -330,6 +330,8 @@ class TestTrackBoxes:
         far = Rigid3(axis_angle_to_matrix(np.radians([0.0, 0.0, 40.0])), np.zeros(3)) @ _view(2).inverse()
         refused = tr.step(render(_view(2)), nav=far)
         assert refused.state == "lost" and refused.T_cam_from_world is None
+        assert refused.nav_offset is not None and abs(refused.nav_offset[0] - 40.0) < 1.0  # what it was refused for
+        assert first.nav_offset is not None and 9.0 < first.nav_offset[0] < 11.0  # the rough pose's 10 deg
         cut = tr.step(render(_view(17)), nav=rough[17])
         assert cut.state == "ok" and cut.source == "nav", cut.source
         assert _reproj_px(meshes, cam, cut.T_cam_from_world, _view(17).inverse()) < 0.5
@@ -518,6 +520,23 @@ def test_infer_tracks_rgb_frames_from_an_init_pose(tmp_path: Path, track_sim: Pa
     assert ev["detection"]["tp"] > 0  # accuracy: the boxes tests and the scene benchmarks (a 320x240 orbit of
     # small parts over a flat seabed is near the tracker's limits: see issue 43's note)
     assert (out / "overlay.mp4").is_file() and json.loads((out / "timings.json").read_text())["frames"] == len(names)
+
+
+def test_frames_lost_to_the_navigation_bound_are_reported(tmp_path: Path, caplog) -> None:
+    """A run whose frames were lost only for being off the navigation pose says so, with how far and the fix."""
+    from cadalign.infer.track.run import _log_end
+
+    rows = [{"frame": 0, "state": "ok", "nav_offset_deg_m": [9.0, 0.4]},
+            {"frame": 1, "state": "lost", "nav_offset_deg_m": [88.0, 4.0]},
+            {"frame": 2, "state": "lost"}, {"frame": 3, "state": "lost", "nav_offset_deg_m": [92.0, 6.0]}]
+    path = tmp_path / "track.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    with caplog.at_level("WARNING"):
+        assert _log_end(path, TrackerConfig(), 3) == [1, 3]
+    assert "2 of 4 frames" in caplog.text and "90.0 deg / 5.00 m" in caplog.text and "nav_max_m" in caplog.text
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows[:1] + rows[2:3]))
+    caplog.clear()
+    assert _log_end(path, TrackerConfig(), 3) == [] and "navigation" not in caplog.text
 
 
 def test_simulation_writes_rough_navigation_poses(track_sim: Path) -> None:

@@ -269,11 +269,28 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
             writer.close()
     write_json(out_dir / "frames.json", names)
     write_json(out_dir / "timings.json", _timings(times, len(names), states))
-    log.info("track: %d frames, %d tracked, %d lost, %d poses -> %s", len(names), states["ok"], states["lost"],
-             len(records), poses_path)
+    _log_end(out_dir / "track.jsonl", cfg.tracker, len(records))
     if gt_scene is not None:
         evaluate_run(records, names, gt_scene, out_dir)
     return poses_path
+
+
+def _log_end(track_path: Path, cfg: TrackerConfig, n_records: int) -> list[int]:
+    """Log what was tracked, and warn when frames were lost only because their fit was too far from the
+    navigation pose (the navigation may be in another frame, or rougher than the bounds); returns those frames."""
+    rows = [json.loads(line) for line in track_path.read_text(encoding="utf-8").splitlines()]
+    ok = sum(r["state"] == "ok" for r in rows)
+    log.info("track: %d frames, %d tracked, %d lost, %d poses -> %s", len(rows), ok, len(rows) - ok, n_records,
+             track_path.parent / "poses.jsonl")
+    refused = [r for r in rows if r["state"] == "lost" and r.get("nav_offset_deg_m")]
+    if refused:
+        deg, m = np.median([r["nav_offset_deg_m"] for r in refused], axis=0)
+        log.warning("%d of %d frames were lost only because their fit was off the navigation pose (median %.1f deg /"
+                    " %.2f m; allowed %.0f deg / %.1f m): if the navigation is rougher than that, or its poses are not"
+                    " T_cam_from_world in the scene file's frame, fix them or raise tracker.nav_max_deg / nav_max_m in"
+                    " a --config (frames in %s: nav_offset_deg_m)", len(refused), len(rows), deg, m,
+                    cfg.nav_max_deg, cfg.nav_max_m, track_path)
+    return [r["frame"] for r in refused]
 
 
 def _start_record(lens: CameraCalibration | None, init_pose: Rigid3 | None, nav: dict[str, Rigid3] | None) -> dict:
@@ -314,7 +331,8 @@ def _step_json(step: TrackStep, name: str, missing: list[str], structure: Struct
             else round(float(f.region_support), 4),
             "part_region": {} if f is None else {structure.objects[k - 1].name: round(v, 4)
                                                   for k, v in sorted(f.instance_region.items()) if k > 0},
-            "restarts_tried": int(step.restarts_tried), "ms": round(1e3 * step.seconds, 2)}
+            "restarts_tried": int(step.restarts_tried), "ms": round(1e3 * step.seconds, 2),
+            **({} if step.nav_offset is None else {"nav_offset_deg_m": [round(v, 3) for v in step.nav_offset]})}
 
 
 def _timings(times: dict[str, list[float]], n: int, states: dict[str, int]) -> dict:

@@ -130,6 +130,9 @@ class TrackStep:
     """What the pose came from: ``track`` (prediction), or the restart hypothesis' name."""
     seconds: float
     restarts_tried: int = 0
+    nav_offset: tuple[float, float] | None = None
+    """How far the reported camera pose is from the frame's navigation pose (degrees, metres); on a lost frame,
+    how far the best fit that passed every test but that one was (None: no navigation pose, or no such fit)."""
 
 
 class StructureTracker:
@@ -154,6 +157,7 @@ class StructureTracker:
         self._step: np.ndarray | None = None  # the camera centre's last step, in the camera frame before it
         self._lost_frames = 0
         self._nav: Rigid3 | None = None  # T_world_from_cam of the current frame's navigation pose, when given
+        self._nav_refused: tuple[float, tuple[float, float] | None] | None = None  # this frame's best such fit
         lo = np.min([m.vertices_m.min(axis=0) for m in meshes], axis=0)
         hi = np.max([m.vertices_m.max(axis=0) for m in meshes], axis=0)
         self._centre = (lo + hi) / 2  # the structure's centre, world frame
@@ -168,22 +172,34 @@ class StructureTracker:
         ``min_start_support``, a tracked frame also ``relative_support`` of the track's recent support."""
         c = self.cfg
         floor = c.min_start_support if start else max(c.min_support, c.relative_support * self._typical_support())
-        if not (fit.samples >= c.min_samples and fit.support >= floor) or not self.near_nav(fit.T_world_from_cam):
+        if not (fit.samples >= c.min_samples and fit.support >= floor):
             return False
         if np.isfinite(fit.region_support):  # the colours are learned: they must agree
             region = c.min_region_support
             if self._regions:
                 region = max(region, c.relative_region * float(np.median(self._regions)))
-            return fit.region_support >= region and fit.residual_px <= c.max_residual_region_px
-        return fit.residual_px <= c.max_residual_px
+            passes = fit.region_support >= region and fit.residual_px <= c.max_residual_region_px
+        else:
+            passes = fit.residual_px <= c.max_residual_px
+        if passes and not self.near_nav(fit.T_world_from_cam):
+            off = self.nav_offset(fit.T_world_from_cam)
+            if self._nav_refused is None or fit.support > self._nav_refused[0]:
+                self._nav_refused = (fit.support, off)
+            return False
+        return passes
+
+    def nav_offset(self, T_world_from_cam: Rigid3) -> tuple[float, float] | None:
+        """(degrees, metres) between a camera pose and the current frame's navigation pose; None without one."""
+        if self._nav is None:
+            return None
+        return (float(np.degrees(geodesic_angle(T_world_from_cam.R, self._nav.R))),
+                float(np.linalg.norm(T_world_from_cam.t - self._nav.t)))
 
     def near_nav(self, T_world_from_cam: Rigid3) -> bool:
         """Whether a camera pose agrees with the current frame's navigation pose (``nav_max_deg``,
         ``nav_max_m``); True when the frame has none."""
-        if self._nav is None:
-            return True
-        return bool(geodesic_angle(T_world_from_cam.R, self._nav.R) <= np.radians(self.cfg.nav_max_deg)
-                    and np.linalg.norm(T_world_from_cam.t - self._nav.t) <= self.cfg.nav_max_m)
+        off = self.nav_offset(T_world_from_cam)
+        return off is None or (off[0] <= self.cfg.nav_max_deg and off[1] <= self.cfg.nav_max_m)
 
     def rank(self, fit: EdgeFit) -> float:
         """How restart candidates are ranked: the mean of the edge support over all samples and of the parts'
@@ -283,6 +299,7 @@ class StructureTracker:
         the tracker's own (which the navigation pose then bounds)."""
         t0 = time.perf_counter()
         self._nav = None if nav is None else nav.inverse()
+        self._nav_refused = None
         if nav is not None:
             restarts = [*restarts, ("nav", nav)]
         self.edges.colour_frame = rgb if self.cfg.edges.region.enabled else None
@@ -331,7 +348,8 @@ class StructureTracker:
         self._prev = None  # the last good pose stays the next frame's prediction
         self._lost_frames += 1
         self.lost = True
-        return TrackStep(k, "lost", None, None, "", time.perf_counter() - t0, tried)
+        return TrackStep(k, "lost", None, None, "", time.perf_counter() - t0, tried,
+                         None if self._nav_refused is None else self._nav_refused[1])
 
     def _best_of(self, gray: np.ndarray, hypotheses: Sequence[tuple[str, Rigid3]], own: bool = False,
                   ) -> tuple[tuple[EdgeFit, str] | None, int]:
@@ -398,4 +416,5 @@ class StructureTracker:
             self.edges.region.learn(rgb, fit.uv, fit.normal, fit.sample_instance, fit.instance)
             if not np.isfinite(fit.region_support):  # the first frame: read with the colours it just taught
                 fit = self.edges.with_region(fit)  # (for the parts' check only: not in the track's history)
-        return TrackStep(k, "ok", fit.T_world_from_cam.inverse(), fit, source, time.perf_counter() - t0, tried)
+        return TrackStep(k, "ok", fit.T_world_from_cam.inverse(), fit, source, time.perf_counter() - t0, tried,
+                         self.nav_offset(fit.T_world_from_cam))
