@@ -108,9 +108,9 @@ class TrackerConfig:
     max_residual_px: float = 0.7
     """Lost when the supported samples' median offset exceeds this, pixels (a pose near but off the edges)."""
     nav_max_deg: float = 25.0
-    """With a navigation pose per frame (``infer --nav``): a pose whose camera is turned further than this from
-    the frame's navigation pose is refused, degrees. Twice a rough fix's 10 deg plus the track's own error, and far
-    below the 90 deg of a lattice frame's symmetric fits (docs/tuning/tracker.md#navigation-per-frame)."""
+    """With a navigation pose per frame (``infer --nav``): a pose turned further than this from the frame's
+    navigation pose is refused, degrees: 2.5 times a rough fix's 10 deg (room for the track's own error), far below
+    the 90 deg of a lattice frame's symmetric fits (docs/tuning/tracker.md#navigation-per-frame)."""
     nav_max_m: float = 2.5
     """... or whose camera centre is further than this from the navigation pose's, metres (a rough fix is good
     to ~0.5 m; the symmetric fits of the turbid survey were 3.5-9 m off)."""
