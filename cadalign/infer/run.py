@@ -403,6 +403,7 @@ def evaluate_run(records: list[PoseRecord], names: list[str], gt_scene: Path, ou
         rep = evaluate_scene(preds, gt_scene, models, cmap.names, cmap.class_of_obj, cfg, im_ids)
         if which != "fused":
             rep.pop("matches")
+            rep.pop("misses")
         rep["config"]["undeclared_symmetries"] = {str(k): v for k, v in undeclared.items()}
         reports[which] = rep
         md.append(f"## {which} poses\n\n" + table_markdown(rep))

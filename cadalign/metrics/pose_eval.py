@@ -186,6 +186,7 @@ def evaluate_scene(preds: list[PosePrediction], scene_dir: Path, models: dict[in
     errors = _ErrorTally(keep)
     rows: list[dict] = []
     targets: list[dict] = []
+    misses: list[dict] = []  # the counted targets nothing matched
     by_frame: dict[int, list[PosePrediction]] = {}
     for p in preds:
         if p.label in keep:
@@ -215,10 +216,12 @@ def evaluate_scene(preds: list[PosePrediction], scene_dir: Path, models: dict[in
                     rows.append(row)
             elif care:
                 counts[g.label][2] += 1
+                misses.append({"im_id": im_id, "gt_idx": g.gt_idx, "obj_id": g.obj_id, "label": g.label,
+                               "visib_fract": float(g.visib_fract), "box_xyxy": [float(v) for v in g.box_xyxy]})
             if care:
                 targets.append({"label": g.label, "obj_id": g.obj_id, "row": row,
                                 "diameter_m": models[g.obj_id].diameter_m, "width": frame.camera.width})
-    return summarise(rows, targets, counts, class_names, cfg, errors)
+    return {**summarise(rows, targets, counts, class_names, cfg, errors), "misses": misses}
 
 
 def counted(g: GtInstance, cfg: PoseEvalConfig) -> bool:

@@ -127,6 +127,7 @@ def evaluate(model: MaskRCNNPose, scene_dir: Path, ids: list[int], models_dir: P
     report = evaluate_scene(preds, scene_dir, load_bop_models(models_dir), dataset.classes.names,
                             dataset.classes.class_of_obj, cfg, list(ids))
     report.pop("matches")
+    report.pop("misses")
     stages = stage_recall(model, dataset, preds, score_thresh, cfg)
     return {**report, "summary": summary(report), "stage_recall": stages, "frames": len(ids), "ids": list(ids),
             "seconds_per_frame": seconds, "score_thresh": score_thresh}

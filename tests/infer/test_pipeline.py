@@ -110,7 +110,7 @@ def test_exact_poses_score_perfectly_and_a_shift_is_measured(scene: Path) -> Non
     rep = evaluate_scene(preds, scene, models, cmap.names, cmap.class_of_obj, PoseEvalConfig(), [0, 1])
     assert rep["detection"]["f1"] == 1.0 and rep["overall"]["t_err_m"]["max"] < 1e-9
     assert rep["overall"]["ar_mssd"] == 1.0 and rep["overall"]["ar_mspd"] == 1.0
-    assert all(r["mask_iou"] == 1.0 for r in rep["matches"])
+    assert all(r["mask_iou"] == 1.0 for r in rep["matches"]) and rep["misses"] == []
     rep = evaluate_scene(shifted, scene, models, cmap.names, cmap.class_of_obj, PoseEvalConfig(), [0, 1])
     assert rep["overall"]["t_err_m"]["mean"] == pytest.approx(0.05)
     assert rep["overall"]["r_err_deg"]["max"] < 1e-6
@@ -118,6 +118,11 @@ def test_exact_poses_score_perfectly_and_a_shift_is_measured(scene: Path) -> Non
     assert rep["per_class"]["valve"]["ar_mssd"] < 1.0
     missed = evaluate_scene(preds[:1], scene, models, cmap.names, cmap.class_of_obj, PoseEvalConfig(), [0, 1])
     assert missed["detection"]["fn"] == len(preds) - 1 and missed["detection"]["precision"] == 1.0
+    # the misses are listed (frame, GT index), the one hit is not
+    targets = [(im_id, g.gt_idx) for im_id in (0, 1) for g in gt_instances(BopScene(scene), im_id, cmap.class_of_obj)
+               if cmap.names[g.label] != "structure"]
+    assert sorted((m["im_id"], m["gt_idx"]) for m in missed["misses"]) == sorted(targets[1:])
+    assert all(0.0 < m["visib_fract"] <= 1.0 and len(m["box_xyxy"]) == 4 for m in missed["misses"])
 
 
 def _valve_targets(scene: Path) -> tuple:
