@@ -336,6 +336,10 @@ class TestTrackBoxes:
         assert cut.state == "ok" and cut.source == "nav", cut.source
         assert _reproj_px(meshes, cam, cut.T_cam_from_world, _view(17).inverse()) < 0.5
         assert tr.near_nav(cut.T_cam_from_world.inverse()) and not tr.near_nav(far.inverse())
+        # the tracker's own hypotheses are fitted only where a fit (turning <= 15 deg) could pass the 25 deg bound
+        turned = [Rigid3(axis_angle_to_matrix(np.radians([0.0, 0.0, a])), np.zeros(3)) @ rough[17] for a in (30, 50)]
+        assert tr.reachable(rough[17].inverse()) and tr.reachable(turned[0].inverse())
+        assert not tr.reachable(turned[1].inverse())
         # without the navigation pose the cut frame is not regained (the cut is beyond the start search)
         blind = StructureTracker(meshes, cam, replace(BOXES_TRACKER, orbit_step_deg=0.0, turn_step_deg=0.0))
         assert blind.step(render(_view(0)), [("init", rough[0])]).state == "ok"

@@ -201,6 +201,14 @@ class StructureTracker:
         off = self.nav_offset(T_world_from_cam)
         return off is None or (off[0] <= self.cfg.nav_max_deg and off[1] <= self.cfg.nav_max_m)
 
+    def reachable(self, T_world_from_cam: Rigid3) -> bool:
+        """Whether a fit from one of the tracker's own hypotheses at this pose could pass the navigation bound:
+        such a fit turns the camera by at most ``acquire.max_turn_deg`` (``own_turn_limit``), so a hypothesis
+        turned further than ``nav_max_deg`` plus that from the navigation pose cannot (not worth fitting)."""
+        off = self.nav_offset(T_world_from_cam)
+        return off is None or not self.cfg.own_turn_limit or \
+            off[0] <= self.cfg.nav_max_deg + self.cfg.acquire.max_turn_deg
+
     def rank(self, fit: EdgeFit) -> float:
         """How restart candidates are ranked: the mean of the edge support over all samples and of the parts'
         own supports (parts with ``rank_min_samples``). The structure's frame holds most contour samples, and
@@ -280,9 +288,11 @@ class StructureTracker:
 
     def _best_views(self, gray: np.ndarray, views: list[tuple[str, Rigid3]]) -> list[tuple[str, Rigid3]]:
         """Of (name, ``T_world_from_cam``) views, the best ``orbit_fits`` by the pan/tilt/roll search's score,
-        as (name, ``T_cam_from_world``)."""
+        as (name, ``T_cam_from_world``); views the navigation pose rules out (:meth:`reachable`) are skipped."""
         scored = []
         for name, T_wc in views:
+            if not self.reachable(T_wc):
+                continue
             cands = candidates(self.edges, gray, T_wc, self.cfg.acquire)
             if cands:
                 scored.append((cands[0][0], name, T_wc))
@@ -360,6 +370,8 @@ class StructureTracker:
         best: tuple[EdgeFit, str] | None = None
         tried = 0
         for name, T_cw in hypotheses:
+            if own and not self.reachable(T_cw.inverse()):
+                continue
             fit, n = self._search(gray, T_cw.inverse())
             tried += n
             if fit is not None and own and self.cfg.own_turn_limit and geodesic_angle(
