@@ -59,7 +59,8 @@ def lidar_figure(scan: LidarScan, path: Path, class_names: tuple[str, ...] = (),
     ax.set_title(f"{title} LiDAR returns by class (top view), {len(scan.range_m)} / {scan.n_rays} rays")
     for c in np.unique(scan.class_id):
         ax.scatter([], [], color=PALETTE[c % len(PALETTE)] / 255.0, label=_class_name(class_names, int(c)), s=20)
-    ax.legend(loc="upper right", fontsize=8)
+    if len(scan.class_id):  # a scan with no return has no class to list
+        ax.legend(loc="upper right", fontsize=8)
     _oblique(axes[0, 1], scan, cols)
     if spinning:
         n_ring = int(scan.ring.max()) + 1
