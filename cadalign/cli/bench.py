@@ -167,8 +167,9 @@ def track_speed(
                       f"{res.restart_ms:.0f} ms -> {out / 'bench_track.json'}")
         return
     console.print(f"tracker {1e3 / res.track_ms:.1f} frames/s (CPU), detector alone {1e3 / res.detector_ms:.1f} "
-                  f"frames/s: {res.ratio:.2f}x; restart {res.restart_ms:.0f} ms; {res.tracked}/{res.frames} tracked "
-                  f"-> {out / 'bench_track.json'}")
+                  f"frames/s: {res.ratio:.2f}x (wall clock: {1e3 / res.track_ms_wall:.1f} and "
+                  f"{1e3 / res.detector_ms_wall:.1f} frames/s, {rec['tracker_over_detector_wall']:.2f}x); restart "
+                  f"{res.restart_ms:.0f} ms; {res.tracked}/{res.frames} tracked -> {out / 'bench_track.json'}")
 
 
 @app.command("fuse-labels")

@@ -764,3 +764,27 @@ def test_a_part_seen_present_needs_two_missing_checks() -> None:
     assert m.missing[2]
     m.update(2, False, 2)
     assert not m.missing[2]  # found again at once
+
+
+def test_bench_track_times_the_tracker_and_the_detector_on_the_same_frames(tmp_path: Path, track_sim: Path) -> None:
+    """``cadalign bench track``: CPU and wall times of the tracker's continued frames, of its start and of the
+    detector alone (the recipe's architecture, random weights), and their ratio, in bench_track.json."""
+    from typer.testing import CliRunner
+
+    from cadalign.cli.main import app
+
+    _, names, cams = _frames(track_sim)
+    init = tmp_path / "init.json"
+    init.write_text(json.dumps({"T_cam_from_world": _T_cw(cams[names[0]]).matrix().tolist()}))
+    out = tmp_path / "bench"
+    res = CliRunner().invoke(app, ["bench", "track", "--frames", str(track_sim / "frames"),
+                                   "--cad", str(track_sim.parent / "structure.toml"),
+                                   "--calib", str(track_sim / "calibration.json"),
+                                   "--init-pose", str(init), "--max-frames", "3", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    rec = json.loads((out / "bench_track.json").read_text())
+    assert rec["frames"] == 3 and rec["restart_ms_cpu"] > 0 and "random weights" in rec["detector"]
+    assert rec["tracked"] == 3 and "problem" not in rec  # started at the true pose: frames 1-2 are continued
+    assert rec["track_ms_cpu"] > 0 and rec["track_ms_wall"] > 0 and rec["detector_ms_wall"] > 0
+    assert rec["tracker_over_detector"] == pytest.approx(rec["detector_ms_cpu"] / rec["track_ms_cpu"])
+    assert rec["tracker_over_detector_wall"] == pytest.approx(rec["detector_ms_wall"] / rec["track_ms_wall"])
