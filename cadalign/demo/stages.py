@@ -26,7 +26,7 @@ from cadalign.infer.track.start import detector_restarts
 from cadalign.io import read_image, read_json
 from cadalign.sim.navigation import first_fix
 from cadalign.sim.structure import load_structure
-from cadalign.types import Camera, Rigid3
+from cadalign.types import Camera
 
 log = logging.getLogger(__name__)
 
@@ -157,7 +157,7 @@ def infer_stage(ctx: DemoContext) -> dict:
     first = read_image(clip / sorted(picked)[0])
     K = calibration_from_scene(scene, use_poses=False).K_default
     camera = Camera(K, first.shape[1], first.shape[0])
-    nav = simulated_navigation_pose(ctx.sim_dir, sorted(picked)[0])
+    nav = first_fix(ctx.sim_dir, sorted(picked)[0])  # a navigation fix: truth turned 10 deg, moved 0.5 m
     restart, info = detector_restarts(ctx.out / "train" / "pose", structure, camera)
     out = ctx.out / "infer" / "poses"
     track_video(TrackRunConfig(), clip, structure, camera, out, init_pose=nav, restart_source=restart,
@@ -168,14 +168,6 @@ def infer_stage(ctx: DemoContext) -> dict:
             "eval": read_json(ev) if ev.is_file() else None,
             "inputs": "RGB frames + intrinsics; start: a simulated navigation fix (truth + 10 deg / 0.5 m) and the "
                       "trained detector; no depth, no camera poses"}
-
-
-def simulated_navigation_pose(sim_dir: Path, frame: str, seed: int = 0, turn_deg: float = 10.0,
-                              shift_m: float = 0.5) -> Rigid3:
-    """``T_cam_from_world`` of a frame as a navigation fix gives it: the simulator's true pose turned by exactly
-    ``turn_deg`` about a random axis and moved by exactly ``shift_m`` (seeded; :mod:`cadalign.sim.navigation`)."""
-
-    return first_fix(sim_dir, frame, seed, turn_deg, shift_m)
 
 
 def fuse_stage(ctx: DemoContext) -> dict:

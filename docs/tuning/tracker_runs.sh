@@ -15,10 +15,9 @@ mkdir -p "$OUT"
 run_sim() {  # scene name, simulation folder, scene file the tracker gets
   local scene=$1 sim=$2 cad=$3
   [ -d "$sim/frames" ] || $CA sim "datasets/scenes/$scene.toml" --out "$sim"
-  $PY -c "import json, sys; from pathlib import Path; from cadalign.demo.stages import simulated_navigation_pose as nav
-cams = json.loads(Path(sys.argv[1], 'gt/sim/000000/cameras.json').read_text())['frames']
-json.dump({'T_cam_from_world': nav(Path(sys.argv[1]), sorted(cams)[0], seed=1).matrix().tolist()}, open(sys.argv[2], 'w'))" \
-    "$sim" "$OUT/init_$scene.json"
+  $PY -c "import json, sys; from cadalign.sim.navigation import first_fix, true_poses
+json.dump({'T_cam_from_world': first_fix(sys.argv[1], min(true_poses(sys.argv[1])), 1).matrix().tolist()},
+          open(sys.argv[2], 'w'))" "$sim" "$OUT/init_$scene.json"
   local start=(--init-pose "$OUT/init_$scene.json")
   if [ "${START:-}" = nav ]; then  # seed 1 as the init pose's (frame 0's is the same pose)
     $PY -c "import sys; from cadalign.sim.navigation import write_navigation as w; w(sys.argv[1], 1, sys.argv[2])" \

@@ -177,10 +177,7 @@ def _unit_box():
 
 
 def _perturbed(T_cw: Rigid3, t_m: float, r_deg: float, seed: int) -> Rigid3:
-    rng = np.random.default_rng(seed)
-    ax = rng.normal(size=3)
-    d = rng.normal(size=3)
-    return Rigid3(axis_angle_to_matrix(np.radians(r_deg) * ax / np.linalg.norm(ax)), t_m * d / np.linalg.norm(d)) @ T_cw
+    return rough_pose(T_cw, np.random.default_rng(seed), r_deg, t_m)
 
 
 class TestEdgeJacobian:

@@ -16,7 +16,6 @@ Outputs in ``out_dir`` (the layout of :mod:`cadalign.infer.run`, so ``eval`` and
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import logging
 import time
@@ -37,7 +36,7 @@ from cadalign.infer.track.parts import MovableConfig, MovableParts, part_record,
 from cadalign.infer.track.start import pose_from_picks
 from cadalign.infer.track.tracker import StructureTracker, TrackerConfig, TrackStep
 from cadalign.infer.video import iter_frames
-from cadalign.io import atomic_path, prepare_stage_dir, read_json, write_json
+from cadalign.io import atomic_path, fingerprint, prepare_stage_dir, read_json, write_json
 from cadalign.sim.structure import Structure
 from cadalign.types import Camera, Progress, Rigid3
 
@@ -311,10 +310,7 @@ def _nav_pose(nav: dict[str, Rigid3] | None, name: str, first: bool, source: Pat
 
 def _poses_digest(poses: dict[str, Rigid3]) -> str:
     """A short fingerprint of per-frame poses (the run's record: other poses, another run)."""
-    h = hashlib.sha1()
-    for k in sorted(poses):
-        h.update(k.encode() + np.round(poses[k].matrix(), 9).tobytes())
-    return f"{len(poses)} frames, sha1 {h.hexdigest()[:12]}"
+    return f"{len(poses)} frames, {fingerprint({k: np.round(T.matrix(), 9).tolist() for k, T in poses.items()})}"
 
 
 def _step_json(step: TrackStep, name: str, missing: list[str], structure: Structure) -> dict:

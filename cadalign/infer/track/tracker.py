@@ -250,9 +250,9 @@ class StructureTracker:
         return out
 
     def _lost_hypotheses(self, gray: np.ndarray) -> list[tuple[str, Rigid3]]:
-        """Restart hypotheses while lost with no other: the last motion carried on over the frames lost, the last
-        pose, and the last view turned round the structure's vertical axis (``orbit_step_deg``), the latter
-        ranked by the pan/tilt/roll search's score and only the best ``orbit_fits`` kept."""
+        """The tracker's own restart hypotheses while lost: the flow from the last tracked frame, the last motion
+        carried on over the frames lost, and the last pose (the turned views are :meth:`_turn_hypotheses` and
+        :meth:`_orbit_hypotheses`)."""
         assert self._last is not None
         out = [("last_pose", self._last.inverse())]
         if self._velocity is not None:
