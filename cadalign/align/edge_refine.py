@@ -106,30 +106,37 @@ def contour_samples(depth: np.ndarray, rays_unit: np.ndarray, range_m: np.ndarra
 
     z = np.where(depth > 0, depth, np.inf).astype(np.float64)
     H, W = z.shape
-    jump = 1.0 + cfg.depth_jump
-    far = np.zeros((H, W, 2), dtype=np.float64)  # summed direction to far neighbours
-    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-        nb = z.copy()  # beyond the image border a pixel is its own neighbour: no contour there
-        ys, yd = slice(max(dy, 0), H + min(dy, 0)), slice(max(-dy, 0), H + min(-dy, 0))
-        xs, xd = slice(max(dx, 0), W + min(dx, 0)), slice(max(-dx, 0), W + min(-dx, 0))
-        nb[yd, xd] = z[ys, xs]
-        far[np.isfinite(z) & (nb > z * jump)] += (dx, dy)
-    inv = np.where(np.isfinite(z), 1.0 / z, 0.0)
-    gx = cv2.Sobel(inv, cv2.CV_64F, 1, 0, ksize=3)
-    gy = cv2.Sobel(inv, cv2.CV_64F, 0, 1, ksize=3)
-    g = -np.stack([gx, gy], axis=-1)  # towards smaller inverse depth: the far side
-    near = np.any(far != 0, axis=-1)
+    zj = z * (1.0 + cfg.depth_jump)
+    # summed direction to the far 4-neighbours; beyond the image border a pixel is its own neighbour (no contour)
+    fx = np.zeros((H, W), dtype=np.int8)
+    fy = np.zeros((H, W), dtype=np.int8)
+    fx[:, :-1] += z[:, 1:] > zj[:, :-1]
+    fx[:, 1:] -= z[:, :-1] > zj[:, 1:]
+    fy[:-1] += z[1:] > zj[:-1]
+    fy[1:] -= z[:-1] > zj[1:]
+    near = (fx != 0) | (fy != 0)
+    near &= np.isfinite(z)
     if instance is not None:
         near &= instance > 0
     ys, xs = np.nonzero(near)
     keep = slice(None, None, max(int(cfg.point_step), 1))
     ys, xs = ys[keep], xs[keep]
-    n = g[ys, xs]
+    far = np.stack([fx[ys, xs], fy[ys, xs]], axis=1).astype(np.float64)
+    # the inverse depth's Sobel gradient at those pixels only (as cv2.Sobel, reflect-101 border), negated:
+    # towards smaller inverse depth, the far side
+    inv = np.pad(np.where(np.isfinite(z), 1.0 / z, 0.0), 1, mode="reflect")
+    y, x = ys + 1, xs + 1
+    # (summed in cv2's order, so the samples are bit for bit those of the whole-image filter)
+    gx = (inv[y - 1, x + 1] - inv[y - 1, x - 1]) + (inv[y + 1, x + 1] - inv[y + 1, x - 1]) \
+        + 2 * (inv[y, x + 1] - inv[y, x - 1])
+    gy = (inv[y + 1, x - 1] + 2 * inv[y + 1, x] + inv[y + 1, x + 1]) \
+        - (inv[y - 1, x - 1] + 2 * inv[y - 1, x] + inv[y - 1, x + 1])
+    n = -np.stack([gx, gy], axis=1)
     norm = np.linalg.norm(n, axis=1)
-    ok = (norm > 0) & (np.einsum("nk,nk->n", n, far[ys, xs]) > 0)
-    ys, xs, n = ys[ok], xs[ok], n[ok] / norm[ok, None]
+    ok = (norm > 0) & (np.einsum("nk,nk->n", n, far) > 0)
+    ys, xs, n, far = ys[ok], xs[ok], n[ok] / norm[ok, None], far[ok]
     # the contour lies between the near pixel's centre and the far one's: half a pixel along the step
-    step = far[ys, xs] / np.abs(far[ys, xs]).sum(axis=1, keepdims=True).clip(1)
+    step = far / np.abs(far).sum(axis=1, keepdims=True).clip(1)
     uv = np.stack([xs, ys], axis=1).astype(np.float64) + 0.5 * step
     X = rays_unit[ys, xs].astype(np.float64) * range_m[ys, xs, None]
     return X, uv, n
@@ -142,34 +149,38 @@ def search_edges(gray: np.ndarray, uv: np.ndarray, normal: np.ndarray, cfg: Edge
     channels each sample takes the channel whose edge is strongest (a yellow part on a white desk differs in
     blue, hardly in grey)."""
 
+    if len(uv) == 0:
+        return np.zeros(0)
     S = float(cfg.search_px)
     s = np.arange(-S - 1.0, S + 1.0 + 1e-9, 0.5)  # half-pixel samples
-    pts = uv[:, None, :] + s[None, :, None] * normal[:, None, :]
-    mx, my = pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32)
-    prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
-    # derivative over one pixel (samples two half-steps apart), at s[1:-1]
-    d = prof[:, 2:] - prof[:, :-2]
+    mx = (uv[:, 0, None] + s[None, :] * normal[:, 0, None]).astype(np.float32)
+    my = (uv[:, 1, None] + s[None, :] * normal[:, 1, None]).astype(np.float32)
+    prof = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    # derivative over one pixel (samples two half-steps apart), at s[1:-1]; only its part within the range counts
     sd = s[1:-1]
+    i0, i1 = np.flatnonzero(np.abs(sd) <= S)[[0, -1]]
+    d = np.subtract(prof[:, i0 + 2:i1 + 3], prof[:, i0:i1 + 1], dtype=np.float64)
     # the contrast's sign: the far half of the range against the near half
-    sign = np.sign(prof[:, (s >= 0.5) & (s <= S)].mean(axis=1) - prof[:, (s <= -0.5) & (s >= -S)].mean(axis=1))
+    f0, f1 = np.flatnonzero((s >= 0.5) & (s <= S))[[0, -1]]
+    n0, n1 = np.flatnonzero((s <= -0.5) & (s >= -S))[[0, -1]]
+    sign = np.sign(prof[:, f0:f1 + 1].astype(np.float64).mean(axis=1)
+                   - prof[:, n0:n1 + 1].astype(np.float64).mean(axis=1))
     score = d * sign[:, None]
-    inside = np.abs(sd) <= S
     if score.ndim == 3:  # (N, samples, channels): each sample's strongest channel
-        best = np.argmax(np.where(inside[None, :, None], score, -np.inf).max(axis=1), axis=1)
+        best = np.argmax(score.max(axis=1), axis=1)
         rows = np.arange(len(best))
         score, sign = score[rows, :, best], sign[rows, best]
-    score = np.where(inside[None, :], score, -np.inf)
     k = np.argmax(score, axis=1)
     rows = np.arange(len(k))
     peak = score[rows, k]
-    ok = (peak >= cfg.min_contrast) & (sign != 0) & (k > 0) & (k < len(sd) - 1)
-    k1 = np.clip(k, 1, len(sd) - 2)
+    # a peak on the range's end (its neighbour outside the range) gives no sub-pixel position
+    ok = (peak >= cfg.min_contrast) & (sign != 0) & (k > 0) & (k < score.shape[1] - 1)
+    k1 = np.clip(k, 1, score.shape[1] - 2)
     a, b, c = score[rows, k1 - 1], score[rows, k1], score[rows, k1 + 1]
-    ok &= np.isfinite(a) & np.isfinite(c)
     a, b, c = np.where(ok, a, 0.0), np.where(ok, b, 1.0), np.where(ok, c, 0.0)
     den = a - 2 * b + c  # < 0 at a strict maximum; a plateau (0) keeps the sample
     frac = 0.5 * (a - c) / np.where(den < 0, den, -np.inf)
-    off = sd[k1] + 0.5 * np.clip(frac, -1.0, 1.0)  # samples are half a pixel apart
+    off = sd[i0 + k1] + 0.5 * np.clip(frac, -1.0, 1.0)  # samples are half a pixel apart
     return np.where(ok, off, np.nan)
 
 
@@ -202,13 +213,14 @@ def fit_correction(rows: Sequence[tuple[np.ndarray, np.ndarray]], tukey_px: floa
     w = np.ones(len(r))
     scale = np.full(J.shape[1], 1e-3)  # well-conditioned normal equations
     a, prec = prior if prior is not None else (np.zeros(J.shape[1]), np.zeros(J.shape[1]))
+    Js = J * scale
+    ridge = np.diag(prec * scale**2) + 1e-9 * np.eye(J.shape[1])
     for _ in range(iterations):
         e = r + J @ xi
         u = e / tukey_px
         w = np.where(np.abs(u) < 1, (1 - u**2) ** 2, 0.0)
-        Js = J * scale
-        A = Js.T @ (Js * w[:, None]) + np.diag(prec * scale**2) + 1e-9 * np.eye(J.shape[1])
-        step = np.linalg.solve(A, -(Js.T @ (w * (r + J @ xi)) + scale * prec * (a + xi)))
+        A = Js.T @ (Js * w[:, None]) + ridge
+        step = np.linalg.solve(A, -(Js.T @ (w * e) + scale * prec * (a + xi)))
         xi = xi + step * scale
         if np.all(np.abs(step) < 1e-8):
             break

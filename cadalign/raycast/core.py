@@ -159,12 +159,16 @@ class RaycastRenderer:
         self._rays_unit.flags.writeable = False  # shared by every frame's result
 
     def _rays(self, T_world_from_cam: Rigid3, rows: slice, cols: slice) -> np.ndarray:
-        d = self._dirs_cam[rows, cols] @ T_world_from_cam.R.T
-        o = np.broadcast_to(T_world_from_cam.t - self._origin, d.shape)
-        return np.concatenate([o, d], axis=-1).astype(np.float32)
+        d = self._dirs_cam[rows, cols]
+        out = np.empty((*d.shape[:2], 6), dtype=np.float32)
+        out[..., :3] = (T_world_from_cam.t - self._origin).astype(np.float32)
+        out[..., 3:] = d @ T_world_from_cam.R.T  # turned in double precision, stored in single as Open3D casts
+        return out
 
-    def render(self, T_world_from_cam: Rigid3, *, with_full_masks: bool = True) -> RaycastFrame:
-        """Ground truth of the view from ``T_world_from_cam`` (camera: x right, y down, z forward)."""
+    def render(self, T_world_from_cam: Rigid3, *, with_full_masks: bool = True,
+               with_normals: bool = True) -> RaycastFrame:
+        """Ground truth of the view from ``T_world_from_cam`` (camera: x right, y down, z forward).
+        ``with_normals``: False leaves ``normals_cam`` all zero (a tracker that reads contours only)."""
         import open3d as o3d  # lazy: heavy dependency (open3d)
 
         H, W = self.camera.height, self.camera.width
@@ -172,16 +176,18 @@ class RaycastRenderer:
         ans = self._all.cast_rays(o3d.core.Tensor(rays), nthreads=0)
         t = ans["t_hit"].numpy()
         hit = np.isfinite(t)
-        depth = np.where(hit, t, 0.0).astype(np.float32)
-        range_m = np.where(hit, t * self._ray_len, np.float32(np.inf))
-        gid = ans["geometry_ids"].numpy().astype(np.int64)
-        gid = np.where(hit, gid, len(self._lut_instance) - 1)  # the last LUT slot maps to background
-        instance = self._lut_instance[gid]
-        n_cam = ans["primitive_normals"].numpy() @ T_world_from_cam.R.astype(np.float32)
-        # face the camera; zero where nothing was hit (Open3D returns zero normals there already)
-        flip = np.where(np.einsum("hwk,hwk->hw", n_cam, self._dirs_cam32) > 0, np.float32(-1), np.float32(1))
-        n_cam *= flip[..., None]
-        n_cam[~hit] = 0.0
+        depth = np.where(hit, t, np.float32(0.0))
+        range_m = t * self._ray_len  # inf where nothing was hit
+        gid = np.where(hit, ans["geometry_ids"].numpy(), len(self._lut_instance) - 1)
+        instance = self._lut_instance[gid]  # the last LUT slot maps to background
+        if with_normals:
+            n_cam = ans["primitive_normals"].numpy() @ T_world_from_cam.R.astype(np.float32)
+            # face the camera; zero where nothing was hit (Open3D returns zero normals there already)
+            flip = np.where(np.einsum("hwk,hwk->hw", n_cam, self._dirs_cam32) > 0, np.float32(-1), np.float32(1))
+            n_cam *= flip[..., None]
+            n_cam[~hit] = 0.0
+        else:
+            n_cam = np.zeros((H, W, 3), dtype=np.float32)
         full = self._full_masks(T_world_from_cam) if with_full_masks else {}
         return RaycastFrame(
             depth,

@@ -717,6 +717,28 @@ class TestRegion:
         assert np.isnan(model.offsets(test, on, n, np.full(len(ys), 7), search_px=6.0)).all()
         assert np.isnan(model.offsets(test, on - (20.0, 0.0), n, ids, search_px=6.0)).all()
 
+    def test_foreground_follows_every_learned_frame(self) -> None:
+        """The per-part probability tables are made once per learned frame: a later frame's colours must show."""
+        from cadalign.infer.track.region import RegionConfig, RegionModel
+
+        rgb, instance = self._two_colours(noise=10.0, seed=1)
+        ys = np.arange(5.0, 35.0)
+        n = np.tile([1.0, 0.0], (len(ys), 1))
+        on = np.stack([np.full_like(ys, 39.5), ys], axis=1)
+        ids = np.ones(len(ys), int)
+        cfg = RegionConfig()
+        model = RegionModel(cfg)
+        model.learn(rgb, on, n, ids, instance)
+        colours = rgb[None, 10:14, 30:50].reshape(1, -1, 3)
+        before = model.foreground(colours, np.array([1]))
+        model.learn(rgb[:, ::-1].copy(), on, n, ids, instance)  # the colours swap sides
+        after = model.foreground(colours, np.array([1]))
+        f, b = model.fg[1][model._bin(colours)], model.bg[1][model._bin(colours)]
+        direct = np.clip(np.where(f + b > 1e-9, f / np.maximum(f + b, 1e-12), 0.5), cfg.p_clip, 1 - cfg.p_clip)
+        assert not np.allclose(after, before)
+        np.testing.assert_allclose(after, direct, rtol=1e-12)
+        assert np.all(model.foreground(colours, np.array([9])) == 0.5)  # a part it never saw
+
     def test_region_support_refuses_a_pose_the_edges_would_pass(self, boxes) -> None:
         from dataclasses import replace
 

@@ -58,6 +58,27 @@ def test_contour_samples_of_a_square_lie_half_a_pixel_outside_with_outward_norma
     assert contour_samples(np.zeros((8, 8), np.float32), rays[:8, :8], np.full((8, 8), np.inf), CFG)[0].shape == (0, 3)
 
 
+def test_contour_normals_are_the_whole_image_sobel_gradient_of_inverse_depth() -> None:
+    """The normals are read from a Sobel filter at the contour pixels only; they must be the whole-image
+    filter's (cv2, reflected border), bit for bit, including at the image border."""
+    import cv2
+
+    rng = np.random.default_rng(3)
+    depth = (2.0 + rng.random((30, 40))).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.2] = 0.0  # open water: many contours, some on the border
+    cols, rows = np.meshgrid(np.arange(40), np.arange(30))
+    rays = np.dstack([cols, rows, np.ones((30, 40))]).astype(np.float32)  # X = (column, row, 1): the pixel
+    X, _, n = contour_samples(depth, rays, np.where(depth > 0, 1.0, np.inf), EdgeRefineConfig(point_step=1))
+    z = np.where(depth > 0, depth, np.inf).astype(np.float64)
+    inv = np.where(np.isfinite(z), 1.0 / z, 0.0)
+    g = -np.stack([cv2.Sobel(inv, cv2.CV_64F, 1, 0, ksize=3), cv2.Sobel(inv, cv2.CV_64F, 0, 1, ksize=3)], axis=-1)
+    near = X[:, :2].astype(int)
+    assert len(X) > 100 and (near[:, 0] == 0).any() and (near[:, 1] == 29).any()
+    ref = g[near[:, 1], near[:, 0]]
+    ref = ref / np.linalg.norm(ref, axis=1, keepdims=True)
+    assert np.array_equal(n, ref)
+
+
 def _step_image(edge_x: float, dark_left: bool, blur: float = 0.0) -> np.ndarray:
     """A vertical step edge at x = edge_x (pixel centres at integers), by area coverage, optionally blurred."""
     import cv2

@@ -54,6 +54,16 @@ def test_depth_range_normals_and_labels_of_a_cube() -> None:
     assert cols[0] == int(np.ceil(40 - 80 / 9 - 0.5)) and cols[-1] == int(np.floor(40 + 80 / 9 - 0.5))
 
 
+def test_a_render_without_normals_has_the_same_depth_and_labels() -> None:
+    r = RaycastRenderer([_mesh(_cube(1.0, (0, 0, 0)), 3, 2), _mesh(_cube(0.5, (0.6, -1.0, 0.2)), 5, 1)], CAM)
+    T = _look_at(np.array([1.5, -5.0, 1.0]), np.zeros(3))
+    full, lean = r.render(T, with_full_masks=False), r.render(T, with_full_masks=False, with_normals=False)
+    for name in ("depth_m", "range_m", "instance", "class_id"):
+        np.testing.assert_array_equal(getattr(lean, name), getattr(full, name))
+    assert set(np.unique(lean.instance)) == {0, 3, 5}
+    assert (lean.normals_cam == 0).all() and (np.abs(full.normals_cam).sum(-1) > 0.5).sum() > 100
+
+
 def test_full_mask_sees_through_occluders_and_background_gets_no_mask() -> None:
     front = _cube(0.6, (0, -1.0, 0))
     back = _cube(1.0, (0, 1.0, 0))

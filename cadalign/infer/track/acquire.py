@@ -59,7 +59,7 @@ def candidates(tracker: EdgeTracker, gray: np.ndarray, T_world_from_cam: Rigid3,
     cfg = cfg or AcquireConfig()
     r = tracker.renderer(tracker.usable(cfg.scale))
     cam = r.camera
-    f = r.render(T_world_from_cam, with_full_masks=False)
+    f = r.render(T_world_from_cam, with_full_masks=False, with_normals=False)
     X_cam, _, _ = contour_samples(f.depth_m, f.rays_cam, f.range_m, EdgeRefineConfig(point_step=1), f.instance)
     if len(X_cam) < 10:
         return []

@@ -146,8 +146,27 @@ class EdgeTracker:
         self._renderers: dict[float, RaycastRenderer] = {}
         self.region = RegionModel(cfg.region)
         """The parts' colours, taught by the tracker on tracked frames."""
-        self.colour_frame: np.ndarray | None = None
+        self._colour: np.ndarray | None = None
+        self._colour_at: dict[int, np.ndarray] = {}  # the colour frame at each level's width, float32
+
+    @property
+    def colour_frame(self) -> np.ndarray | None:
         """(H, W, 3) the frame being fitted, in colour (the region term's input); None: edges only."""
+        return self._colour
+
+    @colour_frame.setter
+    def colour_frame(self, rgb: np.ndarray | None) -> None:
+        self._colour, self._colour_at = rgb, {}
+
+    def colour_at(self, camera: Camera) -> np.ndarray:
+        """The colour frame at a level's size (area-averaged, as stored), float32: made once per frame."""
+        assert self._colour is not None
+        if camera.width not in self._colour_at:
+            rgb = self._colour
+            if rgb.shape[1] != camera.width:
+                rgb = cv2.resize(rgb, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
+            self._colour_at[camera.width] = np.ascontiguousarray(rgb, dtype=np.float32)
+        return self._colour_at[camera.width]
 
     def usable(self, scale: float) -> float:
         """``scale``, or the smallest scale whose image is ``min_level_width`` wide when ``scale``'s is not."""
@@ -186,7 +205,7 @@ class EdgeTracker:
             g = gray if lv.scale == 1.0 else cv2.resize(gray, (r.camera.width, r.camera.height),
                                                           interpolation=cv2.INTER_AREA)
             lcfg = self._level_cfg(lv.search_px)
-            f = r.render(T, with_full_masks=False)
+            f = r.render(T, with_full_masks=False, with_normals=False)
             X_cam, uv0, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, lcfg, f.instance)
             X_w = T.apply(X_cam)
             if len(X_w) < self.cfg.min_edges:
@@ -230,10 +249,7 @@ class EdgeTracker:
         """(the colour frame at the level's size, each contour sample's part) when the region term is on."""
         if self.colour_frame is None or not self.region.ready:
             return None
-        rgb = self.colour_frame
-        if rgb.shape[1] != r.camera.width:
-            rgb = cv2.resize(rgb, (r.camera.width, r.camera.height), interpolation=cv2.INTER_AREA)
-        return rgb, sample_instances(uv, n, instance)
+        return self.colour_at(r.camera), sample_instances(uv, n, instance)
 
     def _both_offsets(self, T: Rigid3, X_w: np.ndarray, n: np.ndarray, r: RaycastRenderer, g: np.ndarray,
                       cfg: EdgeRefineConfig, region: tuple[np.ndarray, np.ndarray] | None, search_px: float,
@@ -258,7 +274,7 @@ class EdgeTracker:
     def judge(self, gray: np.ndarray, T_world_from_cam: Rigid3) -> EdgeFit:
         """Edge support of the CAD's contours at ``T_world_from_cam`` in ``gray`` (full resolution)."""
         r = self.renderer(1.0)
-        f = r.render(T_world_from_cam, with_full_masks=False)
+        f = r.render(T_world_from_cam, with_full_masks=False, with_normals=False)
         cfg = self._level_cfg(2.0 * self.cfg.support_px)
         X_cam, _, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, cfg, f.instance)
         return self._support(T_world_from_cam, _pixels(r.camera.K, X_cam) + 0.5 * n, n, gray, f.instance, cfg,
@@ -291,7 +307,7 @@ class EdgeTracker:
         if rgb is None or not self.region.ready or rgb.shape[:2] != shape or len(uv) == 0:
             return float("nan"), {}
         tol = self.cfg.region_support_px / to_full
-        roff = self.region.offsets(rgb, uv, n, inst, 2 * tol)
+        roff = self.region.offsets(self.colour_at(self.camera), uv, n, inst, 2 * tol)
         rok = np.abs(np.nan_to_num(roff, nan=np.inf)) <= tol
         return float(rok.mean()), {int(k): float(rok[inst == k].mean()) for k in np.unique(inst)}
 

@@ -47,6 +47,7 @@ class RegionModel:
         self.cfg = cfg
         self.fg: dict[int, np.ndarray] = {}
         self.bg: dict[int, np.ndarray] = {}
+        self._luts: tuple[np.ndarray, np.ndarray] | None = None  # log pf, log (1 - pf) per (part, bin)
 
     @property
     def ready(self) -> bool:
@@ -55,7 +56,7 @@ class RegionModel:
 
     def _bin(self, rgb: np.ndarray) -> np.ndarray:
         """Histogram bin of each colour (..., 3) (0-255)."""
-        q = np.clip(rgb, 0, 255).astype(np.int64) * self.cfg.bins // 256
+        q = np.clip(rgb, 0, 255).astype(np.int32) * self.cfg.bins // 256
         return (q[..., 0] * self.cfg.bins + q[..., 1]) * self.cfg.bins + q[..., 2]
 
     def learn(self, rgb: np.ndarray, uv: np.ndarray, normal: np.ndarray, sample_instance: np.ndarray,
@@ -84,21 +85,36 @@ class RegionModel:
                 k = int(k)
                 a = self.cfg.learn_rate if k in store else 1.0
                 store[k] = (1 - a) * store.get(k, h) + a * h
+        self._luts = None
 
     def foreground(self, colours: np.ndarray, sample_instance: np.ndarray) -> np.ndarray:
         """(N, M) foreground probability of colours (N, M, 3) along the lines of samples of parts
         ``sample_instance`` (N,); 0.5 for a part (or a colour) neither histogram knows."""
-        out = np.full(colours.shape[:2], 0.5)
+        return np.exp(self._log_probabilities(colours, sample_instance)[0])
+
+    def _log_probabilities(self, colours: np.ndarray, sample_instance: np.ndarray,
+                           ) -> tuple[np.ndarray, np.ndarray]:
+        """(log pf, log (1 - pf)) (N, M) of colours (N, M, 3) along the lines of samples of parts
+        ``sample_instance`` (N,), looked up per (part, colour bin) in tables made once per learned frame."""
+        if self._luts is None:
+            self._luts = self._tables()
+        logf, logb = self._luts
+        k = sample_instance.astype(np.int64)
+        k = np.where((k >= 0) & (k < len(logf)), k, len(logf) - 1)  # beyond the tables: no histogram (0.5)
         bins = self._bin(colours)
-        for k in np.unique(sample_instance):
-            k = int(k)
-            if k not in self.fg or k not in self.bg:
-                continue
-            m = sample_instance == k
-            f, b = self.fg[k][bins[m]], self.bg[k][bins[m]]
+        return logf[k[:, None], bins], logb[k[:, None], bins]
+
+    def _tables(self) -> tuple[np.ndarray, np.ndarray]:
+        """log pf and log (1 - pf) per (part, colour bin), pf = fg / (fg + bg) clipped to [p_clip, 1 - p_clip];
+        pf = 0.5 in the rows of parts without both histograms and in the last row (parts beyond the tables)."""
+        known = [k for k in self.fg if k in self.bg]
+        pf = np.full((max(known, default=0) + 2, self.cfg.bins**3), 0.5)
+        for k in known:
+            f, b = self.fg[k], self.bg[k]
             s = f + b
-            out[m] = np.where(s > 1e-9, f / np.maximum(s, 1e-12), 0.5)
-        return np.clip(out, self.cfg.p_clip, 1 - self.cfg.p_clip)
+            pf[k] = np.where(s > 1e-9, f / np.maximum(s, 1e-12), 0.5)
+        pf = np.clip(pf, self.cfg.p_clip, 1 - self.cfg.p_clip)
+        return np.log(pf), np.log(1 - pf)
 
     def offsets(self, rgb: np.ndarray, uv: np.ndarray, normal: np.ndarray, sample_instance: np.ndarray,
                 search_px: float) -> np.ndarray:
@@ -106,14 +122,14 @@ class RegionModel:
         contour) of each contour sample at ``uv`` (array convention, the predicted contour)."""
         S = max(int(round(search_px)), 1)
         t = np.arange(-S, S) + 0.5  # pixel centres along the line, the predicted contour at 0
-        p = uv[:, None, :] + t[None, :, None] * normal[:, None, :]
-        cols = cv2.remap(np.ascontiguousarray(rgb, dtype=np.float32), p[..., 0].astype(np.float32),
-                         p[..., 1].astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        pf = self.foreground(cols, sample_instance)
-        lf, lb = np.log(pf), np.log(1 - pf)
+        mx = (uv[:, 0, None] + t[None, :] * normal[:, 0, None]).astype(np.float32)
+        my = (uv[:, 1, None] + t[None, :] * normal[:, 1, None]).astype(np.float32)
+        cols = cv2.remap(np.ascontiguousarray(rgb, dtype=np.float32), mx, my, cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE)
+        lf, lb = self._log_probabilities(cols, sample_instance)
         # E(d) for d at the 2S + 1 boundaries -S .. S: foreground before d, background after
-        cf = np.concatenate([np.zeros((len(pf), 1)), np.cumsum(lf, axis=1)], axis=1)
-        cb = np.concatenate([np.zeros((len(pf), 1)), np.cumsum(lb, axis=1)], axis=1)
+        cf = np.concatenate([np.zeros((len(lf), 1)), np.cumsum(lf, axis=1)], axis=1)
+        cb = np.concatenate([np.zeros((len(lb), 1)), np.cumsum(lb, axis=1)], axis=1)
         E = cf + (cb[:, -1:] - cb)
         d = np.arange(-S, S + 1, dtype=np.float64)
         k = np.argmax(E, axis=1)
