@@ -74,13 +74,15 @@ class RegionModel:
             x, y = np.clip(x, 0, W - 1), np.clip(y, 0, H - 1)
             own = instance[y, x] == sample_instance[:, None]
             keep = inside & (own if side == "fg" else ~own)
-            bins = self._bin(rgb[y, x])
+            nb = self.cfg.bins**3
+            parts, row = np.unique(sample_instance, return_inverse=True)
+            flat = (row.reshape(-1, 1) * nb + self._bin(rgb[y, x]))[keep]  # (part, colour bin) of each pixel kept
+            counts = np.bincount(flat, minlength=len(parts) * nb).reshape(len(parts), nb)
             store = self.fg if side == "fg" else self.bg
-            for k in np.unique(sample_instance):
-                m = keep & (sample_instance == k)[:, None]
-                if m.sum() < 20:
+            for k, c in zip(parts, counts, strict=True):
+                if c.sum() < 20:
                     continue
-                h = np.bincount(bins[m], minlength=self.cfg.bins**3).astype(np.float64)
+                h = c.astype(np.float64)
                 h /= h.sum()
                 k = int(k)
                 a = self.cfg.learn_rate if k in store else 1.0
