@@ -308,6 +308,43 @@ class TestTrackBoxes:
         assert tr._best_of(img, [("turn_5", near)], own=True)[0][1] == "turn_5"
         assert tr._best_of(img, [("nav", far)], own=False)[0][1] == "nav"
 
+    @pytest.mark.parametrize("margin", [0.05, 0.0])
+    def test_a_restart_onto_a_symmetric_structure_is_refused_without_navigation(self, margin: float) -> None:
+        """Four like boxes round a fifth: the structure fits itself turned a quarter round its vertical, so where
+        the camera went while the frames were black cannot be told from the image. A restart from the tracker's
+        own hypotheses is then refused (``unique_margin``); it is taken with the check off. The asymmetric
+        boxes' restart (above) passes the same check."""
+        from dataclasses import replace
+
+        import trimesh
+
+        from cadalign.raycast.core import RaycastRenderer, RenderMesh
+
+        meshes = []
+        for i, p in enumerate([(-1.0, -1.0, 0.3), (1.0, -1.0, 0.3), (1.0, 1.0, 0.3), (-1.0, 1.0, 0.3), (0, 0, 0.5)]):
+            b = trimesh.creation.box(extents=(0.6, 0.6, 0.6) if i < 4 else (0.8, 0.8, 1.0))
+            b.apply_translation(p)
+            meshes.append(RenderMesh(np.asarray(b.vertices), np.asarray(b.faces), i + 1, 1))
+        cam = Camera(np.array([[260.0, 0, 160], [0, 260.0, 120], [0, 0, 1]]), 320, 240)
+        renderer = RaycastRenderer(meshes, cam)
+        light = np.array([0.3, -0.5, -0.8]) / np.linalg.norm([0.3, -0.5, -0.8])
+
+        def render(T_wc: Rigid3) -> np.ndarray:
+            f = renderer.render(T_wc, with_full_masks=False)
+            return np.where(f.instance > 0, 60 + 150 * np.abs(f.normals_cam @ (T_wc.R.T @ light)), 20.0
+                            ).astype(np.float32)
+
+        tr = StructureTracker(meshes, cam, replace(BOXES_TRACKER, unique_margin=margin))
+        assert tr.step(render(_view(0)), [("init", _view(0).inverse())]).state == "ok"
+        assert tr.step(render(_view(1))).state == "ok"
+        black = np.zeros((cam.height, cam.width), np.float32)
+        assert tr.step(black).state == "lost"
+        back = tr.step(render(_view(3)))
+        if margin > 0:
+            assert back.state == "lost" and back.T_cam_from_world is None
+        else:
+            assert back.state == "ok" and _reproj_px(meshes, cam, back.T_cam_from_world, _view(3).inverse()) < 0.5
+
     def test_a_navigation_pose_bounds_the_track_and_restarts_it(self, boxes) -> None:
         """With a rough navigation pose per frame (10 deg / 0.5 m off, as ``sim`` writes them): a frame whose
         navigation pose is far from the image's pose reports nothing, however well the image fits; a cut to

@@ -67,6 +67,10 @@ class TrackerConfig:
     """Refuse a restart from the tracker's own hypotheses (dead reckoning, turned views) whose fit turned the
     camera further from the hypothesis than one pan/tilt search reaches: on the turbid survey right restarts
     turned 4-7 deg, wrong ones 17-89 (docs/tuning/tracker.md#prediction-and-turns)."""
+    unique_margin: float = 0.05
+    """A restart from the tracker's own hypotheses (no navigation pose) is taken only when the view turned by quarter
+    turns round the structure's vertical ranks this much lower (:meth:`StructureTracker.rank`): a lattice fits
+    itself turned (docs/tuning/tracker.md#ambiguous-restarts); 0: off."""
     rank_min_samples: int = 30
     """Contour samples a part needs to count in :meth:`StructureTracker.rank`."""
     start_margin: float = 0.05
@@ -329,7 +333,11 @@ class StructureTracker:
                 if other is not None and other.support > fit.support:
                     fit = other
             if self.good(fit):
-                return self._accept(gray, k, fit, "track", t0, tried)
+                # a track resumed after lost frames rests on the tracker's own belief, as its restarts do
+                refused, n = self._turned_alike(gray, fit, "the resumed track") if self.lost else (False, 0)
+                tried += n
+                if not refused:
+                    return self._accept(gray, k, fit, "track", t0, tried)
             if self._prev is not None:  # the motion changed: the other predictions, the best-ranked passing one
                 fits = [self.edges.fit(gray, T) for T in self._other_predictions()]
                 tried += len(fits)
@@ -381,7 +389,30 @@ class StructureTracker:
                 continue
             if fit is not None and (best is None or self.rank(fit) > self.rank(best[0])):
                 best = (fit, name)
+        if best is not None and own:
+            refused, n = self._turned_alike(gray, best[0], best[1])
+            tried += n
+            if refused:
+                return None, tried
         return best, tried
+
+    def _turned_alike(self, gray: np.ndarray, fit: EdgeFit, name: str) -> tuple[bool, int]:
+        """(whether a pose the tracker found by itself, with no navigation pose to bound it, is refused: the view
+        turned a quarter, a half or three quarters round the structure's vertical through its centre passes and
+        ranks within ``unique_margin`` of it; fits tried)."""
+        if self._nav is not None or self.cfg.unique_margin <= 0:
+            return False, 0
+        c, tried = self._centre, 0
+        for a in (90, 180, 270):
+            R = axis_angle_to_matrix(np.array([0.0, 0.0, np.radians(a)]))
+            alt = self.edges.fit(gray, Rigid3(R, c - R @ c) @ fit.T_world_from_cam, self.cfg.restart_levels)
+            tried += 1
+            if self.good(alt, start=True) and self.rank(alt) > self.rank(fit) - self.cfg.unique_margin:
+                log.info("frame %d: %s refused: the structure turned %d deg round its vertical fits as well (rank "
+                         "%.2f against %.2f); give --nav or a detector to tell the views apart", self._frames - 1,
+                         name, a, self.rank(alt), self.rank(fit))
+                return True, tried
+        return False, tried
 
     def _search(self, gray: np.ndarray, T_world_from_cam: Rigid3) -> tuple[EdgeFit | None, int]:
         """The best-supported passing fit from a rough pose: the pose itself and the candidates of the
