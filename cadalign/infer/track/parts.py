@@ -24,7 +24,7 @@ from cadalign.types import Camera, Rigid3
 
 def _part_tracker() -> TrackerConfig:
     return TrackerConfig(edges=EdgeTrackConfig(prior_px=1.0), acquire=AcquireConfig(max_turn_deg=4.0, max_roll_deg=5.0),
-                         min_samples=30, orbit_step_deg=0.0, turn_step_deg=0.0)
+                         min_samples=30, orbit_step_deg=0.0, turn_step_deg=0.0, unique_margin=0.0)
 
 
 @dataclass(frozen=True)
@@ -33,8 +33,8 @@ class MovableConfig:
 
     tracker: TrackerConfig = field(default_factory=_part_tracker)
     """Each part's tracker: the structure's with a prior on each correction (a lone part's few contours leave
-    directions unfixed), fewer samples needed, a 4 deg start search (neighbours look alike beyond) and no turned
-    views (docs/tuning/tracker.md#movable-parts)."""
+    directions unfixed), fewer samples needed, a 4 deg start search, no turned views and no test of them (a part's
+    symmetry is declared; docs/tuning/tracker.md#movable-parts)."""
 
 
 def part_record(structure: Structure, k: int, T_cam_from_world: Rigid3, mask: np.ndarray, score: float,
