@@ -290,11 +290,10 @@ class EdgeTracker:
         inst = sample_instances(uv, n, instance)  # the part of each sample's near pixel
         found = np.isfinite(off)
         near = found & (np.abs(np.nan_to_num(off, nan=np.inf)) <= tol_px / 1.5)
-        parts, row = np.unique(inst, return_inverse=True)
-        n_k, ok_k = np.bincount(row, minlength=len(parts)), np.bincount(row, ok, minlength=len(parts))
-        near_k, found_k = np.bincount(row, near, minlength=len(parts)), np.bincount(row, found, minlength=len(parts))
-        per = {int(k): (int(n_k[j]), float(ok_k[j] / n_k[j]), float(near_k[j] / max(found_k[j], 1)))
-               for j, k in enumerate(parts)}
+        n_k = np.bincount(inst)  # per part (ray-cast instance ids are small non-negative integers)
+        ok_k, near_k, found_k = (np.bincount(inst, w, minlength=len(n_k)) for w in (ok, near, found))
+        per = {int(k): (int(n_k[k]), float(ok_k[k] / n_k[k]), float(near_k[k] / max(found_k[k], 1)))
+               for k in np.flatnonzero(n_k)}
         res = float(np.median(np.abs(off[ok]))) * to_full if ok.any() else float("nan")
         rsup, rper = self._region_support(uv, n, inst, g.shape[:2], to_full)
         return EdgeFit(T, len(off), float(ok.mean()), res, per, instance, uv * to_full, ok, off * to_full, n,
@@ -310,9 +309,9 @@ class EdgeTracker:
         tol = self.cfg.region_support_px / to_full
         roff = self.region.offsets(self.colour_at(self.camera), uv, n, inst, 2 * tol)
         rok = np.abs(np.nan_to_num(roff, nan=np.inf)) <= tol
-        parts, row = np.unique(inst, return_inverse=True)
-        share = np.bincount(row, rok, minlength=len(parts)) / np.bincount(row, minlength=len(parts))
-        return float(rok.mean()), {int(k): float(v) for k, v in zip(parts, share, strict=True)}
+        n_k = np.bincount(inst)
+        rok_k = np.bincount(inst, rok, minlength=len(n_k))
+        return float(rok.mean()), {int(k): float(rok_k[k] / n_k[k]) for k in np.flatnonzero(n_k)}
 
     def with_region(self, fit: EdgeFit) -> EdgeFit:
         """``fit`` (full resolution) with its region support read again, e.g. once the colours were learned on

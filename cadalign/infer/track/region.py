@@ -65,6 +65,8 @@ class RegionModel:
         array-convention contour positions and ``normal`` (N, 2) at full resolution, ``sample_instance`` (N,)
         each sample's part, ``instance`` (H, W) the ray-cast instance map at the pose. A pixel teaches a part's
         foreground only where the map shows the part, its background only where it does not."""
+        if len(uv) == 0:
+            return
         H, W = instance.shape
         t = np.arange(self.cfg.line_px) + 0.5
         for side, sign in (("fg", -1.0), ("bg", 1.0)):
@@ -74,12 +76,12 @@ class RegionModel:
             x, y = np.clip(x, 0, W - 1), np.clip(y, 0, H - 1)
             own = instance[y, x] == sample_instance[:, None]
             keep = inside & (own if side == "fg" else ~own)
-            nb = self.cfg.bins**3
-            parts, row = np.unique(sample_instance, return_inverse=True)
-            flat = (row.reshape(-1, 1) * nb + self._bin(rgb[y, x]))[keep]  # (part, colour bin) of each pixel kept
-            counts = np.bincount(flat, minlength=len(parts) * nb).reshape(len(parts), nb)
+            nb, k_of = self.cfg.bins**3, sample_instance.astype(np.int64)  # parts: small non-negative ids
+            flat = (k_of.reshape(-1, 1) * nb + self._bin(rgb[y, x]))[keep]  # (part, colour bin) of each pixel kept
+            counts = np.bincount(flat, minlength=(k_of.max() + 1) * nb).reshape(-1, nb)
             store = self.fg if side == "fg" else self.bg
-            for k, c in zip(parts, counts, strict=True):
+            for k in np.flatnonzero(np.bincount(k_of)):
+                c = counts[k]
                 if c.sum() < 20:
                     continue
                 h = c.astype(np.float64)
