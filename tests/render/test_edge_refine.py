@@ -117,6 +117,10 @@ def test_edge_search_reports_nothing_without_an_edge_or_beyond_its_range() -> No
     uv, n = np.array([[30.0, 10.0]]), np.array([[1.0, 0.0]])
     assert np.isnan(search_edges(flat, uv, n, CFG)).all()
     assert np.isnan(search_edges(_step_image(30.0 + 6.0, True), uv, n, CFG)).all()  # 6 px away, range 3 px
+    # an edge just inside the range's end has no neighbour beyond it for the sub-pixel peak: nothing either
+    assert np.isnan(search_edges(_step_image(30.0 + CFG.search_px + 0.25, True), uv, n, CFG)).all()
+    assert np.isfinite(search_edges(_step_image(30.0 + CFG.search_px - 1.0, True), uv, n, CFG)).all()
+    assert search_edges(flat, np.zeros((0, 2)), np.zeros((0, 2)), CFG).shape == (0,)  # no contour samples
 
 
 def test_robust_fit_recovers_a_known_motion_despite_gross_outliers() -> None:
