@@ -88,6 +88,23 @@ def read_json(path: Path) -> Any:
                          "that wrote it") from exc
 
 
+def read_jsonl(path: Path) -> list[Any]:
+    """The records of a JSON-lines file (``track.jsonl``, ``poses.jsonl``), one per non-empty line."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"missing file: {path}")
+    out = []
+    for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            out.append(json.loads(line))
+        except ValueError as exc:
+            raise InputError(f"{path}, line {i} is not valid JSON ({exc}); delete the file and re-run the stage "
+                             "that wrote it (a run cut short leaves a partial last line)") from exc
+    return out
+
+
 def write_image(path: Path, image: np.ndarray, *, atomic: bool = True) -> Path:
     """Write an image (uint8/uint16; RGB order for 3 channels); format from the suffix.
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from cadalign.errors import ConfigError, InputError
-from cadalign.io import atomic_path, prepare_stage_dir, read_image, read_json, write_image, write_json
+from cadalign.io import atomic_path, prepare_stage_dir, read_image, read_json, read_jsonl, write_image, write_json
 
 
 def test_atomic_write_leaves_nothing_on_failure(tmp_path):
@@ -33,6 +33,17 @@ def test_corrupt_image_and_json_name_the_file(tmp_path):
     (tmp_path / "bad.json").write_text("{")
     with pytest.raises(InputError, match="bad.json"):
         read_json(tmp_path / "bad.json")
+
+
+def test_jsonl_records_and_a_cut_last_line(tmp_path):
+    p = tmp_path / "track.jsonl"
+    p.write_text('{"frame": 0, "state": "ok"}\n\n{"frame": 1, "state": "lost"}\n')
+    assert [r["state"] for r in read_jsonl(p)] == ["ok", "lost"]  # blank lines skipped
+    p.write_text('{"frame": 0}\n{"frame": 1, "sta')  # a run cut short
+    with pytest.raises(InputError, match="line 2"):
+        read_jsonl(p)
+    with pytest.raises(InputError, match="missing file"):
+        read_jsonl(tmp_path / "none.jsonl")
 
 
 def test_stage_dir_reuses_same_config_and_refuses_another(tmp_path):

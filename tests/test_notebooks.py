@@ -35,6 +35,16 @@ def test_simulate_notebook_runs(tmp_path: Path, shared_data: Path) -> None:
     assert _images(nb) >= 2
 
 
+def test_track_notebook_tracks_a_capture_from_a_rough_fix(tmp_path: Path, shared_data: Path) -> None:
+    """03_track: simulate 6 small frames, track them RGB only from the first frame's rough fix, plot, score."""
+    nb = execute_notebook("03_track.ipynb", {"CADALIGN_NOTEBOOK_TINY": "1", "CADALIGN_NOTEBOOK_OUT": str(tmp_path),
+                                             "CADALIGN_DATA_DIR": str(shared_data)})
+    assert (tmp_path / "track" / "poses.jsonl").is_file() and (tmp_path / "track" / "truth_errors.png").is_file()
+    text = "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.outputs)
+    assert "6 of 6 frames tracked" in text and "valve" in text
+    assert _images(nb) >= 3
+
+
 @pytest.mark.parametrize("name", sorted(p.name for p in (REPO / "notebooks").glob("*.ipynb")))
 def test_every_notebook_is_run_by_a_test(name: str) -> None:
     """A new notebook needs its own run above (or in tests/bench for the bench one)."""

@@ -36,7 +36,7 @@ from cadalign.infer.track.parts import MovableConfig, MovableParts, part_record,
 from cadalign.infer.track.start import pose_from_picks
 from cadalign.infer.track.tracker import StructureTracker, TrackerConfig, TrackStep
 from cadalign.infer.video import iter_frames
-from cadalign.io import atomic_path, fingerprint, prepare_stage_dir, read_json, write_json
+from cadalign.io import atomic_path, fingerprint, prepare_stage_dir, read_json, read_jsonl, write_json
 from cadalign.sim.structure import Structure
 from cadalign.types import Camera, Progress, Rigid3
 
@@ -277,7 +277,7 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
 def _log_end(track_path: Path, cfg: TrackerConfig, n_records: int) -> list[int]:
     """Log what was tracked, and warn when frames were lost only because their fit was too far from the
     navigation pose (the navigation may be in another frame, or rougher than the bounds); returns those frames."""
-    rows = [json.loads(line) for line in track_path.read_text(encoding="utf-8").splitlines()]
+    rows = read_jsonl(track_path)
     ok = sum(r["state"] == "ok" for r in rows)
     log.info("track: %d frames, %d tracked, %d lost, %d poses -> %s", len(rows), ok, len(rows) - ok, n_records,
              track_path.parent / "poses.jsonl")
@@ -367,8 +367,7 @@ def truth_report(out_dir: Path, structure: Structure, truth: dict[str, Rigid3]) 
     frame has none."""
 
     rows = []
-    for line in (Path(out_dir) / "track.jsonl").read_text(encoding="utf-8").splitlines():
-        d = json.loads(line)
+    for d in read_jsonl(Path(out_dir) / "track.jsonl"):
         T_ref = truth.get(d["frame_name"])
         if T_ref is None:
             continue
@@ -398,7 +397,7 @@ def truth_report(out_dir: Path, structure: Structure, truth: dict[str, Rigid3]) 
 def _plot_truth(path: Path, rows: list[dict], names: list[str]) -> None:
     from matplotlib.figure import Figure  # lazy: heavy dependency (matplotlib)
 
-    fig = Figure(figsize=(9, 5), dpi=100)
+    fig = Figure(figsize=(9 if len(names) <= 6 else 11, 5), dpi=100)
     ax1, ax2 = fig.subplots(2, 1, sharex=True)
     for name in names:
         f = [r["frame"] for r in rows if name in r["parts"]]
@@ -412,7 +411,10 @@ def _plot_truth(path: Path, rows: list[dict], names: list[str]) -> None:
     ax1.set_ylabel("centre error, mm")
     ax2.set_ylabel("rotation error, deg")
     ax2.set_xlabel("frame (grey: lost, no pose reported)")
-    ax1.legend()
+    if len(names) <= 6:
+        ax1.legend()
+    else:  # a whole structure's parts: beside the plots, not over them
+        ax1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, ncol=1 + len(names) // 14)
     ax1.set_title("tracked part poses against the reference poses")
     fig.tight_layout()
     fig.savefig(path)
