@@ -149,9 +149,9 @@ def search_edges(gray: np.ndarray, uv: np.ndarray, normal: np.ndarray, cfg: Edge
     channels each sample takes the channel whose edge is strongest (a yellow part on a white desk differs in
     blue, hardly in grey)."""
 
-    if len(uv) == 0:
-        return np.zeros(0)
     S = float(cfg.search_px)
+    if len(uv) == 0 or S < 0.5:  # under half a pixel each way there is no far half to read the contrast from
+        return np.full(len(uv), np.nan)
     s = np.arange(-S - 1.0, S + 1.0 + 1e-9, 0.5)  # half-pixel samples
     mx = (uv[:, 0, None] + s[None, :] * normal[:, 0, None]).astype(np.float32)
     my = (uv[:, 1, None] + s[None, :] * normal[:, 1, None]).astype(np.float32)

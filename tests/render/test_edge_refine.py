@@ -121,6 +121,8 @@ def test_edge_search_reports_nothing_without_an_edge_or_beyond_its_range() -> No
     assert np.isnan(search_edges(_step_image(30.0 + CFG.search_px + 0.25, True), uv, n, CFG)).all()
     assert np.isfinite(search_edges(_step_image(30.0 + CFG.search_px - 1.0, True), uv, n, CFG)).all()
     assert search_edges(flat, np.zeros((0, 2)), np.zeros((0, 2)), CFG).shape == (0,)  # no contour samples
+    tiny = EdgeRefineConfig(search_px=0.4)  # no far half of the range to read the contrast's sign from
+    assert np.isnan(search_edges(_step_image(30.2, True), uv, n, tiny)).all()
 
 
 def test_robust_fit_recovers_a_known_motion_despite_gross_outliers() -> None:
