@@ -32,6 +32,7 @@ from cadalign.geometry.rotations import geodesic_angle
 from cadalign.infer.pipeline import PoseRecord
 from cadalign.infer.run import evaluate_run, video_writer
 from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, as_gray, with_levels
+from cadalign.infer.track.hidden import HiddenContours
 from cadalign.infer.track.parts import MovableConfig, MovableParts, part_record, split_hypotheses
 from cadalign.infer.track.start import pose_from_picks
 from cadalign.infer.track.tracker import StructureTracker, TrackerConfig, TrackStep
@@ -70,6 +71,12 @@ class TrackRunConfig:
     it has fewer than ``min_region_samples`` it keeps its verdict)."""
     min_region_samples: int = 20
     """Contour samples a part needs for the region check."""
+    min_hidden_samples: int = 10
+    """A part hiding at least this many of the structure's contour samples (cast at half resolution), of which the
+    image shows few (``hidden_seen``), is present whatever its own edges and colours (:mod:`.hidden`)."""
+    hidden_seen: float = 0.5
+    """... few: edges at fewer than this share of the frame's edge support (absent parts showed 0.57-1.4 of it, faint
+    present ones 0-0.39: docs/tuning/tracker.md#the-contours-a-part-hides-s53)."""
     confirm_missing: int = 2
     """A part last found present is reported missing only after this many missing checks in a row; one check
     decides for a part never checked: an absent part is missing from frame 0 (docs/tuning/tracker.md#missing-parts)."""
@@ -138,10 +145,13 @@ class PartMemory:
 
 
 def part_records(step: TrackStep, frame_index: int, name: str, structure: Structure, cfg: TrackRunConfig,
-                 memory: PartMemory | None = None) -> tuple[list[PoseRecord], list[str]]:
+                 memory: PartMemory | None = None, hidden: dict[int, tuple[int, float]] | None = None,
+                 ) -> tuple[list[PoseRecord], list[str]]:
     """The records of one tracked frame's visible parts, and the names of parts found missing.
 
-    ``memory``: what earlier frames' checks found (pass the same one for every frame of a video)."""
+    ``memory``: what earlier frames' checks found (pass the same one for every frame of a video). ``hidden``:
+    per part, the structure's contour samples it hides and the share the image shows
+    (:meth:`~cadalign.infer.track.hidden.HiddenContours.seen`)."""
     memory = PartMemory() if memory is None else memory
     if step.T_cam_from_world is None or step.fit is None or step.fit.instance is None:
         return [], []
@@ -155,7 +165,10 @@ def part_records(step: TrackStep, frame_index: int, name: str, structure: Struct
         n, share, conc = step.fit.instance_support.get(k, (0, 0.0, 0.0))
         region = step.fit.instance_region.get(k, float("nan"))
         edges_gone = n >= cfg.min_part_samples and (share < cfg.min_part_support or conc < cfg.min_part_concentration)
-        if n >= cfg.min_region_samples and np.isfinite(region):
+        n_hidden, seen = (hidden or {}).get(k, (0, 1.0))
+        if n_hidden >= cfg.min_hidden_samples and seen < cfg.hidden_seen * step.fit.support:
+            memory.update(k, False, cfg.confirm_missing)  # it hides the structure's contours: it is there
+        elif n >= cfg.min_region_samples and np.isfinite(region):
             if memory.missing.get(k):
                 memory.update(k, bool(region < cfg.present_part_region or edges_gone), cfg.confirm_missing)
             else:
@@ -223,7 +236,7 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
     names: list[str] = []
     times: dict[str, list[float]] = {"track": [], "restart": [], "detector": [], "overlay": []}
     states = {"ok": 0, "lost": 0}
-    memory = PartMemory()  # per part: what the missing-part checks found so far
+    memory, behind = PartMemory(), HiddenContours(structure, camera)  # the missing-part checks' memory and cue
     writer = None
     frames = iter_frames(source, max_frames=max_frames, topic=topic)
     video_ctx = atomic_path(out_dir / "overlay.mp4") if cfg.overlay else contextlib.nullcontext(None)
@@ -251,7 +264,8 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                 (times["restart"] if step.source not in ("track",) else times["track"]).append(step.seconds)
                 states[step.state] += 1
                 part_steps = parts.step(gray, rgb, step.T_cam_from_world, part_hyps)
-                recs, missing = part_records(step, vf.index, vf.name, structure, cfg, memory)
+                recs, missing = part_records(step, vf.index, vf.name, structure, cfg, memory, behind.seen(
+                    gray, step, cfg.tracker.edges.support_px, cfg.tracker.edges.min_contrast))
                 recs += parts.records(part_steps, vf.index, vf.name, cfg.min_visible_px)
                 for r in recs:
                     fh.write(json.dumps(r.to_json()) + "\n")

@@ -1,0 +1,69 @@
+"""Is a part there? The contours of the structure that it would hide.
+
+A part in front of the structure hides some of the structure's own occluding contours (a beam's outline behind a
+valve). Where the part is present the image shows its surface there, not those contours; where it is absent the
+image shows them as at any other place of the structure. This cue does not depend on the part's own contrast,
+which fails for a faint part (a dark valve on dark water) as for an absent one.
+
+The structure here is the parts of class ``structure`` (the frame, plates, panels: the eval's ignored class);
+the other parts (valves, hot stabs) are the ones checked. Its contours are ray-cast without the checked parts at
+half resolution, and those whose near pixel lies in a checked part's visible mask (at full resolution) are searched
+for an image edge as the tracker's quality test does.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from cadalign.align.edge_refine import EdgeRefineConfig, contour_samples, search_edges
+from cadalign.geometry.camera import project
+from cadalign.raycast.core import RaycastRenderer
+from cadalign.sim.structure import Structure
+from cadalign.types import Camera
+
+BACKGROUND_CLASS = "structure"
+
+
+class HiddenContours:
+    """The structure's contours that each checked part hides at a tracked pose, and the share the image shows."""
+
+    def __init__(self, structure: Structure, camera: Camera, scale: float = 0.5) -> None:
+        meshes = [m for m in structure.render_meshes() if structure.class_names[m.class_id] == BACKGROUND_CLASS]
+        self.background = {m.instance for m in meshes}
+        self.camera = camera
+        small = camera.scaled(max(int(round(camera.width * scale)), 8), max(int(round(camera.height * scale)), 8))
+        self.renderer = RaycastRenderer(meshes, small) if meshes else None
+
+    def seen(self, gray: np.ndarray, step: Any, support_px: float = 1.5, min_contrast: float = 3.0,
+             ) -> dict[int, tuple[int, float]]:
+        """Per checked part (ray-cast instance) visible in a tracked frame: (the structure's contour samples it
+        hides, the share of them with an image edge of at least ``min_contrast`` within ``support_px``
+        full-resolution pixels, as the tracker's quality test reads edges); empty for a lost frame or a structure
+        without background parts. ``step``: the tracker's :class:`~cadalign.infer.track.tracker.TrackStep`."""
+        fit = step.fit
+        if self.renderer is None or step.T_cam_from_world is None or fit is None or fit.instance is None:
+            return {}
+        f = self.renderer.render(step.T_cam_from_world.inverse(), with_full_masks=False, with_normals=False)
+        X_cam, _, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, EdgeRefineConfig(point_step=1), f.instance)
+        if len(X_cam) == 0:
+            return {}
+        uv, _ = project(self.camera.K, X_cam)
+        uv = uv - 0.5 + 0.5 * n  # array convention, half a pixel towards the far side (as the tracker's samples)
+        H, W = fit.instance.shape
+        near = np.floor(uv - 0.5 * n + 0.5).astype(int)
+        ok = (near[:, 0] >= 0) & (near[:, 0] < W) & (near[:, 1] >= 0) & (near[:, 1] < H)
+        part = np.zeros(len(uv), dtype=np.int64)
+        part[ok] = fit.instance[near[ok, 1], near[ok, 0]]
+        hidden = (part > 0) & ~np.isin(part, list(self.background))
+        if not hidden.any():
+            return {}
+        cfg = EdgeRefineConfig(search_px=2.0 * support_px, min_contrast=min_contrast)
+        off = search_edges(gray, uv[hidden], n[hidden], cfg)
+        edge = np.abs(np.nan_to_num(off, nan=np.inf)) <= support_px
+        out = {}
+        for k in np.unique(part[hidden]):
+            m = part[hidden] == k
+            out[int(k)] = (int(m.sum()), float(edge[m].mean()))
+        return out
