@@ -256,7 +256,7 @@ class EdgeTracker:
                       ) -> tuple[np.ndarray, np.ndarray]:
         """(edge offsets, region offsets) of contour points ``X_w`` seen from ``T``, pixels of the level (NaN:
         none; all NaN region offsets without the region term)."""
-        uv = _pixels(r.camera.K, T.inverse().apply(X_w)) + 0.5 * n
+        uv = array_pixels(r.camera.K, T.inverse().apply(X_w)) + 0.5 * n
         off = search_edges(g, uv, n, cfg)
         if region is None:
             return off, np.full(len(off), np.nan)
@@ -268,7 +268,7 @@ class EdgeTracker:
         s = r.camera.width / self.camera.width
         cfg = self._level_cfg(2.0 * self.cfg.support_px * s)
         Xc = T.inverse().apply(X_w)
-        uv = _pixels(r.camera.K, Xc) + 0.5 * n
+        uv = array_pixels(r.camera.K, Xc) + 0.5 * n
         return self._support(T, uv, n, g, f.instance, cfg, self.cfg.support_px * s, 1.0 / s, f.depth_m)
 
     def judge(self, gray: np.ndarray, T_world_from_cam: Rigid3) -> EdgeFit:
@@ -277,7 +277,7 @@ class EdgeTracker:
         f = r.render(T_world_from_cam, with_full_masks=False, with_normals=False)
         cfg = self._level_cfg(2.0 * self.cfg.support_px)
         X_cam, _, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, cfg, f.instance)
-        return self._support(T_world_from_cam, _pixels(r.camera.K, X_cam) + 0.5 * n, n, gray, f.instance, cfg,
+        return self._support(T_world_from_cam, array_pixels(r.camera.K, X_cam) + 0.5 * n, n, gray, f.instance, cfg,
                              self.cfg.support_px, 1.0, f.depth_m)
 
     def _support(self, T: Rigid3, uv: np.ndarray, n: np.ndarray, g: np.ndarray, instance: np.ndarray,
@@ -327,8 +327,9 @@ def _share_within(off: np.ndarray, tol_px: float) -> float:
     return float(np.mean(np.abs(np.nan_to_num(off, nan=np.inf)) <= tol_px)) if len(off) else 0.0
 
 
-def _pixels(K: np.ndarray, X_cam: np.ndarray) -> np.ndarray:
-    """(N, 2) array-convention pixel positions (centres at integers) of camera-frame points."""
+def array_pixels(K: np.ndarray, X_cam: np.ndarray) -> np.ndarray:
+    """(N, 2) array-convention pixel positions (centres at integers) of camera-frame points; a point behind the
+    camera lands far outside the image."""
     uv, valid = project(K, X_cam)
     # a point behind the camera goes far outside the image, where the search finds no edge
     return np.where(valid[:, None], uv - 0.5, -1e4)

@@ -13,15 +13,18 @@ for an image edge as the tracker's quality test does.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cadalign.align.edge_refine import EdgeRefineConfig, contour_samples, search_edges
-from cadalign.geometry.camera import project
+from cadalign.infer.track.edges import array_pixels
 from cadalign.raycast.core import RaycastRenderer
 from cadalign.sim.structure import Structure
 from cadalign.types import Camera
+
+if TYPE_CHECKING:
+    from cadalign.infer.track.tracker import TrackStep
 
 BACKGROUND_CLASS = "structure"
 
@@ -36,12 +39,12 @@ class HiddenContours:
         small = camera.scaled(max(int(round(camera.width * scale)), 8), max(int(round(camera.height * scale)), 8))
         self.renderer = RaycastRenderer(meshes, small) if meshes else None
 
-    def seen(self, gray: np.ndarray, step: Any, support_px: float = 1.5, min_contrast: float = 3.0,
+    def seen(self, gray: np.ndarray, step: TrackStep, support_px: float = 1.5, min_contrast: float = 3.0,
              ) -> dict[int, tuple[int, float]]:
         """Per checked part (ray-cast instance) visible in a tracked frame: (the structure's contour samples it
         hides, the share of them with an image edge of at least ``min_contrast`` within ``support_px``
         full-resolution pixels, as the tracker's quality test reads edges); empty for a lost frame or a structure
-        without background parts. ``step``: the tracker's :class:`~cadalign.infer.track.tracker.TrackStep`."""
+        without background parts."""
         fit = step.fit
         if self.renderer is None or step.T_cam_from_world is None or fit is None or fit.instance is None:
             return {}
@@ -49,8 +52,7 @@ class HiddenContours:
         X_cam, _, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, EdgeRefineConfig(point_step=1), f.instance)
         if len(X_cam) == 0:
             return {}
-        uv, _ = project(self.camera.K, X_cam)
-        uv = uv - 0.5 + 0.5 * n  # array convention, half a pixel towards the far side (as the tracker's samples)
+        uv = array_pixels(self.camera.K, X_cam) + 0.5 * n  # half a pixel towards the far side, as the tracker's
         H, W = fit.instance.shape
         near = np.floor(uv - 0.5 * n + 0.5).astype(int)
         ok = (near[:, 0] >= 0) & (near[:, 0] < W) & (near[:, 1] >= 0) & (near[:, 1] < H)
@@ -62,8 +64,6 @@ class HiddenContours:
         cfg = EdgeRefineConfig(search_px=2.0 * support_px, min_contrast=min_contrast)
         off = search_edges(gray, uv[hidden], n[hidden], cfg)
         edge = np.abs(np.nan_to_num(off, nan=np.inf)) <= support_px
-        out = {}
-        for k in np.unique(part[hidden]):
-            m = part[hidden] == k
-            out[int(k)] = (int(m.sum()), float(edge[m].mean()))
-        return out
+        n_k = np.bincount(part[hidden])
+        seen_k = np.bincount(part[hidden], edge, minlength=len(n_k))
+        return {int(k): (int(n_k[k]), float(seen_k[k] / n_k[k])) for k in np.flatnonzero(n_k)}

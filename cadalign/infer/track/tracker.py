@@ -270,12 +270,15 @@ class StructureTracker:
         """The last view turned round the vertical through the structure's centre (a cut to another side)."""
         if self._last is None or self.cfg.orbit_step_deg <= 0:
             return []
-        c = self._centre
-        views = []
-        for a in np.arange(self.cfg.orbit_step_deg, 360.0 - 1e-6, self.cfg.orbit_step_deg):
-            R = axis_angle_to_matrix(np.array([0.0, 0.0, np.radians(a)]))
-            views.append((f"orbit_{a:.0f}", Rigid3(R, c - R @ c) @ self._last))  # the world turned round c
+        views = [(f"orbit_{a:.0f}", self._round_structure(a, self._last))
+                 for a in np.arange(self.cfg.orbit_step_deg, 360.0 - 1e-6, self.cfg.orbit_step_deg)]
         return self._best_views(gray, views)
+
+    def _round_structure(self, deg: float, T_world_from_cam: Rigid3) -> Rigid3:
+        """The camera carried ``deg`` degrees round the vertical (world z) through the structure's centre: the view
+        it would have if the structure were turned the other way."""
+        R = axis_angle_to_matrix(np.array([0.0, 0.0, np.radians(deg)]))
+        return Rigid3(R, self._centre - R @ self._centre) @ T_world_from_cam
 
     def _turn_hypotheses(self, gray: np.ndarray) -> list[tuple[str, Rigid3]]:
         """The camera carried on at its last step and orientation over the lost frames, then turned on the spot
@@ -402,10 +405,9 @@ class StructureTracker:
         ranks within ``unique_margin`` of it; fits tried)."""
         if self._nav is not None or self.cfg.unique_margin <= 0:
             return False, 0
-        c, tried = self._centre, 0
+        tried = 0
         for a in (90, 180, 270):
-            R = axis_angle_to_matrix(np.array([0.0, 0.0, np.radians(a)]))
-            alt = self.edges.fit(gray, Rigid3(R, c - R @ c) @ fit.T_world_from_cam, self.cfg.restart_levels)
+            alt = self.edges.fit(gray, self._round_structure(a, fit.T_world_from_cam), self.cfg.restart_levels)
             tried += 1
             if self.good(alt, start=True) and self.rank(alt) > self.rank(fit) - self.cfg.unique_margin:
                 log.info("frame %d: %s refused: the structure turned %d deg round its vertical fits as well (rank "
