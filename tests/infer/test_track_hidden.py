@@ -12,7 +12,7 @@ from infer_testdata import look_at
 from test_track import TRACK_SCENE
 
 from cadalign.infer.track.edges import EdgeFit
-from cadalign.infer.track.hidden import HiddenContours
+from cadalign.infer.track.hidden import HiddenContours, HiddenSeen
 from cadalign.infer.track.run import PartMemory, TrackRunConfig, part_records
 from cadalign.infer.track.tracker import TrackStep
 from cadalign.raycast.core import RaycastRenderer
@@ -56,9 +56,10 @@ def test_hidden_contours_tell_an_absent_part_from_a_faint_one(block) -> None:
     step = SimpleNamespace(T_cam_from_world=T_wc.inverse(), fit=SimpleNamespace(instance=instance))
     seen = {case: cue.seen(image(*args)[0], step)[2] for case, args in
             {"present": (True,), "faint": (True, True), "absent": (False,)}.items()}
-    assert all(n >= 20 for n, _ in seen.values())  # the valve hides a stretch of the block's outline
-    assert seen["present"][1] < 0.1 and seen["faint"][1] < 0.1  # hidden by the part, however faint it is
-    assert seen["absent"][1] > 0.6  # shown where the part is not
+    assert all(h.samples >= 20 and h.deep_samples >= 5 for h in seen.values())  # it hides a stretch of the outline
+    assert seen["present"].seen < 0.1 and seen["faint"].seen < 0.1  # hidden by the part, however faint it is
+    assert seen["absent"].seen > 0.6  # shown where the part is not
+    assert seen["present"].deep_seen < 0.1 and seen["faint"].deep_seen < 0.1 and seen["absent"].deep_seen > 0.6
     assert cue.seen(image(True)[0], SimpleNamespace(T_cam_from_world=None, fit=None)) == {}  # a lost frame
 
 
@@ -75,6 +76,29 @@ def test_hidden_contours_decide_a_part_whatever_its_own_edges(block) -> None:
         return part_records(step, 0, "f", structure, cfg, PartMemory(), hidden)[1] == ["valve"]
 
     assert missing(None)  # no image edges on its outline: missing, by its own edges
-    assert not missing({2: (25, 0.1)})  # but it hides the structure's outline: it is there
-    assert missing({2: (25, 0.6)})  # the outline shows there (or texture fools the search): its own edges decide
-    assert missing({2: (5, 0.1)})  # too few hidden samples to say: its own edges decide
+    assert not missing({2: HiddenSeen(25, 0.1, 0, np.nan)})  # but it hides the structure's outline: it is there
+    assert missing({2: HiddenSeen(25, 0.6, 0, np.nan)})  # the outline shows (or texture fools the search): its edges
+    assert missing({2: HiddenSeen(5, 0.1, 0, np.nan)})  # too few hidden samples to say: its own edges decide
+
+
+def test_deep_hidden_contours_pooled_over_frames_call_a_part_missing(block) -> None:
+    """A part whose own outline finds edges (texture behind an absent valve can) is missing once the structure's
+    contours deep inside its outline, pooled over frames, show as the rest of the structure does."""
+    structure = block[0]
+    instance = np.zeros((CAM.height, CAM.width), np.int32)
+    instance[100:140, 150:190] = 2
+    fit = EdgeFit(look_at(np.array([0.5, -6.0, 2.0]), np.zeros(3)), 500, 0.8, 0.2, {2: (40, 0.7, 0.7)},
+                  instance=instance)
+    step = TrackStep(0, "ok", fit.T_world_from_cam.inverse(), fit, "track", 0.0)
+    cfg = TrackRunConfig()
+
+    def verdicts(deep_seen: float, frames: int = 5) -> list[bool]:
+        memory = PartMemory()
+        return [part_records(step, k, "f", structure, cfg, memory, {2: HiddenSeen(12, deep_seen, 8, deep_seen)})[1]
+                == ["valve"] for k in range(frames)]
+
+    # 8 deep samples a frame: 24 >= absent_samples from the third frame; seen 0.75 >= 0.85 x the frame's 0.8
+    # support; a part found present is called missing after confirm_missing (2) such verdicts in a row
+    assert verdicts(0.75) == [False, False, False, True, True]
+    assert not any(verdicts(0.5))  # below the share: present, as its own edges say
+    assert cfg.absent_samples > 16 and cfg.confirm_missing == 2  # what the first case's count of frames rests on

@@ -9,12 +9,17 @@ The structure here is the parts of class ``structure`` (the frame, plates, panel
 the other parts (valves, hot stabs) are the ones checked. Its contours are ray-cast without the checked parts at
 half resolution, and those whose near pixel lies in a checked part's visible mask (at full resolution) are searched
 for an image edge as the tracker's quality test does.
+
+Those at least :data:`DEEP_PX` inside the part's visible outline are counted apart ("deep"): the part's own outline
+cannot explain an edge found there, so many of them showing is evidence that the part is absent (a thin part, a
+hot stab, has none).
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
+import cv2
 import numpy as np
 
 from cadalign.align.edge_refine import EdgeRefineConfig, contour_samples, search_edges
@@ -27,6 +32,22 @@ if TYPE_CHECKING:
     from cadalign.infer.track.tracker import TrackStep
 
 BACKGROUND_CLASS = "structure"
+DEEP_PX = 3.0
+"""Full-resolution pixels a hidden contour sample must lie inside the part's visible outline to count as deep: twice
+the tracker's ``support_px`` (1.5), so that an edge of the outline itself is too far to support it."""
+
+
+class HiddenSeen(NamedTuple):
+    """What the image shows of the structure's contours one part hides."""
+
+    samples: int
+    """Hidden contour samples (half-resolution cast)."""
+    seen: float
+    """Share of them with an image edge."""
+    deep_samples: int
+    """Those at least :data:`DEEP_PX` inside the part's visible outline."""
+    deep_seen: float
+    """Share of those with an image edge; NaN without any."""
 
 
 class HiddenContours:
@@ -40,11 +61,11 @@ class HiddenContours:
         self.renderer = RaycastRenderer(meshes, small) if meshes else None
 
     def seen(self, gray: np.ndarray, step: TrackStep, support_px: float = 1.5, min_contrast: float = 3.0,
-             ) -> dict[int, tuple[int, float]]:
-        """Per checked part (ray-cast instance) visible in a tracked frame: (the structure's contour samples it
-        hides, the share of them with an image edge of at least ``min_contrast`` within ``support_px``
-        full-resolution pixels, as the tracker's quality test reads edges); empty for a lost frame or a structure
-        without background parts."""
+             ) -> dict[int, HiddenSeen]:
+        """Per checked part (ray-cast instance) visible in a tracked frame: the structure's contour samples it
+        hides and the share of them with an image edge of at least ``min_contrast`` within ``support_px``
+        full-resolution pixels (as the tracker's quality test reads edges), all and deep; empty for a lost frame or
+        a structure without background parts."""
         fit = step.fit
         if self.renderer is None or step.T_cam_from_world is None or fit is None or fit.instance is None:
             return {}
@@ -64,6 +85,25 @@ class HiddenContours:
         cfg = EdgeRefineConfig(search_px=2.0 * support_px, min_contrast=min_contrast)
         off = search_edges(gray, uv[hidden], n[hidden], cfg)
         edge = np.abs(np.nan_to_num(off, nan=np.inf)) <= support_px
-        n_k = np.bincount(part[hidden])
-        seen_k = np.bincount(part[hidden], edge, minlength=len(n_k))
-        return {int(k): (int(n_k[k]), float(seen_k[k] / n_k[k])) for k in np.flatnonzero(n_k)}
+        k_h = part[hidden]
+        n_k = np.bincount(k_h)
+        seen_k = np.bincount(k_h, edge, minlength=len(n_k))
+        # the outline lies half a pixel beyond the centre of the nearest pixel of another instance
+        deep = _inside_by(fit.instance)[near[hidden, 1], near[hidden, 0]] + 0.5 >= DEEP_PX
+        nd_k = np.bincount(k_h, deep, minlength=len(n_k))
+        sd_k = np.bincount(k_h, deep & edge, minlength=len(n_k))
+        return {int(k): HiddenSeen(int(n_k[k]), float(seen_k[k] / n_k[k]), int(nd_k[k]),
+                                   float(sd_k[k] / nd_k[k]) if nd_k[k] else float("nan")) for k in np.flatnonzero(n_k)}
+
+
+def _inside_by(instance: np.ndarray) -> np.ndarray:
+    """(H, W) distance of each pixel's centre to the nearest pixel on either side of a change of instance (the
+    visible outlines), pixels."""
+    outline = np.zeros(instance.shape, dtype=np.uint8)
+    across = instance[:, 1:] != instance[:, :-1]
+    down = instance[1:, :] != instance[:-1, :]
+    outline[:, 1:] |= across
+    outline[:, :-1] |= across
+    outline[1:, :] |= down
+    outline[:-1, :] |= down
+    return cv2.distanceTransform(1 - outline, cv2.DIST_L2, 3)

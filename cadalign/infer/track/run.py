@@ -4,7 +4,9 @@ Outputs in ``out_dir`` (the layout of :mod:`cadalign.infer.run`, so ``eval`` and
 
     poses.jsonl     one record per reported part and tracked frame (``source``: ``tracked``); nothing for a
                     frame while the track is lost, nor for a part whose contours find no support (missing)
-    track.jsonl     one line per frame: state (ok / lost), T_cam_from_world, edge support, residual, restart
+    track.jsonl     one line per frame: state (ok / lost), T_cam_from_world, edge support, residual, restart,
+                    and per part its contour and colour support and what the image shows of the structure's
+                    contours it hides (``part_hidden``: samples, share seen, deep samples, deep share seen)
     overlay.mp4     the frames with the tracked CAD's contours (green: an image edge supports them, red: none)
                     and the state
     frames.json     the frame names processed
@@ -32,7 +34,7 @@ from cadalign.geometry.rotations import geodesic_angle
 from cadalign.infer.pipeline import PoseRecord
 from cadalign.infer.run import evaluate_run, video_writer
 from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, as_gray, with_levels
-from cadalign.infer.track.hidden import HiddenContours
+from cadalign.infer.track.hidden import HiddenContours, HiddenSeen
 from cadalign.infer.track.parts import MovableConfig, MovableParts, part_record, split_hypotheses
 from cadalign.infer.track.start import pose_from_picks
 from cadalign.infer.track.tracker import StructureTracker, TrackerConfig, TrackStep
@@ -77,6 +79,14 @@ class TrackRunConfig:
     hidden_seen: float = 0.5
     """... few: edges at fewer than this share of the frame's edge support (absent parts showed 0.57-1.4 of it, faint
     present ones 0-0.39: docs/tuning/tracker.md#the-contours-a-part-hides-s53)."""
+    absent_seen: float = 0.85
+    """A part is missing when the structure's contours it hides deep inside its outline (:data:`.hidden.DEEP_PX`),
+    pooled over its last ``absent_checks`` frames, show image edges at this share of the frame's edge support or more
+    (an absent valve: 0.96-1.34, present ones at most 0.75: docs/tuning/tracker.md#absent-small-parts-s54)."""
+    absent_checks: int = 10
+    """See ``absent_seen``: the frames pooled (those where the part hides deep samples)."""
+    absent_samples: int = 20
+    """See ``absent_seen``: the deep samples the pooled frames need for a verdict."""
     confirm_missing: int = 2
     """A part last found present is reported missing only after this many missing checks in a row; one check
     decides for a part never checked: an absent part is missing from frame 0 (docs/tuning/tracker.md#missing-parts)."""
@@ -133,6 +143,22 @@ class PartMemory:
     in a frame keep this verdict."""
     doubts: dict[int, int] = field(default_factory=dict)
     """Missing verdicts in a row of a part last found present (``TrackRunConfig.confirm_missing``)."""
+    deep: dict[int, list[tuple[int, float, float]]] = field(default_factory=dict)
+    """Per part, its last frames' deep hidden samples: (count, share with an edge, the frame's edge support)."""
+
+    def absent(self, k: int, seen: HiddenSeen | None, support: float, cfg: TrackRunConfig) -> bool:
+        """Whether the structure's contours part ``k`` hides deep inside its outline, pooled over its last
+        ``cfg.absent_checks`` frames (this one's added), show as the rest of the structure does
+        (``TrackRunConfig.absent_seen``)."""
+        past = self.deep.setdefault(k, [])
+        if seen is not None and seen.deep_samples > 0:
+            past.append((seen.deep_samples, seen.deep_seen, support))
+            del past[:-cfg.absent_checks]
+        n = sum(d[0] for d in past)
+        if n < cfg.absent_samples:
+            return False
+        shown = sum(d[0] * d[1] for d in past) / n
+        return shown >= cfg.absent_seen * float(np.median([d[2] for d in past]))
 
     def update(self, k: int, verdict: bool, confirm: int) -> None:
         """One check's verdict: it decides for a part never checked or found missing; a part found present is
@@ -145,7 +171,7 @@ class PartMemory:
 
 
 def part_records(step: TrackStep, frame_index: int, name: str, structure: Structure, cfg: TrackRunConfig,
-                 memory: PartMemory | None = None, hidden: dict[int, tuple[int, float]] | None = None,
+                 memory: PartMemory | None = None, hidden: dict[int, HiddenSeen] | None = None,
                  ) -> tuple[list[PoseRecord], list[str]]:
     """The records of one tracked frame's visible parts, and the names of parts found missing.
 
@@ -165,8 +191,10 @@ def part_records(step: TrackStep, frame_index: int, name: str, structure: Struct
         n, share, conc = step.fit.instance_support.get(k, (0, 0.0, 0.0))
         region = step.fit.instance_region.get(k, float("nan"))
         edges_gone = n >= cfg.min_part_samples and (share < cfg.min_part_support or conc < cfg.min_part_concentration)
-        n_hidden, seen = (hidden or {}).get(k, (0, 1.0))
-        if n_hidden >= cfg.min_hidden_samples and seen < cfg.hidden_seen * step.fit.support:
+        behind = (hidden or {}).get(k)
+        if memory.absent(k, behind, step.fit.support, cfg):  # the structure shows where it should be
+            memory.update(k, True, cfg.confirm_missing)
+        elif behind and behind.samples >= cfg.min_hidden_samples and behind.seen < cfg.hidden_seen * step.fit.support:
             memory.update(k, False, cfg.confirm_missing)  # it hides the structure's contours: it is there
         elif n >= cfg.min_region_samples and np.isfinite(region):
             if memory.missing.get(k):
@@ -264,13 +292,13 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                 (times["restart"] if step.source not in ("track",) else times["track"]).append(step.seconds)
                 states[step.state] += 1
                 part_steps = parts.step(gray, rgb, step.T_cam_from_world, part_hyps)
-                recs, missing = part_records(step, vf.index, vf.name, structure, cfg, memory, behind.seen(
-                    gray, step, cfg.tracker.edges.support_px, cfg.tracker.edges.min_contrast))
+                hidden = behind.seen(gray, step, cfg.tracker.edges.support_px, cfg.tracker.edges.min_contrast)
+                recs, missing = part_records(step, vf.index, vf.name, structure, cfg, memory, hidden)
                 recs += parts.records(part_steps, vf.index, vf.name, cfg.min_visible_px)
                 for r in recs:
                     fh.write(json.dumps(r.to_json()) + "\n")
                 records.extend(recs)
-                th.write(json.dumps({**_step_json(step, vf.name, missing, structure),
+                th.write(json.dumps({**_step_json(step, vf.name, missing, structure, hidden),
                                      **({"movable": parts.summary(part_steps)} if part_steps else {})}) + "\n")
                 if cfg.overlay:
                     t0 = time.perf_counter()
@@ -327,7 +355,8 @@ def _poses_digest(poses: dict[str, Rigid3]) -> str:
     return f"{len(poses)} frames, {fingerprint({k: np.round(T.matrix(), 9).tolist() for k, T in poses.items()})}"
 
 
-def _step_json(step: TrackStep, name: str, missing: list[str], structure: Structure) -> dict:
+def _step_json(step: TrackStep, name: str, missing: list[str], structure: Structure,
+               hidden: dict[int, tuple[int, float]] | None = None) -> dict:
     f = step.fit
     parts = {} if f is None else {structure.objects[k - 1].name: [n, round(share, 4), round(conc, 4)]
                                   for k, (n, share, conc) in sorted(f.instance_support.items()) if k > 0}
@@ -341,6 +370,8 @@ def _step_json(step: TrackStep, name: str, missing: list[str], structure: Struct
             else round(float(f.region_support), 4),
             "part_region": {} if f is None else {structure.objects[k - 1].name: round(v, 4)
                                                   for k, v in sorted(f.instance_region.items()) if k > 0},
+            "part_hidden": {structure.objects[k - 1].name: [round(v, 4) for v in h] for k, h in sorted(
+                (hidden or {}).items())},
             "restarts_tried": int(step.restarts_tried), "ms": round(1e3 * step.seconds, 2),
             **({} if step.nav_offset is None else {"nav_offset_deg_m": [round(v, 3) for v in step.nav_offset]})}
 
