@@ -47,12 +47,13 @@ def first_fix(sim_dir: Path, frame: str, seed: int = 0, turn_deg: float = 10.0, 
     return rough_pose(true_poses(sim_dir)[frame], np.random.default_rng(seed), turn_deg, shift_m)
 
 
-def write_navigation(sim_dir: Path, seed: int = 0, path: Path | None = None) -> Path:
+def write_navigation(sim_dir: Path, seed: int = 0, path: Path | None = None, turn_deg: float = 10.0,
+                     shift_m: float = 0.5) -> Path:
     """:func:`navigation_poses` as ``{"frames": {name: T_cam_from_world 4x4}}`` (the format of ``infer --nav``)
     in ``path`` (default ``sim_dir/navigation.json``)."""
     path = Path(sim_dir) / "navigation.json" if path is None else Path(path)
-    nav = navigation_poses(sim_dir, seed)
+    nav = navigation_poses(sim_dir, seed, turn_deg, shift_m)
     write_json(path, {"frames": {k: T.matrix().tolist() for k, T in nav.items()},
-                      "note": "simulated navigation: each frame's true pose turned exactly 10 deg about a random "
-                              f"axis and moved exactly 0.5 m (seed {seed} + frame index)"})
+                      "note": f"simulated navigation: each frame's true pose turned exactly {turn_deg:g} deg about a "
+                              f"random axis and moved exactly {shift_m:g} m (seed {seed} + frame index)"})
     return path
