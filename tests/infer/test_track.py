@@ -248,6 +248,9 @@ class TestTrackBoxes:
         for _ in range(3):
             lost = tr.step(black)
             assert lost.state == "lost" and lost.T_cam_from_world is None and lost.fit is None
+            # why: the best fit tried found no edges (a black frame), and the report says so
+            assert lost.closest is not None and lost.closest.support == 0.0
+            assert lost.closest.why.startswith("edge support: 0.00 <"), lost.closest.why
         back = tr.step(render(_view(4)))  # 18 deg further round: the last motion carried on finds it
         assert back.state == "ok" and back.source in ("motion", "last_pose")
         assert _reproj_px(meshes, cam, back.T_cam_from_world, _view(4).inverse()) < 0.5
@@ -575,6 +578,29 @@ def test_frames_lost_to_the_navigation_bound_are_reported(tmp_path: Path, caplog
     path.write_text("".join(json.dumps(r) + "\n" for r in rows[:1] + rows[2:3]))
     caplog.clear()
     assert _log_end(path, TrackerConfig(), 3) == [] and "navigation" not in caplog.text
+
+
+def test_a_mostly_lost_run_says_why(tmp_path: Path, caplog) -> None:
+    """More than half the frames lost: the end of the run gives the lost frames' best fits' support against the
+    start's bound and the test that refused most of them."""
+    from cadalign.infer.track.run import _log_end
+
+    def lost(k: int, support: float, why: str) -> dict:
+        return {"frame": k, "state": "lost", "closest_fit": {"support": support, "refused": why}}
+
+    rows = [{"frame": 0, "state": "ok"}, lost(1, 0.30, "edge support: 0.30 < 0.45"),
+            lost(2, 0.32, "edge support: 0.32 < 0.45"), lost(3, 0.50, "region support: 0.10 < 0.20")]
+    path = tmp_path / "track.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    with caplog.at_level("WARNING"):
+        _log_end(path, TrackerConfig(), 1)
+    assert "3 of 4 frames were lost" in caplog.text and "edge support 0.32 (median; a start needs 0.45)" in caplog.text
+    assert "refused for their edge support" in caplog.text and str(path) in caplog.text
+    caplog.clear()
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows[:2] + [{"frame": 2, "state": "ok"}]))
+    with caplog.at_level("WARNING"):
+        _log_end(path, TrackerConfig(), 2)
+    assert "were lost" not in caplog.text  # a third lost: no warning
 
 
 def test_simulation_writes_rough_navigation_poses(track_sim: Path) -> None:

@@ -6,7 +6,8 @@ Outputs in ``out_dir`` (the layout of :mod:`cadalign.infer.run`, so ``eval`` and
                     frame while the track is lost, nor for a part whose contours find no support (missing)
     track.jsonl     one line per frame: state (ok / lost), T_cam_from_world, edge support, residual, restart,
                     and per part its contour and colour support and what the image shows of the structure's
-                    contours it hides (``part_hidden``: samples, share seen, deep samples, deep share seen)
+                    contours it hides (``part_hidden``: samples, share seen, deep samples, deep share seen);
+                    on a lost frame the best-supported fit tried and the test that refused it (``closest_fit``)
     overlay.mp4     the frames with the tracked CAD's contours (green: an image edge supports them, red: none)
                     and the state
     frames.json     the frame names processed
@@ -21,6 +22,7 @@ import contextlib
 import json
 import logging
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -331,6 +333,15 @@ def _log_end(track_path: Path, cfg: TrackerConfig, n_records: int) -> list[int]:
                     " T_cam_from_world in the scene file's frame, fix them or raise tracker.nav_max_deg / nav_max_m in"
                     " a --config (frames in %s: nav_offset_deg_m)", len(refused), len(rows), deg, m,
                     cfg.nav_max_deg, cfg.nav_max_m, track_path)
+    closest = [r["closest_fit"] for r in rows if r["state"] == "lost" and r.get("closest_fit")]
+    if 2 * (len(rows) - ok) > len(rows) and closest:
+        sup = float(np.median([c["support"] for c in closest]))
+        why = Counter(c["refused"].split(":")[0] for c in closest).most_common(1)[0][0]
+        log.warning("%d of %d frames were lost. Their best fits had edge support %.2f (median; a start needs %.2f) and "
+                    "were mostly refused for their %s: the image shows few of the CAD's contours where the start "
+                    "put them (turbid, dark or blurred water, a start pose far off, or another calibration). Each "
+                    "frame's closest_fit in %s says why; --nav (a rough pose per frame) restarts every frame.",
+                    len(rows) - ok, len(rows), sup, cfg.min_start_support, why, track_path)
     return [r["frame"] for r in refused]
 
 
@@ -372,8 +383,15 @@ def _step_json(step: TrackStep, name: str, missing: list[str], structure: Struct
                                                   for k, v in sorted(f.instance_region.items()) if k > 0},
             "part_hidden": {structure.objects[k - 1].name: [round(v, 4) for v in h] for k, h in sorted(
                 (hidden or {}).items())},
+            **({} if step.closest is None else {"closest_fit": {
+                "support": round(step.closest.support, 4), "residual_px": _rounded(step.closest.residual_px),
+                "region_support": _rounded(step.closest.region_support), "refused": step.closest.why}}),
             "restarts_tried": int(step.restarts_tried), "ms": round(1e3 * step.seconds, 2),
             **({} if step.nav_offset is None else {"nav_offset_deg_m": [round(v, 3) for v in step.nav_offset]})}
+
+
+def _rounded(v: float) -> float | None:
+    return round(float(v), 4) if np.isfinite(v) else None
 
 
 def _timings(times: dict[str, list[float]], n: int, states: dict[str, int]) -> dict:

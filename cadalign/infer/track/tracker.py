@@ -12,6 +12,7 @@ import logging
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -120,6 +121,15 @@ class TrackerConfig:
     to ~0.5 m; the symmetric fits of the turbid survey were 3.5-9 m off)."""
 
 
+class Closest(NamedTuple):
+    """A lost frame's best-supported fit that was refused, and why."""
+
+    support: float
+    residual_px: float
+    region_support: float
+    why: str
+
+
 @dataclass(frozen=True)
 class TrackStep:
     """One frame's outcome."""
@@ -137,6 +147,8 @@ class TrackStep:
     nav_offset: tuple[float, float] | None = None
     """How far the reported camera pose is from the frame's navigation pose (degrees, metres); on a lost frame,
     how far the best fit that passed every test but that one was (None: no navigation pose, or no such fit)."""
+    closest: Closest | None = None
+    """On a lost frame, its best-supported fit and why it was refused (None: no fit was tried)."""
 
 
 class StructureTracker:
@@ -162,6 +174,7 @@ class StructureTracker:
         self._lost_frames = 0
         self._nav: Rigid3 | None = None  # T_world_from_cam of the current frame's navigation pose, when given
         self._nav_refused: tuple[float, tuple[float, float] | None] | None = None  # this frame's best such fit
+        self._closest: Closest | None = None  # this frame's best-supported refused fit
         lo = np.min([m.vertices_m.min(axis=0) for m in meshes], axis=0)
         hi = np.max([m.vertices_m.max(axis=0) for m in meshes], axis=0)
         self._centre = (lo + hi) / 2  # the structure's centre, world frame
@@ -174,23 +187,39 @@ class StructureTracker:
     def good(self, fit: EdgeFit, start: bool = False) -> bool:
         """Whether a fit passes as tracked: enough contours, support and a small residual; a start needs
         ``min_start_support``, a tracked frame also ``relative_support`` of the track's recent support."""
+        return self.refusal(fit, start) is None
+
+    def refusal(self, fit: EdgeFit, start: bool = False) -> str | None:
+        """Why a fit does not pass as tracked (:meth:`good`), as "test: value against its bound"; None when it
+        passes. The best-supported refused fit of a frame is kept for its report (:attr:`TrackStep.closest`)."""
+        why = self._refusal(fit, start)
+        if why is not None and (self._closest is None or fit.support > self._closest.support):
+            self._closest = Closest(fit.support, fit.residual_px, fit.region_support, why)
+        return why
+
+    def _refusal(self, fit: EdgeFit, start: bool) -> str | None:
         c = self.cfg
         floor = c.min_start_support if start else max(c.min_support, c.relative_support * self._typical_support())
-        if not (fit.samples >= c.min_samples and fit.support >= floor):
-            return False
+        if fit.samples < c.min_samples:
+            return f"contour samples: {fit.samples} < {c.min_samples}"
+        if not fit.support >= floor:
+            return f"edge support: {fit.support:.2f} < {floor:.2f}"
         if np.isfinite(fit.region_support):  # the colours are learned: they must agree
             region = c.min_region_support
             if self._regions:
                 region = max(region, c.relative_region * float(np.median(self._regions)))
-            passes = fit.region_support >= region and fit.residual_px <= c.max_residual_region_px
-        else:
-            passes = fit.residual_px <= c.max_residual_px
-        if passes and not self.near_nav(fit.T_world_from_cam):
+            if not fit.region_support >= region:
+                return f"region support: {fit.region_support:.2f} < {region:.2f}"
+            if not fit.residual_px <= c.max_residual_region_px:
+                return f"residual: {fit.residual_px:.2f} px > {c.max_residual_region_px:.2f}"
+        elif not fit.residual_px <= c.max_residual_px:
+            return f"residual: {fit.residual_px:.2f} px > {c.max_residual_px:.2f}"
+        if not self.near_nav(fit.T_world_from_cam):
             off = self.nav_offset(fit.T_world_from_cam)
             if self._nav_refused is None or fit.support > self._nav_refused[0]:
                 self._nav_refused = (fit.support, off)
-            return False
-        return passes
+            return f"navigation: {off[0]:.0f} deg / {off[1]:.1f} m off its pose"
+        return None
 
     def nav_offset(self, T_world_from_cam: Rigid3) -> tuple[float, float] | None:
         """(degrees, metres) between a camera pose and the current frame's navigation pose; None without one."""
@@ -317,6 +346,7 @@ class StructureTracker:
         t0 = time.perf_counter()
         self._nav = None if nav is None else nav.inverse()
         self._nav_refused = None
+        self._closest = None
         if nav is not None:
             restarts = [*restarts, ("nav", nav)]
         self.edges.colour_frame = rgb if self.cfg.edges.region.enabled else None
@@ -370,7 +400,7 @@ class StructureTracker:
         self._lost_frames += 1
         self.lost = True
         return TrackStep(k, "lost", None, None, "", time.perf_counter() - t0, tried,
-                         None if self._nav_refused is None else self._nav_refused[1])
+                         None if self._nav_refused is None else self._nav_refused[1], self._closest)
 
     def _best_of(self, gray: np.ndarray, hypotheses: Sequence[tuple[str, Rigid3]], own: bool = False,
                   ) -> tuple[tuple[EdgeFit, str] | None, int]:
