@@ -10,9 +10,9 @@ the other parts (valves, hot stabs) are the ones checked. Its contours are ray-c
 half resolution, and those whose near pixel lies in a checked part's visible mask (at full resolution) are searched
 for an image edge as the tracker's quality test does.
 
-Those at least :data:`DEEP_PX` inside the part's visible outline are counted apart ("deep"): the part's own outline
-cannot explain an edge found there, so many of them showing is evidence that the part is absent (a thin part, a
-hot stab, has none).
+Those at least twice the search's tolerance inside the part's visible outline are counted apart ("deep"): the
+part's own outline cannot explain an edge found there, so many of them showing is evidence that the part is absent
+(a thin part, a hot stab, has none).
 """
 
 from __future__ import annotations
@@ -32,9 +32,6 @@ if TYPE_CHECKING:
     from cadalign.infer.track.tracker import TrackStep
 
 BACKGROUND_CLASS = "structure"
-DEEP_PX = 3.0
-"""Full-resolution pixels a hidden contour sample must lie inside the part's visible outline to count as deep: twice
-the tracker's ``support_px`` (1.5), so that an edge of the outline itself is too far to support it."""
 
 
 class HiddenSeen(NamedTuple):
@@ -45,7 +42,8 @@ class HiddenSeen(NamedTuple):
     seen: float
     """Share of them with an image edge."""
     deep_samples: int
-    """Those at least :data:`DEEP_PX` inside the part's visible outline."""
+    """Those at least twice ``support_px`` inside the part's visible outline (3 px at the tracker's 1.5), where an
+    edge of the outline itself is too far to support them."""
     deep_seen: float
     """Share of those with an image edge; NaN without any."""
 
@@ -64,8 +62,8 @@ class HiddenContours:
              ) -> dict[int, HiddenSeen]:
         """Per checked part (ray-cast instance) visible in a tracked frame: the structure's contour samples it
         hides and the share of them with an image edge of at least ``min_contrast`` within ``support_px``
-        full-resolution pixels (as the tracker's quality test reads edges), all and deep; empty for a lost frame or
-        a structure without background parts."""
+        full-resolution pixels (as the tracker's quality test reads edges), all and deep (:class:`HiddenSeen`); empty
+        for a lost frame or a structure without background parts."""
         fit = step.fit
         if self.renderer is None or step.T_cam_from_world is None or fit is None or fit.instance is None:
             return {}
@@ -89,7 +87,7 @@ class HiddenContours:
         n_k = np.bincount(k_h)
         seen_k = np.bincount(k_h, edge, minlength=len(n_k))
         # the outline lies half a pixel beyond the centre of the nearest pixel of another instance
-        deep = _inside_by(fit.instance)[near[hidden, 1], near[hidden, 0]] + 0.5 >= DEEP_PX
+        deep = _inside_by(fit.instance)[near[hidden, 1], near[hidden, 0]] + 0.5 >= 2.0 * support_px
         nd_k = np.bincount(k_h, deep, minlength=len(n_k))
         sd_k = np.bincount(k_h, deep & edge, minlength=len(n_k))
         return {int(k): HiddenSeen(int(n_k[k]), float(seen_k[k] / n_k[k]), int(nd_k[k]),

@@ -82,7 +82,7 @@ class TrackRunConfig:
     """... few: edges at fewer than this share of the frame's edge support (absent parts showed 0.57-1.4 of it, faint
     present ones 0-0.39: docs/tuning/tracker.md#the-contours-a-part-hides-s53)."""
     absent_seen: float = 0.85
-    """A part is missing when the structure's contours it hides deep inside its outline (:data:`.hidden.DEEP_PX`),
+    """A part is missing when the structure's contours it hides deep inside its outline (:class:`.hidden.HiddenSeen`),
     pooled over its last ``absent_checks`` frames, show image edges at this share of the frame's edge support or more
     (an absent valve: 0.96-1.34, present ones at most 0.75: docs/tuning/tracker.md#absent-small-parts-s54)."""
     absent_checks: int = 10
@@ -148,14 +148,17 @@ class PartMemory:
     deep: dict[int, list[tuple[int, float, float]]] = field(default_factory=dict)
     """Per part, its last frames' deep hidden samples: (count, share with an edge, the frame's edge support)."""
 
-    def absent(self, k: int, seen: HiddenSeen | None, support: float, cfg: TrackRunConfig) -> bool:
-        """Whether the structure's contours part ``k`` hides deep inside its outline, pooled over its last
-        ``cfg.absent_checks`` frames (this one's added), show as the rest of the structure does
-        (``TrackRunConfig.absent_seen``)."""
-        past = self.deep.setdefault(k, [])
+    def note_deep(self, k: int, seen: HiddenSeen | None, support: float, frames: int) -> None:
+        """Keep this frame's deep hidden samples of part ``k`` (if any) among its last ``frames``."""
         if seen is not None and seen.deep_samples > 0:
+            past = self.deep.setdefault(k, [])
             past.append((seen.deep_samples, seen.deep_seen, support))
-            del past[:-cfg.absent_checks]
+            del past[:-frames]
+
+    def absent(self, k: int, cfg: TrackRunConfig) -> bool:
+        """Whether the structure's contours part ``k`` hides deep inside its outline, pooled over the frames
+        :meth:`note_deep` kept, show as the rest of the structure does (``TrackRunConfig.absent_seen``)."""
+        past = self.deep.get(k, [])
         n = sum(d[0] for d in past)
         if n < cfg.absent_samples:
             return False
@@ -194,7 +197,8 @@ def part_records(step: TrackStep, frame_index: int, name: str, structure: Struct
         region = step.fit.instance_region.get(k, float("nan"))
         edges_gone = n >= cfg.min_part_samples and (share < cfg.min_part_support or conc < cfg.min_part_concentration)
         behind = (hidden or {}).get(k)
-        if memory.absent(k, behind, step.fit.support, cfg):  # the structure shows where it should be
+        memory.note_deep(k, behind, step.fit.support, cfg.absent_checks)
+        if memory.absent(k, cfg):  # the structure shows where it should be
             memory.update(k, True, cfg.confirm_missing)
         elif behind and behind.samples >= cfg.min_hidden_samples and behind.seen < cfg.hidden_seen * step.fit.support:
             memory.update(k, False, cfg.confirm_missing)  # it hides the structure's contours: it is there
@@ -367,18 +371,17 @@ def _poses_digest(poses: dict[str, Rigid3]) -> str:
 
 
 def _step_json(step: TrackStep, name: str, missing: list[str], structure: Structure,
-               hidden: dict[int, tuple[int, float]] | None = None) -> dict:
+               hidden: dict[int, HiddenSeen] | None = None) -> dict:
     f = step.fit
     parts = {} if f is None else {structure.objects[k - 1].name: [n, round(share, 4), round(conc, 4)]
                                   for k, (n, share, conc) in sorted(f.instance_support.items()) if k > 0}
     return {"frame": step.index, "frame_name": name, "state": step.state, "source": step.source or None,
             "T_cam_from_world": None if step.T_cam_from_world is None else step.T_cam_from_world.matrix().tolist(),
             "support": None if f is None else round(float(f.support), 4),
-            "residual_px": None if f is None or not np.isfinite(f.residual_px) else round(float(f.residual_px), 4),
+            "residual_px": None if f is None else _rounded(f.residual_px),
             "contour_samples": None if f is None else int(f.samples), "missing_parts": missing,
             "part_support": parts,
-            "region_support": None if f is None or not np.isfinite(f.region_support)
-            else round(float(f.region_support), 4),
+            "region_support": None if f is None else _rounded(f.region_support),
             "part_region": {} if f is None else {structure.objects[k - 1].name: round(v, 4)
                                                   for k, v in sorted(f.instance_region.items()) if k > 0},
             "part_hidden": {structure.objects[k - 1].name: [round(v, 4) for v in h] for k, h in sorted(
