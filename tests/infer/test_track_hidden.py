@@ -102,3 +102,20 @@ def test_deep_hidden_contours_pooled_over_frames_call_a_part_missing(block) -> N
     assert verdicts(0.75) == [False, False, False, True, True]
     assert not any(verdicts(0.5))  # below the share: present, as its own edges say
     assert cfg.absent_samples > 16 and cfg.confirm_missing == 2  # what the first case's count of frames rests on
+
+
+def test_track_jsonl_writes_a_part_without_deep_samples_as_strict_json(block) -> None:
+    """A part that hides no deep sample has no deep share: track.jsonl writes null there, not NaN (which strict
+    JSON readers refuse)."""
+    import json
+
+    from cadalign.infer.track.run import _step_json
+
+    structure = block[0]
+    instance = np.zeros((CAM.height, CAM.width), np.int32)
+    instance[100:140, 150:190] = 2
+    fit = EdgeFit(look_at(np.array([0.5, -6.0, 2.0]), np.zeros(3)), 500, 0.8, 0.2, {2: (40, 0.7, 0.7)},
+                  instance=instance)
+    step = TrackStep(0, "ok", fit.T_world_from_cam.inverse(), fit, "track", 0.0)
+    line = json.dumps(_step_json(step, "f", [], structure, {2: HiddenSeen(4, 0.25, 0, np.nan)}), allow_nan=False)
+    assert json.loads(line)["part_hidden"] == {"valve": [4, 0.25, 0, None]}

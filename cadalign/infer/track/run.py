@@ -384,8 +384,8 @@ def _step_json(step: TrackStep, name: str, missing: list[str], structure: Struct
             "region_support": None if f is None else _rounded(f.region_support),
             "part_region": {} if f is None else {structure.objects[k - 1].name: round(v, 4)
                                                   for k, v in sorted(f.instance_region.items()) if k > 0},
-            "part_hidden": {structure.objects[k - 1].name: [round(v, 4) for v in h] for k, h in sorted(
-                (hidden or {}).items())},
+            "part_hidden": {structure.objects[k - 1].name: [h.samples, _rounded(h.seen), h.deep_samples, _rounded(
+                h.deep_seen)] for k, h in sorted((hidden or {}).items())},  # no deep sample: null, not NaN
             **({} if step.closest is None else {"closest_fit": {
                 "support": round(step.closest.support, 4), "residual_px": _rounded(step.closest.residual_px),
                 "region_support": _rounded(step.closest.region_support), "refused": step.closest.why}}),
