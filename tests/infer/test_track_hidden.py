@@ -63,13 +63,19 @@ def test_hidden_contours_tell_an_absent_part_from_a_faint_one(block) -> None:
     assert cue.seen(image(True)[0], SimpleNamespace(T_cam_from_world=None, fit=None)) == {}  # a lost frame
 
 
-def test_hidden_contours_decide_a_part_whatever_its_own_edges(block) -> None:
-    structure = block[0]
+def _valve_step(own_edges: float) -> TrackStep:
+    """A tracked frame (frame support 0.8) whose valve (instance 2, a 40x40 px visible mask) has 40 contour samples,
+    ``own_edges`` of them (and of its found edges) on image edges."""
     instance = np.zeros((CAM.height, CAM.width), np.int32)
     instance[100:140, 150:190] = 2  # the valve's visible mask
-    fit = EdgeFit(look_at(np.array([0.5, -6.0, 2.0]), np.zeros(3)), 500, 0.8, 0.2, {2: (40, 0.0, 0.0)},
+    fit = EdgeFit(look_at(np.array([0.5, -6.0, 2.0]), np.zeros(3)), 500, 0.8, 0.2, {2: (40, own_edges, own_edges)},
                   instance=instance)
-    step = TrackStep(0, "ok", fit.T_world_from_cam.inverse(), fit, "track", 0.0)
+    return TrackStep(0, "ok", fit.T_world_from_cam.inverse(), fit, "track", 0.0)
+
+
+def test_hidden_contours_decide_a_part_whatever_its_own_edges(block) -> None:
+    structure = block[0]
+    step = _valve_step(own_edges=0.0)  # no image edges on the valve's own outline
     cfg = TrackRunConfig()
 
     def missing(hidden: dict | None) -> bool:
@@ -85,11 +91,7 @@ def test_deep_hidden_contours_pooled_over_frames_call_a_part_missing(block) -> N
     """A part whose own outline finds edges (texture behind an absent valve can) is missing once the structure's
     contours deep inside its outline, pooled over frames, show as the rest of the structure does."""
     structure = block[0]
-    instance = np.zeros((CAM.height, CAM.width), np.int32)
-    instance[100:140, 150:190] = 2
-    fit = EdgeFit(look_at(np.array([0.5, -6.0, 2.0]), np.zeros(3)), 500, 0.8, 0.2, {2: (40, 0.7, 0.7)},
-                  instance=instance)
-    step = TrackStep(0, "ok", fit.T_world_from_cam.inverse(), fit, "track", 0.0)
+    step = _valve_step(own_edges=0.7)
     cfg = TrackRunConfig()
 
     def verdicts(deep_seen: float, frames: int = 5) -> list[bool]:
@@ -112,10 +114,6 @@ def test_track_jsonl_writes_a_part_without_deep_samples_as_strict_json(block) ->
     from cadalign.infer.track.run import _step_json
 
     structure = block[0]
-    instance = np.zeros((CAM.height, CAM.width), np.int32)
-    instance[100:140, 150:190] = 2
-    fit = EdgeFit(look_at(np.array([0.5, -6.0, 2.0]), np.zeros(3)), 500, 0.8, 0.2, {2: (40, 0.7, 0.7)},
-                  instance=instance)
-    step = TrackStep(0, "ok", fit.T_world_from_cam.inverse(), fit, "track", 0.0)
+    step = _valve_step(own_edges=0.7)
     line = json.dumps(_step_json(step, "f", [], structure, {2: HiddenSeen(4, 0.25, 0, np.nan)}), allow_nan=False)
     assert json.loads(line)["part_hidden"] == {"valve": [4, 0.25, 0, None]}
