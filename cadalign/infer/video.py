@@ -48,10 +48,12 @@ def list_frames(source: Path) -> list[Path]:
 
 
 def iter_frames(source: Path, *, stride: int = 1, max_frames: int | None = None,
-                topic: str | None = None) -> Iterator[VideoFrame]:
+                topic: str | None = None, after: int = -1) -> Iterator[VideoFrame]:
     """Yield every ``stride``-th frame of a video file, an image folder or a ROS bag's image ``topic`` (RGB uint8).
 
-    ``topic`` None reads a bag's only image topic; it must be None for videos and folders.
+    ``topic`` None reads a bag's only image topic; it must be None for videos and folders. ``after``: frames up to
+    this index are passed over, undecoded where the source allows, and do not count towards ``max_frames`` (a
+    resumed run).
 
     A frame that cannot be decoded is skipped with a warning naming it; the index still advances.
 
@@ -69,19 +71,23 @@ def iter_frames(source: Path, *, stride: int = 1, max_frames: int | None = None,
     elif topic is not None:
         raise InputError(f"--topic {topic} is for ROS bags, but {source} is not one; drop --topic")
     else:
-        gen = _folder(source) if source.is_dir() else _video(source)
+        gen = _folder(source, after) if source.is_dir() else _video(source, after)
+    if max_frames is not None and max_frames <= 0:
+        return
     n = 0
     for frame in gen:
-        if frame.index % stride:
+        if frame.index <= after or frame.index % stride:
             continue
-        if max_frames is not None and n >= max_frames:
-            return
         n += 1
         yield frame
+        if max_frames is not None and n >= max_frames:  # before the next frame is decoded
+            return
 
 
-def _folder(source: Path) -> Iterator[VideoFrame]:
+def _folder(source: Path, after: int = -1) -> Iterator[VideoFrame]:
     for i, path in enumerate(list_frames(source)):
+        if i <= after:
+            continue
         img = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if img is None or img.size == 0:
             log.warning("skipping corrupt frame %s (could not decode it)", path)
@@ -89,7 +95,7 @@ def _folder(source: Path) -> Iterator[VideoFrame]:
         yield VideoFrame(i, path.name, np.ascontiguousarray(img[..., ::-1]))
 
 
-def _video(source: Path) -> Iterator[VideoFrame]:
+def _video(source: Path, after: int = -1) -> Iterator[VideoFrame]:
     if source.suffix.lower() not in VIDEO_SUFFIXES:
         raise InputError(f"{source} is neither a frame folder nor a video ({', '.join(VIDEO_SUFFIXES)})")
     cap = cv2.VideoCapture(str(source))
@@ -98,6 +104,10 @@ def _video(source: Path) -> Iterator[VideoFrame]:
     total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
     i, bad = 0, 0
     try:
+        while i <= after:  # passed over: read, not decoded (a failed read counts as in the loop below)
+            if not cap.grab() and (i >= total or bad >= MAX_BAD_VIDEO_READS):
+                return
+            i += 1
         while True:
             ok, img = cap.read()
             if not ok or img is None:

@@ -47,6 +47,29 @@ def test_video_file_names_frames_like_the_folder(tmp_path: Path) -> None:
     assert [f.name for f in iter_frames(path, stride=2, max_frames=1)] == ["000000.png"]
 
 
+def test_frames_up_to_after_are_passed_over_and_not_counted(tmp_path: Path, monkeypatch) -> None:
+    """A resumed run reads on after its last finished frame: those before are not decoded (a folder's) and do not
+    count towards max_frames; a video's are read past."""
+    import cv2
+    import imageio.v2 as imageio
+
+    paths = _frames(tmp_path / "f", 5)
+    read = []
+    real = cv2.imread
+    monkeypatch.setattr(cv2, "imread", lambda p, *a: read.append(Path(p).name) or real(p, *a))
+    frames = list(iter_frames(tmp_path / "f", after=2, max_frames=1))
+    assert [f.index for f in frames] == [3] and read == ["000003.png"]
+    assert [f.name for f in iter_frames(tmp_path / "f", after=1)] == [p.name for p in paths[2:]]
+    assert list(iter_frames(tmp_path / "f", after=9)) == []
+    path = tmp_path / "v.mp4"
+    with imageio.get_writer(path, format="FFMPEG", fps=5, codec="libx264", macro_block_size=16,
+                            ffmpeg_log_level="error") as w:
+        for i in range(4):
+            w.append_data(np.full((32, 48, 3), 60 * i, np.uint8))
+    frames = list(iter_frames(path, after=1))
+    assert [f.name for f in frames] == ["000002.png", "000003.png"] and abs(int(frames[0].image.mean()) - 120) <= 3
+
+
 def test_bad_sources_raise_input_error(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="not found"):
         list(iter_frames(tmp_path / "missing.mp4"))
