@@ -21,8 +21,9 @@ import numpy as np
 
 from cadalign.config import resolve
 from cadalign.infer.detect import TorchDetector
+from cadalign.infer.track.config import TrackerConfig
 from cadalign.infer.track.edges import as_gray
-from cadalign.infer.track.tracker import StructureTracker, TrackerConfig
+from cadalign.infer.track.tracker import StructureTracker
 from cadalign.infer.video import iter_frames
 from cadalign.sim.structure import Structure
 from cadalign.types import Camera, Rigid3

@@ -139,7 +139,8 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
            nav: Path | None = None) -> None:
     """The tracker branch of ``infer`` (:mod:`cadalign.infer.track.run`)."""
     # lazy: pulls cv2; keeps `cadalign --help` light
-    from cadalign.infer.track.run import PRESETS, TrackRunConfig, read_frame_poses, read_init_pose, track_video
+    from cadalign.infer.track.run import PRESETS, TrackRunConfig, read_init_pose, track_video
+    from cadalign.infer.track.truth import read_frame_poses  # lazy: pulls numpy; keeps `cadalign --help` light
     from cadalign.infer.video import iter_frames  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.sim.structure import load_structure  # lazy: pulls cv2; keeps `cadalign --help` light
 
@@ -186,8 +187,7 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
                        record={"detector": info, "cad": str(cad)}, nav=navigation)
     console.print(f"[green]poses written to {path}[/]")
     if gt_poses is not None:
-        # lazy: pulls cv2; keeps `cadalign --help` light
-        from cadalign.infer.track.run import read_frame_poses, truth_report
+        from cadalign.infer.track.truth import truth_report  # lazy: pulls matplotlib; keeps `cadalign --help` light
 
         summary = truth_report(out, structure, read_frame_poses(gt_poses))
         for name, v in summary["parts"].items():

@@ -14,9 +14,11 @@ from cadalign.align.edge_refine import EdgeRefineConfig, edge_jacobian, motion, 
 from cadalign.errors import InputError
 from cadalign.geometry.camera import project
 from cadalign.geometry.rotations import axis_angle_to_matrix, geodesic_angle
+from cadalign.infer.track.config import TrackerConfig
 from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, EdgeTracker, as_gray
-from cadalign.infer.track.run import TrackRunConfig, read_frame_poses, read_init_pose, track_video
-from cadalign.infer.track.tracker import StructureTracker, TrackerConfig
+from cadalign.infer.track.run import TrackRunConfig, read_init_pose, track_video
+from cadalign.infer.track.tracker import StructureTracker
+from cadalign.infer.track.truth import read_frame_poses
 from cadalign.sim.navigation import rough_pose
 from cadalign.types import Camera, Rigid3
 
@@ -561,6 +563,95 @@ def test_infer_tracks_rgb_frames_from_an_init_pose(tmp_path: Path, track_sim: Pa
     assert ev["detection"]["tp"] > 0  # accuracy: the boxes tests and the scene benchmarks (a 320x240 orbit of
     # small parts over a flat seabed is near the tracker's limits: see issue 43's note)
     assert (out / "overlay.mp4").is_file() and json.loads((out / "timings.json").read_text())["frames"] == len(names)
+
+
+def _stop_after(n: int):
+    """A progress wrapper that stops the run with Ctrl-C (KeyboardInterrupt) before its n-th frame."""
+    def progress(items, description, total):
+        for k, item in enumerate(items):
+            if k == n:
+                raise KeyboardInterrupt
+            yield item
+    return progress
+
+
+def test_an_interrupted_run_keeps_its_frames_and_resumes_after_them(tmp_path: Path, track_sim: Path) -> None:
+    """Ctrl-C after 3 of 6 frames leaves their poses, track lines and overlay; a line cut by a kill and poses
+    without their frame's track line are dropped; the same call resumes at frame 3 from frame 2's pose and ends
+    with the files an uninterrupted run writes, its poses as close to the truth."""
+    import imageio.v2 as imageio
+
+    from cadalign.sim.structure import load_structure
+
+    cam, names, cams = _frames(track_sim)
+    structure = load_structure(track_sim.parent / "structure.toml")
+    init = _T_cw(cams[names[0]])
+    cfg = TrackRunConfig()
+
+    def run(out: Path, progress=None) -> None:
+        track_video(cfg, track_sim / "frames", structure, cam, out, init_pose=init, progress=progress)
+
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        run(out, _stop_after(3))
+    part = [json.loads(line) for line in (out / "track.jsonl.partial").read_text().splitlines()]
+    assert [r["frame"] for r in part] == [0, 1, 2] and not (out / "track.jsonl").exists()
+    poses = (out / "poses.jsonl.partial").read_text().splitlines()
+    assert poses and {json.loads(line)["frame"] for line in poses} <= {0, 1, 2}
+    assert len(imageio.mimread(out / "overlay.part0.mp4")) == 3  # closed whole on Ctrl-C
+    with open(out / "poses.jsonl.partial", "a") as fh:  # a kill between a frame's poses and its track line ...
+        fh.write(json.dumps({**json.loads(poses[-1]), "frame": 3}) + "\n")
+    with open(out / "track.jsonl.partial", "a") as fh:  # ... and inside the next line
+        fh.write('{"frame": 3, "frame_na')
+    run(out)
+    rows = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
+    assert [r["frame"] for r in rows] == list(range(len(names))) and rows[:3] == part
+    assert rows[3]["resumed"] and "resumed" not in rows[4] and all(r["state"] == "ok" for r in rows)
+    recs = [json.loads(line) for line in (out / "poses.jsonl").read_text().splitlines()]
+    assert all(r["frame_name"] == names[r["frame"]] for r in recs)  # the line written without its frame: dropped
+    assert {r["frame"] for r in recs} == set(range(len(names)))
+    assert not list(out.glob("*.partial")) and not list(out.glob("overlay.part*"))
+    assert len(imageio.mimread(out / "overlay.mp4")) == len(names)
+    assert json.loads((out / "timings.json").read_text())["frames"] == len(names)
+    assert json.loads((out / "frames.json").read_text()) == names
+    (out / "track.jsonl.partial").write_text(json.dumps(rows[0]) + "\n")  # left by a run of another config
+    track_video(TrackRunConfig(overlay=False), track_sim / "frames", structure, cam, out, init_pose=init,
+                max_frames=2, overwrite=True)
+    again = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
+    assert [r["frame"] for r in again] == [0, 1] and not any("resumed" in r for r in again)
+    assert not (out / "track.jsonl.partial").exists()
+    whole = tmp_path / "whole"
+    run(whole)
+    ref = [json.loads(line) for line in (whole / "track.jsonl").read_text().splitlines()]
+    for r, w in zip(rows[3:], ref[3:], strict=True):
+        T_r, T_w = (Rigid3.from_matrix(np.asarray(x["T_cam_from_world"])) for x in (r, w))
+        true = _T_cw(cams[r["frame_name"]])
+        assert _reproj_px(structure.render_meshes(), cam, T_r, true) < _reproj_px(
+            structure.render_meshes(), cam, T_w, true) + 0.5
+
+
+def test_a_resumed_track_carries_on_the_last_pose_motion_and_losses(boxes) -> None:
+    """Resuming from finished frames: the last tracked pose and the motion into it predict the next frame; frames
+    lost at the end stay lost (the restarts start from that pose); nothing tracked: nothing to carry on."""
+    from cadalign.infer.track.partial import Finished
+
+    meshes, cam, _ = boxes
+    poses = [_view(k).inverse() for k in range(3)]
+
+    def row(k: int, ok: bool) -> dict:
+        return {"frame": k, "state": "ok" if ok else "lost", "support": 0.8 if ok else None, "region_support": None,
+                "T_cam_from_world": poses[k].matrix().tolist() if ok else None}
+
+    tr = StructureTracker(meshes, cam, BOXES_TRACKER)
+    assert Finished([row(0, True), row(1, True), row(2, True)]).resume(tr)
+    assert not tr.lost and tr._prediction() is not None
+    want = _view(2) @ (_view(1).inverse() @ _view(2))  # the last step once more
+    assert np.allclose(tr._prediction().matrix(), want.matrix(), atol=1e-9)
+    tr = StructureTracker(meshes, cam, BOXES_TRACKER)
+    assert Finished([row(0, True), row(1, True), row(2, False)]).resume(tr)
+    assert tr.lost and tr._lost_frames == 1 and np.allclose(tr.last_pose.matrix(), poses[1].matrix())
+    tr = StructureTracker(meshes, cam, BOXES_TRACKER)
+    assert not Finished([row(0, False)]).resume(tr) and tr.last_pose is None
 
 
 def test_frames_lost_to_the_navigation_bound_are_reported(tmp_path: Path, caplog) -> None:

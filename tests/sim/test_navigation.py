@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from cadalign.geometry.rotations import axis_angle_to_matrix, geodesic_angle
-from cadalign.infer.track.run import read_frame_poses
+from cadalign.infer.track.truth import read_frame_poses
 from cadalign.sim.navigation import CAMERAS, true_poses, write_navigation
 
 

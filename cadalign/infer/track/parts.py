@@ -16,8 +16,9 @@ import numpy as np
 
 from cadalign.infer.pipeline import PoseRecord
 from cadalign.infer.track.acquire import AcquireConfig
+from cadalign.infer.track.config import TrackerConfig
 from cadalign.infer.track.edges import EdgeTrackConfig
-from cadalign.infer.track.tracker import StructureTracker, TrackerConfig, TrackStep
+from cadalign.infer.track.tracker import StructureTracker, TrackStep
 from cadalign.sim.structure import Structure
 from cadalign.types import Camera, Rigid3
 

@@ -14,16 +14,21 @@ Outputs in ``out_dir`` (the layout of :mod:`cadalign.infer.run`, so ``eval`` and
     timings.json    ms per frame: tracking, restarts, overlay; frames/s
     eval.json, eval.md   with ground truth (--gt): as for the detector pipeline; every section scores the
                     tracked poses
+
+While it runs, each finished frame is appended at once to ``poses.jsonl.partial`` and ``track.jsonl.partial`` (and
+its overlay picture to ``overlay.partN.mp4``). A run stopped by Ctrl-C, a crash or a kill keeps every finished frame;
+the same command resumes after the last one, the track restarting from that frame's pose, and the files are
+renamed to their final names when the video ends.
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
+import os
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,16 +37,17 @@ import numpy as np
 
 from cadalign.errors import InputError
 from cadalign.formats.calibration import CameraCalibration, Undistorter
-from cadalign.geometry.rotations import geodesic_angle
 from cadalign.infer.pipeline import PoseRecord
 from cadalign.infer.run import evaluate_run, video_writer
+from cadalign.infer.track.config import TrackerConfig
 from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, as_gray, with_levels
 from cadalign.infer.track.hidden import HiddenContours, HiddenSeen
+from cadalign.infer.track.partial import PARTIAL, Finished, join_overlays, take_over
 from cadalign.infer.track.parts import MovableConfig, MovableParts, part_record, split_hypotheses
 from cadalign.infer.track.start import pose_from_picks
-from cadalign.infer.track.tracker import StructureTracker, TrackerConfig, TrackStep
-from cadalign.infer.video import iter_frames
-from cadalign.io import atomic_path, fingerprint, prepare_stage_dir, read_json, read_jsonl, write_json
+from cadalign.infer.track.tracker import StructureTracker, TrackStep
+from cadalign.infer.video import VideoFrame, iter_frames
+from cadalign.io import fingerprint, prepare_stage_dir, read_json, read_jsonl, write_json
 from cadalign.sim.structure import Structure
 from cadalign.types import Camera, Progress, Rigid3
 
@@ -165,6 +171,17 @@ class PartMemory:
         shown = sum(d[0] * d[1] for d in past) / n
         return shown >= cfg.absent_seen * float(np.median([d[2] for d in past]))
 
+    def take_over(self, row: dict, structure: Structure) -> None:
+        """The verdicts of a ``track.jsonl`` line (an interrupted run's last frame): its missing parts are missing,
+        the parts it checked otherwise present."""
+        names = {o.name: i + 1 for i, o in enumerate(structure.objects)}
+        for name in row.get("part_support") or {}:
+            if name in names:
+                self.missing[names[name]] = False
+        for name in row.get("missing_parts") or []:
+            if name in names:
+                self.missing[names[name]] = True
+
     def update(self, k: int, verdict: bool, confirm: int) -> None:
         """One check's verdict: it decides for a part never checked or found missing; a part found present is
         called missing after ``confirm`` missing verdicts in a row."""
@@ -252,74 +269,116 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
     hypotheses (name, ``T_cam_from_world``) for a frame without a track (e.g. from a detector); at least one of
     the two is needed. ``lens``: the calibration read from the user's file; a lens distortion in it is undone
     on every frame before tracking (``camera`` is then its pinhole part). ``nav``: rough ``T_cam_from_world`` by
-    frame name: each bounds its frame's pose and restarts a lost track (``StructureTracker.step``)."""
+    frame name: each bounds its frame's pose and restarts a lost track (``StructureTracker.step``). An interrupted
+    run resumes after its last finished frame, from that frame's pose (:data:`PARTIAL`)."""
     if init_pose is None and restart_source is None and not nav:
         raise InputError("the tracker needs a start: pass --init-pose FILE (a rough first-frame pose), --nav FILE "
                          "(rough poses per frame) or --model RUN (a trained detector)")
     out_dir = Path(out_dir)
-    undistort = Undistorter.of(lens) if lens is not None else None
     rec = {"track": cfg, "source": str(source), "topic": topic, "max_frames": max_frames, "camera": camera.K.tolist(),
            **_start_record(lens, init_pose, nav), **(record or {})}
     poses_path = out_dir / "poses.jsonl"
-    if prepare_stage_dir(out_dir, "infer", rec, overwrite=overwrite) and (out_dir / "timings.json").is_file():
+    same = prepare_stage_dir(out_dir, "infer", rec, overwrite=overwrite)
+    if same and (out_dir / "timings.json").is_file():
         log.info("infer: %s is complete for this config; reusing it", poses_path)
         return poses_path
-    tracker = StructureTracker(structure.render_meshes(), camera, cfg.tracker)  # the rigid assembly
-    parts = MovableParts(structure, camera, cfg.movable)
-    records: list[PoseRecord] = []
-    names: list[str] = []
-    times: dict[str, list[float]] = {"track": [], "restart": [], "detector": [], "overlay": []}
-    states = {"ok": 0, "lost": 0}
-    memory, behind = PartMemory(), HiddenContours(structure, camera)  # the missing-part checks' memory and cue
-    writer = None
-    frames = iter_frames(source, max_frames=max_frames, topic=topic)
-    video_ctx = atomic_path(out_dir / "overlay.mp4") if cfg.overlay else contextlib.nullcontext(None)
-    with atomic_path(poses_path) as tmp_poses, atomic_path(out_dir / "track.jsonl") as tmp_track, \
-            video_ctx as tmp_video:
-        with open(tmp_poses, "w", encoding="utf-8") as fh, open(tmp_track, "w", encoding="utf-8") as th:
-            for vf in progress(frames, "track", max_frames) if progress else frames:
-                if vf.image.shape[:2] != (camera.height, camera.width):
-                    raise InputError(f"{source}: frame {vf.name} is {vf.image.shape[1]}x{vf.image.shape[0]} but the "
-                                     f"calibration is {camera.width}x{camera.height}; pass the calibration of this "
-                                     "video")
-                image = undistort(vf.image) if undistort is not None else vf.image
-                restarts: list[tuple[str, Rigid3]] = []
-                if init_pose is not None and tracker.last_pose is None:  # until the track first starts
-                    restarts.append(("init_pose", init_pose))
-                t0 = time.perf_counter()
-                part_hyps: dict[str, list] = {}
-                if restart_source is not None and (tracker.lost or parts.lost):
-                    rigid, part_hyps = split_hypotheses(list(restart_source(image, vf.name)), structure)
-                    restarts += rigid if tracker.lost else []
-                    times["detector"].append(time.perf_counter() - t0)
-                rgb = image[..., :3] if image.ndim == 3 else None
-                gray = as_gray(image, cfg.tracker.edges.colour)
-                step = tracker.step(gray, restarts, rgb, _nav_pose(nav, vf.name, not names, source))
-                (times["restart"] if step.source not in ("track",) else times["track"]).append(step.seconds)
-                states[step.state] += 1
-                part_steps = parts.step(gray, rgb, step.T_cam_from_world, part_hyps)
-                hidden = behind.seen(gray, step, cfg.tracker.edges.support_px, cfg.tracker.edges.min_contrast)
-                recs, missing = part_records(step, vf.index, vf.name, structure, cfg, memory, hidden)
-                recs += parts.records(part_steps, vf.index, vf.name, cfg.min_visible_px)
-                for r in recs:
-                    fh.write(json.dumps(r.to_json()) + "\n")
-                records.extend(recs)
-                th.write(json.dumps({**_step_json(step, vf.name, missing, structure, hidden),
-                                     **({"movable": parts.summary(part_steps)} if part_steps else {})}) + "\n")
-                if cfg.overlay:
-                    t0 = time.perf_counter()
-                    writer = writer or video_writer(tmp_video, cfg.overlay_fps)
-                    writer.append_data(_draw(image, step, part_steps))
-                    times["overlay"].append(time.perf_counter() - t0)
-                names.append(vf.name)
-        if writer is not None:
-            writer.close()
-    write_json(out_dir / "frames.json", names)
-    write_json(out_dir / "timings.json", _timings(times, len(names), states))
-    _log_end(out_dir / "track.jsonl", cfg.tracker, len(records))
+    done = take_over(out_dir, same)
+    if done.rows:
+        log.info("infer: resuming %s after frame %s (%d frames finished before)", out_dir, done.rows[-1]["frame_name"],
+                 len(done.rows))
+    run = _VideoRun(cfg, structure, camera, out_dir, init_pose, restart_source, nav, done)
+    left = None if max_frames is None else max(max_frames - len(done.rows), 0)
+    frames = iter_frames(source, max_frames=left, topic=topic, after=done.rows[-1]["frame"] if done.rows else -1)
+    run.track(progress(frames, "track", left) if progress else frames, source,
+              Undistorter.of(lens) if lens is not None else None)
+    rows = read_jsonl(out_dir / f"track.jsonl{PARTIAL}")
+    write_json(out_dir / "frames.json", [r["frame_name"] for r in rows])
+    write_json(out_dir / "timings.json", _timings(rows, run.overlay_s))
+    join_overlays([*done.overlays, *([run.overlay] if run.overlay else [])], out_dir / "overlay.mp4",
+                   cfg.overlay_fps)
+    for name in ("track.jsonl", "poses.jsonl"):
+        os.replace(out_dir / f"{name}{PARTIAL}", out_dir / name)
+    _log_end(out_dir / "track.jsonl", cfg.tracker, len(run.records))
     if gt_scene is not None:
-        evaluate_run(records, names, gt_scene, out_dir)
+        evaluate_run(run.records, [r["frame_name"] for r in rows], gt_scene, out_dir)
     return poses_path
+
+
+class _VideoRun:
+    """One run of the tracker over frames, writing each finished frame at once (``track_video``)."""
+
+    def __init__(self, cfg: TrackRunConfig, structure: Structure, camera: Camera, out_dir: Path,
+                 init_pose: Rigid3 | None, restart_source: Callable[[np.ndarray, str], list] | None,
+                 nav: dict[str, Rigid3] | None, done: Finished) -> None:
+        self.cfg, self.structure, self.camera, self.out_dir = cfg, structure, camera, out_dir
+        self.restart_source, self.nav = restart_source, nav
+        self.first = not done.rows
+        self.tracker = StructureTracker(structure.render_meshes(), camera, cfg.tracker)  # the rigid assembly
+        self.resumed = done.resume(self.tracker)
+        self.start = [("init_pose", init_pose)] if init_pose is not None and not self.resumed else []
+        self.parts = MovableParts(structure, camera, cfg.movable)
+        self.memory, self.behind = PartMemory(), HiddenContours(structure, camera)  # the missing-part checks
+        for row in [r for r in done.rows if r["state"] == "ok"][-1:]:
+            self.memory.take_over(row, structure)  # the parts' verdicts at the last tracked frame
+        self.records: list[PoseRecord] = list(done.records)
+        self.overlay = out_dir / f"overlay.part{len(done.overlays)}.mp4" if cfg.overlay else None
+        self.overlay_s: list[float] = []
+
+    def track(self, frames: Iterable[VideoFrame], source: Path, undistort: Undistorter | None) -> None:
+        """Track ``frames``, appending each to the partial files; Ctrl-C keeps every finished frame."""
+        writer = None
+        try:
+            with open(self.out_dir / f"poses.jsonl{PARTIAL}", "a", encoding="utf-8") as fh, \
+                    open(self.out_dir / f"track.jsonl{PARTIAL}", "a", encoding="utf-8") as th:
+                for vf in frames:
+                    if vf.image.shape[:2] != (self.camera.height, self.camera.width):
+                        raise InputError(f"{source}: frame {vf.name} is {vf.image.shape[1]}x{vf.image.shape[0]} but "
+                                         f"the calibration is {self.camera.width}x{self.camera.height}; pass the "
+                                         "calibration of this video")
+                    image = undistort(vf.image) if undistort is not None else vf.image
+                    recs, row, drawn = self._frame(vf, image, source)
+                    fh.write("".join(json.dumps(r.to_json()) + "\n" for r in recs))
+                    fh.flush()  # the poses before the frame's track line: a line there means its poses are written
+                    th.write(json.dumps(row) + "\n")
+                    th.flush()
+                    self.records.extend(recs)
+                    if drawn is not None:
+                        t0 = time.perf_counter()
+                        writer = writer or video_writer(self.overlay, self.cfg.overlay_fps)
+                        writer.append_data(drawn)
+                        self.overlay_s.append(time.perf_counter() - t0)
+        finally:
+            if writer is not None:
+                writer.close()  # a whole video even when interrupted
+            elif self.overlay is not None:
+                self.overlay = None
+
+    def _frame(self, vf: VideoFrame, image: np.ndarray, source: Path,
+               ) -> tuple[list[PoseRecord], dict, np.ndarray | None]:
+        """One frame: its part records, its ``track.jsonl`` line and its overlay picture (None: no overlay)."""
+        cfg, tracker = self.cfg, self.tracker
+        restarts: list[tuple[str, Rigid3]] = list(self.start) if tracker.last_pose is None else []  # until it starts
+        part_hyps: dict[str, list] = {}
+        detector_ms = None
+        if self.restart_source is not None and (tracker.lost or self.parts.lost):
+            t0 = time.perf_counter()
+            rigid, part_hyps = split_hypotheses(list(self.restart_source(image, vf.name)), self.structure)
+            restarts += rigid if tracker.lost else []
+            detector_ms = round(1e3 * (time.perf_counter() - t0), 2)
+        rgb = image[..., :3] if image.ndim == 3 else None
+        gray = as_gray(image, cfg.tracker.edges.colour)
+        step = tracker.step(gray, restarts, rgb, _nav_pose(self.nav, vf.name, self.first, source))
+        self.first = False
+        part_steps = self.parts.step(gray, rgb, step.T_cam_from_world, part_hyps)
+        hidden = self.behind.seen(gray, step, cfg.tracker.edges.support_px, cfg.tracker.edges.min_contrast)
+        recs, missing = part_records(step, vf.index, vf.name, self.structure, cfg, self.memory, hidden)
+        recs += self.parts.records(part_steps, vf.index, vf.name, cfg.min_visible_px)
+        row = {**_step_json(step, vf.name, missing, self.structure, hidden), "frame": vf.index,  # the video's
+               **({"movable": self.parts.summary(part_steps)} if part_steps else {}),
+               **({} if detector_ms is None else {"detector_ms": detector_ms}),
+               **({"resumed": True} if self.resumed else {})}
+        self.resumed = False  # only the first frame after a resume says so
+        return recs, row, _draw(image, step, part_steps) if cfg.overlay else None
 
 
 def _log_end(track_path: Path, cfg: TrackerConfig, n_records: int) -> list[int]:
@@ -397,90 +456,21 @@ def _rounded(v: float) -> float | None:
     return round(float(v), 4) if np.isfinite(v) else None
 
 
-def _timings(times: dict[str, list[float]], n: int, states: dict[str, int]) -> dict:
+def _timings(rows: list[dict], overlay_s: list[float]) -> dict:
+    """``timings.json`` from the frames' ``track.jsonl`` lines (an interrupted run's too) and the overlay's times
+    of the last run."""
     def ms(v: list[float]) -> dict:
-        return {"frames": len(v), "mean_ms": 1e3 * float(np.mean(v)) if v else None,
-                "median_ms": 1e3 * float(np.median(v)) if v else None}
+        return {"frames": len(v), "mean_ms": float(np.mean(v)) if v else None,
+                "median_ms": float(np.median(v)) if v else None}
 
-    total = sum(sum(v) for k, v in times.items() if k != "overlay")
-    return {"frames": n, "tracked": states["ok"], "lost": states["lost"],
-            "per_stage": {k: ms(v) for k, v in times.items()},
-            "frames_per_s": n / total if total > 0 else None,
+    track = [r["ms"] for r in rows if r["source"] == "track"]
+    restart = [r["ms"] for r in rows if r["source"] != "track"]
+    detector = [r["detector_ms"] for r in rows if r.get("detector_ms") is not None]
+    total_ms = sum(track) + sum(restart) + sum(detector)
+    return {"frames": len(rows), "tracked": sum(r["state"] == "ok" for r in rows),
+            "lost": sum(r["state"] == "lost" for r in rows),
+            "per_stage": {"track": ms(track), "restart": ms(restart), "detector": ms(detector),
+                          "overlay": ms([1e3 * s for s in overlay_s])},
+            "frames_per_s": 1e3 * len(rows) / total_ms if total_ms > 0 else None,
             "note": "track: frames continued from the last pose; restart: frames started from a hypothesis "
                     "(init pose, detector) or tried while lost; wall clock; overlay apart"}
-
-
-
-def read_frame_poses(path: Path, what: str = "reference poses") -> dict[str, Rigid3]:
-    """Camera poses by frame name from JSON ``{"frames": {frame name: T_cam_from_world 4x4}}`` (metres, the
-    scene file's world frame): a real capture's reference poses (e.g. from a fiducial board), or rough
-    navigation poses per frame (``infer --nav``)."""
-    data = read_json(path)
-    try:
-        out = {str(k): Rigid3.from_matrix(np.asarray(v, dtype=np.float64)) for k, v in data["frames"].items()}
-    except (KeyError, ValueError, TypeError, AttributeError) as exc:
-        raise InputError(f"{path}: not {what} ({exc}); write {{\"frames\": {{\"<frame name>\": 4x4 "
-                         "T_cam_from_world, metres}}}}") from exc
-    if not out:
-        raise InputError(f"{path}: no frames in it; write {{\"frames\": {{\"<frame name>\": 4x4 T_cam_from_world, "
-                         "metres}}}}")
-    return out
-
-
-def truth_report(out_dir: Path, structure: Structure, truth: dict[str, Rigid3]) -> dict:
-    """Per-frame errors of each part's tracked pose against reference camera poses (``truth_errors.json``) and
-    their plot (``truth_errors.png``): the part's centre in the camera (mm) and its rotation (deg); a lost
-    frame has none."""
-
-    rows = []
-    for d in read_jsonl(Path(out_dir) / "track.jsonl"):
-        T_ref = truth.get(d["frame_name"])
-        if T_ref is None:
-            continue
-        row: dict = {"frame": d["frame"], "frame_name": d["frame_name"], "state": d["state"], "parts": {}}
-        if d["T_cam_from_world"] is not None:
-            T = Rigid3.from_matrix(np.asarray(d["T_cam_from_world"]))
-            for o in structure.objects:
-                c = structure.models[o.obj_id].vertices_m.mean(axis=0)
-                A, B = T @ o.T_world_from_obj, T_ref @ o.T_world_from_obj
-                row["parts"][o.name] = {
-                    "centre_err_mm": 1e3 * float(np.linalg.norm(A.apply(c[None]) - B.apply(c[None]))),
-                    "rot_err_deg": float(np.degrees(geodesic_angle(A.R, B.R)))}
-        rows.append(row)
-    summary: dict = {"frames": len(rows), "tracked": sum(r["state"] == "ok" for r in rows), "parts": {}}
-    for o in structure.objects:
-        t = [r["parts"][o.name]["centre_err_mm"] for r in rows if o.name in r["parts"]]
-        a = [r["parts"][o.name]["rot_err_deg"] for r in rows if o.name in r["parts"]]
-        summary["parts"][o.name] = {"median_mm": float(np.median(t)) if t else None,
-                                    "median_deg": float(np.median(a)) if a else None,
-                                    "mean_mm": float(np.mean(t)) if t else None,
-                                    "mean_deg": float(np.mean(a)) if a else None}
-    write_json(Path(out_dir) / "truth_errors.json", {"summary": summary, "frames": rows})
-    _plot_truth(Path(out_dir) / "truth_errors.png", rows, [o.name for o in structure.objects])
-    return summary
-
-
-def _plot_truth(path: Path, rows: list[dict], names: list[str]) -> None:
-    from matplotlib.figure import Figure  # lazy: heavy dependency (matplotlib)
-
-    fig = Figure(figsize=(9 if len(names) <= 6 else 11, 5), dpi=100)
-    ax1, ax2 = fig.subplots(2, 1, sharex=True)
-    for name in names:
-        f = [r["frame"] for r in rows if name in r["parts"]]
-        ax1.plot(f, [r["parts"][name]["centre_err_mm"] for r in rows if name in r["parts"]], ".-", label=name)
-        ax2.plot(f, [r["parts"][name]["rot_err_deg"] for r in rows if name in r["parts"]], ".-", label=name)
-    lost = [r["frame"] for r in rows if r["state"] != "ok"]
-    for ax in (ax1, ax2):
-        for k in lost:
-            ax.axvspan(k - 0.5, k + 0.5, color="0.85", lw=0)
-        ax.grid(alpha=0.3)
-    ax1.set_ylabel("centre error, mm")
-    ax2.set_ylabel("rotation error, deg")
-    ax2.set_xlabel("frame (grey: lost, no pose reported)")
-    if len(names) <= 6:
-        ax1.legend()
-    else:  # a whole structure's parts: beside the plots, not over them
-        ax1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, ncol=1 + len(names) // 14)
-    ax1.set_title("tracked part poses against the reference poses")
-    fig.tight_layout()
-    fig.savefig(path)

@@ -11,114 +11,20 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
 from cadalign.geometry.rotations import axis_angle_to_matrix, geodesic_angle, matrix_to_axis_angle
-from cadalign.infer.track.acquire import AcquireConfig, candidates
-from cadalign.infer.track.edges import EdgeFit, EdgeLevel, EdgeTrackConfig, EdgeTracker
-from cadalign.infer.track.flow import FlowConfig, FlowPredictor
+from cadalign.infer.track.acquire import candidates
+from cadalign.infer.track.config import TrackerConfig
+from cadalign.infer.track.edges import EdgeFit, EdgeTracker
+from cadalign.infer.track.flow import FlowPredictor
 from cadalign.raycast.core import RenderMesh
 from cadalign.types import Camera, Rigid3
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class TrackerConfig:
-    """The structure tracker (see the module doc)."""
-
-    edges: EdgeTrackConfig = field(default_factory=EdgeTrackConfig)
-    """Per-frame correction against contours, coarse to fine."""
-    acquire: AcquireConfig = field(default_factory=AcquireConfig)
-    """The pan/tilt/roll search around a restart hypothesis (a rough pose)."""
-    flow: FlowConfig = field(default_factory=FlowConfig)
-    """The prediction from sparse flow since the last tracked frame (model-based visual odometry)."""
-    restart_levels: tuple[EdgeLevel, ...] = (
-        EdgeLevel(0.125, 8, 4.0, 3.0),
-        EdgeLevel(0.25, 8, 6.0, 4.0),
-        EdgeLevel(0.5, 4, 4.0, 2.5),
-        EdgeLevel(1.0, 3, 2.5, 1.5),
-    )
-    """The contour fit of a restart hypothesis: a wider basin than a tracked frame's (a 1/8 level, more rounds)."""
-    flow_levels: tuple[EdgeLevel, ...] | None = None
-    """The contour fit of a frame the flow predicted; None: the same levels as any frame (skipping the 1/4 level there
-    saves CPU but costs accuracy: docs/tuning/tracker.md#trackerconfigflow_levels)."""
-    steady_heading: bool = True
-    """When the constant-velocity prediction fails, also try the last step's translation (in the camera's frame
-    and in the world's) with the last orientation: a survey ROV's heading jitters while its track holds
-    (docs/tuning/tracker.md#prediction-and-turns)."""
-    orbit_step_deg: float = 30.0
-    """While lost, with nothing else to restart from, the last view is also tried turned round the structure's
-    vertical axis (world z) in steps of this many degrees (a cut to another side of the structure); 0: off."""
-    orbit_fits: int = 3
-    """Of those turned views, the best this many by the search's score are fitted."""
-    orbit_every: int = 4
-    """The turned views are tried on the first lost frame and every this many after (about 10 s of CPU each on
-    the default orbit): a return is regained within this many frames."""
-    turn_step_deg: float = 30.0
-    """While lost, the camera carried on at its last step is also tried turned on the spot about the world
-    vertical in steps of this many degrees (an ROV turning at a survey line's end out of the structure's view);
-    0: off. The best ``orbit_fits`` by the search's score are fitted (docs/tuning/tracker.md#prediction-and-turns)."""
-    turn_frames: int = 4
-    """... on each of the first this many lost frames (dead reckoning drifts by about a step each frame)."""
-    own_turn_limit: bool = True
-    """Refuse a restart from the tracker's own hypotheses (dead reckoning, turned views) whose fit turned the
-    camera further from the hypothesis than one pan/tilt search reaches: on the turbid survey right restarts
-    turned 4-7 deg, wrong ones 17-89 (docs/tuning/tracker.md#prediction-and-turns)."""
-    unique_margin: float = 0.05
-    """A restart from the tracker's own hypotheses (no navigation pose) is taken only when the view turned by quarter
-    turns round the structure's vertical ranks this much lower (:meth:`StructureTracker.rank`): a lattice fits
-    itself turned (docs/tuning/tracker.md#ambiguous-restarts); 0: off."""
-    rank_min_samples: int = 30
-    """Contour samples a part needs to count in :meth:`StructureTracker.rank`."""
-    start_margin: float = 0.05
-    """A restart hypothesis' own fit is kept unless a candidate of the search round it has this much more
-    support (on a cluttered desk, wrong candidates reached the right pose's support)."""
-    acquire_rounds: int = 2
-    """Searches per hypothesis: when none of a search's candidates passes, the next searches round the best of
-    them (a rough pose whose error is partly translation needs two)."""
-    velocity: float = 1.0
-    """Share of the last frame-to-frame motion carried into the prediction (0: the last pose; 1: constant
-    velocity, as a survey ROV flies)."""
-    min_support: float = 0.35
-    """Lost below this share of contour samples with an image edge (see ``EdgeTrackConfig.support_px``), in any water: a
-    floor under the right poses of turbid water
-    (docs/tuning/tracker.md#how-the-thresholds-were-chosen-and-what-they-were-chosen-on)."""
-    min_start_support: float = 0.45
-    """A restart hypothesis is taken only with at least this support (and the best-supported one wins)."""
-    relative_support: float = 0.7
-    """Lost below this share of the track's recent median support (a drop, where the absolute level depends on
-    the water and the structure)."""
-    doubt_support: float = 0.9
-    """A tracked frame whose support is below this share of the track's recent median is checked against the
-    pan/tilt/roll search round its prediction, and the better-supported pose is kept."""
-    history: int = 10
-    """Tracked frames whose median support ``relative_support`` refers to."""
-    min_samples: int = 150
-    """Lost when the CAD shows fewer contour samples at the pose (the structure left the view)."""
-    min_region_support: float = 0.2
-    """Once the parts' colours are learned, lost below this share of contour samples on a colour boundary
-    (``EdgeFit.region_support``)."""
-    relative_region: float = 0.7
-    """... or below this share of the recent tracked frames' region support. Unlike the edge support's, this
-    history outlives a loss: a restart must look like the parts did (on visp_rbt a restart onto a wrong pose had
-    edge support 0.53 and region support 0.01, right poses 0.75-0.81)."""
-    max_residual_region_px: float = 1.0
-    """The residual allowed when the region term confirms the pose (colours learned, region support passing):
-    motion blur smears a hand-held frame's edges by a pixel (visp_rbt's blurred frames: 0.75-0.87 px at right
-    poses)."""
-    max_residual_px: float = 0.7
-    """Lost when the supported samples' median offset exceeds this, pixels (a pose near but off the edges)."""
-    nav_max_deg: float = 25.0
-    """With a navigation pose per frame (``infer --nav``): a pose turned further than this from the frame's
-    navigation pose is refused, degrees: 2.5 times a rough fix's 10 deg (room for the track's own error), far below
-    the 90 deg of a lattice frame's symmetric fits (docs/tuning/tracker.md#navigation-per-frame)."""
-    nav_max_m: float = 2.5
-    """... or whose camera centre is further than this from the navigation pose's, metres (a rough fix is good
-    to ~0.5 m; the symmetric fits of the turbid survey were 3.5-9 m off)."""
 
 
 class Closest(NamedTuple):
@@ -175,6 +81,7 @@ class StructureTracker:
         self._nav: Rigid3 | None = None  # T_world_from_cam of the current frame's navigation pose, when given
         self._nav_refused: tuple[float, tuple[float, float] | None] | None = None  # this frame's best such fit
         self._closest: Closest | None = None  # this frame's best-supported refused fit
+        self._warm = False  # a resumed track (:meth:`resume`) whose colours are not learned yet
         lo = np.min([m.vertices_m.min(axis=0) for m in meshes], axis=0)
         hi = np.max([m.vertices_m.max(axis=0) for m in meshes], axis=0)
         self._centre = (lo + hi) / 2  # the structure's centre, world frame
@@ -183,6 +90,25 @@ class StructureTracker:
     def last_pose(self) -> Rigid3 | None:
         """``T_cam_from_world`` of the last ok frame."""
         return None if self._last is None else self._last.inverse()
+
+    def resume(self, poses: Sequence[Rigid3], supports: Sequence[float] = (), regions: Sequence[float] = (),
+               lost_frames: int = 0) -> None:
+        """Carry on a track an interrupted run left, as if its frames had been tracked here. ``poses``: the
+        ``T_cam_from_world`` of its last tracked frame, after the frame before it when that was tracked too (their
+        motion is the prediction's); ``supports``, ``regions``: the edge and region supports of its last tracked
+        frames (the track's history); ``lost_frames``: frames lost since the last tracked one. The flow and the
+        parts' colours start afresh on the next tracked frame."""
+        if not poses:
+            return
+        self._last = poses[-1].inverse()
+        if len(poses) > 1:
+            self._velocity = poses[-2] @ self._last
+            self._step = self._velocity.t
+        self._prev = poses[-2].inverse() if len(poses) > 1 and not lost_frames else None
+        self.lost, self._lost_frames = lost_frames > 0, lost_frames
+        self._warm = not self.lost  # the next frame learns the parts' colours at its prediction before its fit
+        self._supports = list(supports)[-self.cfg.history:]
+        self._regions = [r for r in regions if np.isfinite(r)][-self.cfg.history:]
 
     def good(self, fit: EdgeFit, start: bool = False) -> bool:
         """Whether a fit passes as tracked: enough contours, support and a small residual; a start needs
@@ -357,6 +283,11 @@ class StructureTracker:
         flow = self.flow.predict(gray, pred) if pred is not None and self.flow.ready else None
         if pred is not None:
             pred = flow or pred
+            if self._warm and rgb is not None and not self.edges.region.ready:
+                # a resumed track: a tracked frame's fit uses the parts' colours (without, a small image's coarse
+                # level can run off), learned here at the prediction, a frame's motion from the last pose
+                self._learn_colours(self.edges.judge(gray, pred))
+            self._warm = False
             fit = self.edges.fit(gray, pred, self.cfg.flow_levels if flow is not None else None)
             if self.good(fit) and fit.support < self.cfg.doubt_support * self._typical_support():
                 # passes, but well below the track's usual support: a wrong nearby pose fits that way too, so
@@ -401,6 +332,14 @@ class StructureTracker:
         self.lost = True
         return TrackStep(k, "lost", None, None, "", time.perf_counter() - t0, tried,
                          None if self._nav_refused is None else self._nav_refused[1], self._closest)
+
+    def _learn_colours(self, fit: EdgeFit) -> bool:
+        """Teach the region term the parts' colours along ``fit``'s contours in the colour frame; False without."""
+        rgb = self.edges.colour_frame
+        if rgb is None or fit.uv is None or fit.normal is None or fit.sample_instance is None or fit.instance is None:
+            return False
+        self.edges.region.learn(rgb, fit.uv, fit.normal, fit.sample_instance, fit.instance)
+        return True
 
     def _best_of(self, gray: np.ndarray, hypotheses: Sequence[tuple[str, Rigid3]], own: bool = False,
                   ) -> tuple[tuple[EdgeFit, str] | None, int]:
@@ -485,10 +424,7 @@ class StructureTracker:
             self._regions = (self._regions + [fit.region_support])[-self.cfg.history:]
         if fit.depth_m is not None and fit.instance is not None:
             self.flow.remember(gray, fit.depth_m, fit.instance, fit.T_world_from_cam)
-        rgb = self.edges.colour_frame
-        if rgb is not None and fit.uv is not None and fit.normal is not None and fit.sample_instance is not None \
-                and fit.instance is not None:
-            self.edges.region.learn(rgb, fit.uv, fit.normal, fit.sample_instance, fit.instance)
+        if self._learn_colours(fit):
             if not np.isfinite(fit.region_support):  # the first frame: read with the colours it just taught
                 fit = self.edges.with_region(fit)  # (for the parts' check only: not in the track's history)
         return TrackStep(k, "ok", fit.T_world_from_cam.inverse(), fit, source, time.perf_counter() - t0, tried,

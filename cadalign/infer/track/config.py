@@ -1,0 +1,104 @@
+"""The structure tracker's settings (:class:`~cadalign.infer.track.tracker.StructureTracker`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from cadalign.infer.track.acquire import AcquireConfig
+from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig
+from cadalign.infer.track.flow import FlowConfig
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """The structure tracker (see the module doc)."""
+
+    edges: EdgeTrackConfig = field(default_factory=EdgeTrackConfig)
+    """Per-frame correction against contours, coarse to fine."""
+    acquire: AcquireConfig = field(default_factory=AcquireConfig)
+    """The pan/tilt/roll search around a restart hypothesis (a rough pose)."""
+    flow: FlowConfig = field(default_factory=FlowConfig)
+    """The prediction from sparse flow since the last tracked frame (model-based visual odometry)."""
+    restart_levels: tuple[EdgeLevel, ...] = (
+        EdgeLevel(0.125, 8, 4.0, 3.0),
+        EdgeLevel(0.25, 8, 6.0, 4.0),
+        EdgeLevel(0.5, 4, 4.0, 2.5),
+        EdgeLevel(1.0, 3, 2.5, 1.5),
+    )
+    """The contour fit of a restart hypothesis: a wider basin than a tracked frame's (a 1/8 level, more rounds)."""
+    flow_levels: tuple[EdgeLevel, ...] | None = None
+    """The contour fit of a frame the flow predicted; None: the same levels as any frame (skipping the 1/4 level there
+    saves CPU but costs accuracy: docs/tuning/tracker.md#trackerconfigflow_levels)."""
+    steady_heading: bool = True
+    """When the constant-velocity prediction fails, also try the last step's translation (in the camera's frame
+    and in the world's) with the last orientation: a survey ROV's heading jitters while its track holds
+    (docs/tuning/tracker.md#prediction-and-turns)."""
+    orbit_step_deg: float = 30.0
+    """While lost, with nothing else to restart from, the last view is also tried turned round the structure's
+    vertical axis (world z) in steps of this many degrees (a cut to another side of the structure); 0: off."""
+    orbit_fits: int = 3
+    """Of those turned views, the best this many by the search's score are fitted."""
+    orbit_every: int = 4
+    """The turned views are tried on the first lost frame and every this many after (about 10 s of CPU each on
+    the default orbit): a return is regained within this many frames."""
+    turn_step_deg: float = 30.0
+    """While lost, the camera carried on at its last step is also tried turned on the spot about the world
+    vertical in steps of this many degrees (an ROV turning at a survey line's end out of the structure's view);
+    0: off. The best ``orbit_fits`` by the search's score are fitted (docs/tuning/tracker.md#prediction-and-turns)."""
+    turn_frames: int = 4
+    """... on each of the first this many lost frames (dead reckoning drifts by about a step each frame)."""
+    own_turn_limit: bool = True
+    """Refuse a restart from the tracker's own hypotheses (dead reckoning, turned views) whose fit turned the
+    camera further from the hypothesis than one pan/tilt search reaches: on the turbid survey right restarts
+    turned 4-7 deg, wrong ones 17-89 (docs/tuning/tracker.md#prediction-and-turns)."""
+    unique_margin: float = 0.05
+    """A restart from the tracker's own hypotheses (no navigation pose) is taken only when the view turned by quarter
+    turns round the structure's vertical ranks this much lower (:meth:`StructureTracker.rank`): a lattice fits
+    itself turned (docs/tuning/tracker.md#ambiguous-restarts); 0: off."""
+    rank_min_samples: int = 30
+    """Contour samples a part needs to count in :meth:`StructureTracker.rank`."""
+    start_margin: float = 0.05
+    """A restart hypothesis' own fit is kept unless a candidate of the search round it has this much more
+    support (on a cluttered desk, wrong candidates reached the right pose's support)."""
+    acquire_rounds: int = 2
+    """Searches per hypothesis: when none of a search's candidates passes, the next searches round the best of
+    them (a rough pose whose error is partly translation needs two)."""
+    velocity: float = 1.0
+    """Share of the last frame-to-frame motion carried into the prediction (0: the last pose; 1: constant
+    velocity, as a survey ROV flies)."""
+    min_support: float = 0.35
+    """Lost below this share of contour samples with an image edge (see ``EdgeTrackConfig.support_px``), in any water: a
+    floor under the right poses of turbid water
+    (docs/tuning/tracker.md#how-the-thresholds-were-chosen-and-what-they-were-chosen-on)."""
+    min_start_support: float = 0.45
+    """A restart hypothesis is taken only with at least this support (and the best-supported one wins)."""
+    relative_support: float = 0.7
+    """Lost below this share of the track's recent median support (a drop, where the absolute level depends on
+    the water and the structure)."""
+    doubt_support: float = 0.9
+    """A tracked frame whose support is below this share of the track's recent median is checked against the
+    pan/tilt/roll search round its prediction, and the better-supported pose is kept."""
+    history: int = 10
+    """Tracked frames whose median support ``relative_support`` refers to."""
+    min_samples: int = 150
+    """Lost when the CAD shows fewer contour samples at the pose (the structure left the view)."""
+    min_region_support: float = 0.2
+    """Once the parts' colours are learned, lost below this share of contour samples on a colour boundary
+    (``EdgeFit.region_support``)."""
+    relative_region: float = 0.7
+    """... or below this share of the recent tracked frames' region support. Unlike the edge support's, this
+    history outlives a loss: a restart must look like the parts did (on visp_rbt a restart onto a wrong pose had
+    edge support 0.53 and region support 0.01, right poses 0.75-0.81)."""
+    max_residual_region_px: float = 1.0
+    """The residual allowed when the region term confirms the pose (colours learned, region support passing):
+    motion blur smears a hand-held frame's edges by a pixel (visp_rbt's blurred frames: 0.75-0.87 px at right
+    poses)."""
+    max_residual_px: float = 0.7
+    """Lost when the supported samples' median offset exceeds this, pixels (a pose near but off the edges)."""
+    nav_max_deg: float = 25.0
+    """With a navigation pose per frame (``infer --nav``): a pose turned further than this from the frame's
+    navigation pose is refused, degrees: 2.5 times a rough fix's 10 deg (room for the track's own error), far below
+    the 90 deg of a lattice frame's symmetric fits (docs/tuning/tracker.md#navigation-per-frame)."""
+    nav_max_m: float = 2.5
+    """... or whose camera centre is further than this from the navigation pose's, metres (a rough fix is good
+    to ~0.5 m; the symmetric fits of the turbid survey were 3.5-9 m off)."""
