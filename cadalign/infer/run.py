@@ -44,7 +44,7 @@ from cadalign.infer.config import InferConfig
 from cadalign.infer.detect import Detector, frame_ids, models_dir_of
 from cadalign.infer.model_geom import draw_wireframe
 from cadalign.infer.pipeline import PosePipeline, PoseRecord
-from cadalign.infer.video import VideoFrame, iter_frames
+from cadalign.infer.video import VideoFrame, count_frames, iter_frames
 from cadalign.io import atomic_path, prepare_stage_dir, read_json, write_json, write_text
 from cadalign.metrics.pose_eval import (
     CroppedMask,
@@ -236,7 +236,8 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
     video_ctx = atomic_path(out_dir / "overlay.mp4") if cfg.overlay else contextlib.nullcontext(None)
     with atomic_path(poses_path) as tmp_poses, video_ctx as tmp_video:
         with open(tmp_poses, "w", encoding="utf-8") as fh:
-            for vf in progress(frames, "infer", max_frames) if progress else frames:
+            total = count_frames(source, max_frames=max_frames, topic=topic) if progress else None
+            for vf in progress(frames, "infer", total) if progress else frames:
                 K = calib.K(vf.name)
                 records, t = _infer_frame(pipeline, vf, K, prep, depth, calib)
                 for r in records:
@@ -304,7 +305,8 @@ def _complete(cfg: InferConfig, pipeline: PosePipeline, records: list[PoseRecord
     completer = TrackCompleter(cfg.complete, pipeline.world_tracks(), records, pipeline.geometry)
     if completer.tracks:
         frames = calib.frames(source, max_frames, topic)
-        for vf in progress(frames, "complete", max_frames) if progress else frames:
+        for vf in progress(frames, "complete", count_frames(source, max_frames=max_frames, topic=topic)) \
+                if progress else frames:
             if vf.index not in cameras:
                 continue
             world, T_wc = cameras[vf.index]

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from cadalign.errors import InputError
-from cadalign.formats.bag import is_bag, iter_bag_frames
+from cadalign.formats.bag import is_bag, iter_bag_frames, resolve_topic
 from cadalign.sfm.frames import IMAGE_SUFFIXES, VIDEO_SUFFIXES
 
 log = logging.getLogger(__name__)
@@ -45,6 +45,28 @@ def list_frames(source: Path) -> list[Path]:
     if not files:
         raise InputError(f"{source} holds no images ({', '.join(IMAGE_SUFFIXES)}); pass a video or a frame folder")
     return files
+
+
+def count_frames(source: Path, *, max_frames: int | None = None, topic: str | None = None,
+                 after: int = -1) -> int | None:
+    """How many frames :func:`iter_frames` will yield with the same arguments (stride 1), for a progress bar's
+    total: a folder's images, a video's frame count as its container gives it, a bag topic's messages (corrupt
+    frames, skipped when read, still count); None when the source does not say."""
+    source = Path(source)
+    if is_bag(source):
+        n: int | None = resolve_topic(source, topic).count
+    elif source.is_dir():
+        n = len(list_frames(source))
+    elif source.suffix.lower() in VIDEO_SUFFIXES:
+        cap = cv2.VideoCapture(str(source))
+        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0) or None
+        cap.release()
+    else:
+        return None
+    if n is None:
+        return max_frames
+    n = max(n - (after + 1), 0)
+    return n if max_frames is None else min(n, max_frames)
 
 
 def iter_frames(source: Path, *, stride: int = 1, max_frames: int | None = None,

@@ -128,6 +128,9 @@ def test_ros_bag_input_with_topic_gives_the_folders_poses_and_stamps(tiny_sim: P
     assert read_json(tmp_path / "out" / "frames.json") == names
     assert read_json(tmp_path / "out" / "frame_stamps.json") == {n: T0_NS + k * DT_NS for k, n in enumerate(names)}
     assert (tmp_path / "out" / "poses.jsonl").read_text() == (oracle_run / "poses.jsonl").read_text()
+    from cadalign.infer.video import count_frames
+
+    assert count_frames(bag, topic="/camera/image_raw", after=0) == len(frames) - 1  # a progress bar's total
     res = _infer(tiny_sim, tmp_path / "out2", source=bag)  # two image topics and none named
     assert res.exit_code == 1 and "--topic" in res.output and "/camera2/image_raw" in res.output
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cadalign.errors import InputError
-from cadalign.infer.video import iter_frames
+from cadalign.infer.video import count_frames, iter_frames
 from cadalign.io import write_image
 
 
@@ -68,6 +68,10 @@ def test_frames_up_to_after_are_passed_over_and_not_counted(tmp_path: Path, monk
             w.append_data(np.full((32, 48, 3), 60 * i, np.uint8))
     frames = list(iter_frames(path, after=1))
     assert [f.name for f in frames] == ["000002.png", "000003.png"] and abs(int(frames[0].image.mean()) - 120) <= 3
+    # a progress bar's total: what iter_frames will yield
+    assert count_frames(path, after=1) == 2 and count_frames(path, max_frames=1) == 1
+    assert count_frames(tmp_path / "f", after=2) == 2 and count_frames(tmp_path / "f", after=9) == 0
+    assert count_frames(tmp_path / "f", max_frames=3) == 3 and count_frames(tmp_path / "f") == 5
 
 
 def test_bad_sources_raise_input_error(tmp_path: Path) -> None:

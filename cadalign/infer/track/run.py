@@ -46,7 +46,7 @@ from cadalign.infer.track.partial import PARTIAL, Finished, join_overlays, take_
 from cadalign.infer.track.parts import MovableConfig, MovableParts, part_record, split_hypotheses
 from cadalign.infer.track.start import pose_from_picks
 from cadalign.infer.track.tracker import StructureTracker, TrackStep
-from cadalign.infer.video import VideoFrame, iter_frames
+from cadalign.infer.video import VideoFrame, count_frames, iter_frames
 from cadalign.io import fingerprint, prepare_stage_dir, read_json, read_jsonl, write_json
 from cadalign.sim.structure import Structure
 from cadalign.types import Camera, Progress, Rigid3
@@ -288,8 +288,10 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                  len(done.rows))
     run = _VideoRun(cfg, structure, camera, out_dir, init_pose, restart_source, nav, done)
     left = None if max_frames is None else max(max_frames - len(done.rows), 0)
-    frames = iter_frames(source, max_frames=left, topic=topic, after=done.rows[-1]["frame"] if done.rows else -1)
-    run.track(progress(frames, "track", left) if progress else frames, source,
+    after = done.rows[-1]["frame"] if done.rows else -1
+    frames = iter_frames(source, max_frames=left, topic=topic, after=after)
+    total = count_frames(source, max_frames=left, topic=topic, after=after) if progress else None
+    run.track(progress(frames, "track", total) if progress else frames, source,
               Undistorter.of(lens) if lens is not None else None)
     rows = read_jsonl(out_dir / f"track.jsonl{PARTIAL}")
     write_json(out_dir / "frames.json", [r["frame_name"] for r in rows])
