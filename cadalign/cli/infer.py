@@ -138,8 +138,8 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
            config: Path | None, overwrite: bool, topic: str | None, gt_poses: Path | None,
            nav: Path | None = None) -> None:
     """The tracker branch of ``infer`` (:mod:`cadalign.infer.track.run`)."""
-    # lazy: pulls cv2; keeps `cadalign --help` light
-    from cadalign.infer.track.run import PRESETS, TrackRunConfig, read_init_pose, track_video
+    from cadalign.infer.track.config import PRESETS, TrackRunConfig  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.infer.track.run import read_init_pose, track_video  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.infer.track.truth import read_frame_poses  # lazy: pulls numpy; keeps `cadalign --help` light
     from cadalign.infer.video import iter_frames  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.sim.structure import load_structure  # lazy: pulls cv2; keeps `cadalign --help` light

@@ -21,7 +21,8 @@ from cadalign.fuse.config import PRESETS, FuseConfig
 from cadalign.fuse.run import run
 from cadalign.infer import detect as det
 from cadalign.infer.run import calibration_from_scene
-from cadalign.infer.track.run import TrackRunConfig, track_video
+from cadalign.infer.track.config import TrackRunConfig
+from cadalign.infer.track.run import track_video
 from cadalign.infer.track.start import detector_restarts
 from cadalign.io import read_image, read_json
 from cadalign.sim.navigation import first_fix

@@ -14,9 +14,9 @@ from cadalign.align.edge_refine import EdgeRefineConfig, edge_jacobian, motion, 
 from cadalign.errors import InputError
 from cadalign.geometry.camera import project
 from cadalign.geometry.rotations import axis_angle_to_matrix, geodesic_angle
-from cadalign.infer.track.config import TrackerConfig
+from cadalign.infer.track.config import TrackerConfig, TrackRunConfig
 from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, EdgeTracker, as_gray
-from cadalign.infer.track.run import TrackRunConfig, read_init_pose, track_video
+from cadalign.infer.track.run import read_init_pose, track_video
 from cadalign.infer.track.tracker import StructureTracker
 from cadalign.infer.track.truth import read_frame_poses
 from cadalign.sim.navigation import rough_pose
@@ -427,7 +427,7 @@ class TestTrackBoxes:
 class TestTrackTiny:
     def test_a_part_missing_from_the_image_is_not_reported(self, boxes) -> None:
         from cadalign.cad.model import CadModel
-        from cadalign.infer.track.run import part_records
+        from cadalign.infer.track.missing import part_records
         from cadalign.raycast.bop_writer import PosedObject
         from cadalign.raycast.core import RaycastRenderer
         from cadalign.sim.structure import Structure
@@ -457,7 +457,7 @@ class TestTrackTiny:
         """With colour frames and the default thresholds: box 3 absent from the video (what lies behind it shows
         where the CAD puts it) is reported missing from the first frame on; the others are placed."""
         from cadalign.cad.model import CadModel
-        from cadalign.infer.track.run import PartMemory, part_records
+        from cadalign.infer.track.missing import PartMemory, part_records
         from cadalign.raycast.bop_writer import PosedObject
         from cadalign.raycast.core import RaycastRenderer
         from cadalign.sim.structure import Structure
@@ -652,6 +652,46 @@ def test_a_resumed_track_carries_on_the_last_pose_motion_and_losses(boxes) -> No
     assert tr.lost and tr._lost_frames == 1 and np.allclose(tr.last_pose.matrix(), poses[1].matrix())
     tr = StructureTracker(meshes, cam, BOXES_TRACKER)
     assert not Finished([row(0, False)]).resume(tr) and tr.last_pose is None
+
+
+def test_frames_wider_than_max_width_are_tracked_smaller_and_reported_in_their_pixels(tmp_path: Path,
+                                                                                     track_sim: Path) -> None:
+    """The 320x240 orbit upscaled to 640x480 and tracked with max_width 320 (area-averaged back, intrinsics scaled)
+    gives the poses of the 320x240 frames themselves, with masks and boxes in the 640x480 frame's pixels."""
+    import cv2
+    import imageio.v3 as iio
+
+    from cadalign.formats.coco import rle_to_mask
+    from cadalign.infer.track.run import working_camera
+    from cadalign.sim.structure import load_structure
+
+    cam, names, cams = _frames(track_sim)
+    big = Camera(cam.K * [[2], [2], [1]], 640, 480)
+    small = working_camera(big, 320)
+    assert (small.width, small.height) == (320, 240) and np.allclose(small.K, cam.K)
+    assert working_camera(big, 0) is big and working_camera(cam, 320) is cam
+    frames = tmp_path / "big"
+    frames.mkdir()
+    for n in names:
+        iio.imwrite(frames / n, cv2.resize(iio.imread(track_sim / "frames" / n)[..., :3], (640, 480),
+                                           interpolation=cv2.INTER_NEAREST))
+    structure = load_structure(track_sim.parent / "structure.toml")
+    runs = {}
+    for src, camera, width in ((track_sim / "frames", cam, 0), (frames, big, 320)):
+        out = tmp_path / f"w{width}"
+        track_video(TrackRunConfig(max_width=width, overlay=False), src, structure, camera, out,
+                    init_pose=_T_cw(cams[names[0]]))
+        runs[width] = ([json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()],
+                       [json.loads(line) for line in (out / "poses.jsonl").read_text().splitlines()])
+    (full, _), (rows, recs) = runs[0], runs[320]
+    assert [r["state"] for r in rows] == [r["state"] for r in full] == ["ok"] * len(names)
+    for r, f in zip(rows, full, strict=True):
+        T, T_small = (Rigid3.from_matrix(np.asarray(x["T_cam_from_world"])) for x in (r, f))
+        assert _reproj_px(structure.render_meshes(), cam, T, T_small) < 0.05
+    for rec in recs:
+        mask = rle_to_mask(rec["mask_rle"])
+        ys, xs = np.nonzero(mask)
+        assert mask.shape == (480, 640) and rec["box_xyxy"] == [xs.min(), ys.min(), xs.max() + 1, ys.max() + 1]
 
 
 def test_frames_lost_to_the_navigation_bound_are_reported(tmp_path: Path, caplog) -> None:
@@ -922,7 +962,7 @@ class TestRegion:
 def test_a_part_seen_present_needs_two_missing_checks() -> None:
     """The missing-part memory: one check decides for a part never checked (an absent part is missing from the
     first frame); a part found present is called missing only after ``confirm`` missing checks in a row."""
-    from cadalign.infer.track.run import PartMemory
+    from cadalign.infer.track.missing import PartMemory
 
     m = PartMemory()
     m.update(1, True, 2)

@@ -11,9 +11,10 @@ import pytest
 from infer_testdata import look_at
 from test_track import TRACK_SCENE
 
+from cadalign.infer.track.config import TrackRunConfig
 from cadalign.infer.track.edges import EdgeFit
 from cadalign.infer.track.hidden import HiddenContours, HiddenSeen
-from cadalign.infer.track.run import PartMemory, TrackRunConfig, part_records
+from cadalign.infer.track.missing import PartMemory, part_records
 from cadalign.infer.track.tracker import TrackStep
 from cadalign.raycast.core import RaycastRenderer
 from cadalign.sim.structure import load_structure

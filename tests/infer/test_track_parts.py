@@ -31,7 +31,7 @@ def _tiny_part_tracker():
     """The movable-part tracker at the tiny scene's levels (its 320x240 frames are too small for 1/4)."""
     from test_track import TINY_TRACKER
 
-    from cadalign.infer.track.parts import MovableConfig
+    from cadalign.infer.track.config import MovableConfig
 
     return replace(MovableConfig().tracker, edges=replace(TINY_TRACKER.edges, prior_px=1.0),
                    restart_levels=TINY_TRACKER.restart_levels, min_samples=TINY_TRACKER.min_samples)
@@ -59,8 +59,8 @@ def test_movable_parts_stay_out_of_the_assembly(tmp_path: Path) -> None:
 def test_a_movable_part_is_tracked_where_it_is(tmp_path: Path, moved_sim: Path) -> None:
     from test_track import TINY_TRACKER
 
-    from cadalign.infer.track.parts import MovableConfig
-    from cadalign.infer.track.run import TrackRunConfig, track_video
+    from cadalign.infer.track.config import MovableConfig, TrackRunConfig
+    from cadalign.infer.track.run import track_video
 
     cam, names, cams = _frames(moved_sim)
     cad = load_structure(write_track_scene(tmp_path / "cad.toml", movable=("box_e",)))
@@ -92,7 +92,8 @@ def test_a_movable_part_starts_from_its_detection(tmp_path: Path) -> None:
     import imageio.v3 as iio
     from test_track import _gray
 
-    from cadalign.infer.track.parts import MovableConfig, MovableParts
+    from cadalign.infer.track.config import MovableConfig
+    from cadalign.infer.track.parts import MovableParts
     from cadalign.sim.run import simulate
 
     far = {"box_e": ((0.12, -0.08, 0.0), 8.0)}

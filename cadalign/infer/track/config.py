@@ -1,11 +1,12 @@
-"""The structure tracker's settings (:class:`~cadalign.infer.track.tracker.StructureTracker`)."""
+"""The tracker stage's settings: the structure tracker's (:class:`~cadalign.infer.track.tracker.StructureTracker`),
+the movable parts' and the stage's (:func:`~cadalign.infer.track.run.track_video`)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 from cadalign.infer.track.acquire import AcquireConfig
-from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig
+from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, with_levels
 from cadalign.infer.track.flow import FlowConfig
 
 
@@ -102,3 +103,83 @@ class TrackerConfig:
     nav_max_m: float = 2.5
     """... or whose camera centre is further than this from the navigation pose's, metres (a rough fix is good
     to ~0.5 m; the symmetric fits of the turbid survey were 3.5-9 m off)."""
+
+
+def _part_tracker() -> TrackerConfig:
+    return TrackerConfig(edges=EdgeTrackConfig(prior_px=1.0), acquire=AcquireConfig(max_turn_deg=4.0, max_roll_deg=5.0),
+                         min_samples=30, orbit_step_deg=0.0, turn_step_deg=0.0, unique_margin=0.0)
+
+
+@dataclass(frozen=True)
+class MovableConfig:
+    """How movable parts are tracked."""
+
+    tracker: TrackerConfig = field(default_factory=_part_tracker)
+    """Each part's tracker: the structure's with a prior on each correction (a lone part's few contours leave
+    directions unfixed), fewer samples needed, a 4 deg start search, no turned views and no test of them (a part's
+    symmetry is declared; docs/tuning/tracker.md#movable-parts)."""
+
+
+@dataclass(frozen=True)
+class TrackRunConfig:
+    """The tracker stage: the tracker and what is reported of each part."""
+
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    max_width: int = 640
+    """Frames wider than this are tracked at this width (area-averaged, intrinsics scaled), pixels; 0: at their own.
+    The tracker's pixel tolerances were chosen at 640x480; at 1280x960 a start locked 1 m off and tracking took 4x
+    the time (docs/tuning/tracker.md#working-resolution-s55). poses.jsonl keeps the frame's pixels."""
+    min_visible_px: int = 4
+    """A part is reported in a tracked frame when at least this many of its pixels are visible at the pose."""
+    min_part_samples: int = 30
+    """A part with at least this many contour samples is checked for support (fewer: too little to judge)."""
+    min_part_support: float = 0.05
+    """A checked part whose contour samples find image edges less often than this is reported missing (not
+    where the CAD puts it), not placed."""
+    min_part_concentration: float = 0.0
+    """A checked part whose found edges lie near its outline less often than this (see
+    :attr:`~cadalign.infer.track.edges.EdgeFit.instance_support`) is reported missing: near edges of texture or
+    clutter where the part should be do not make it present."""
+    min_part_region: float = 0.02
+    """Once the parts' colours are learned, a part (with ``min_region_samples``) whose contour samples find their colour
+    boundary less often than this, and image edges less often than ``missing_part_edges``, is reported missing: an
+    absent part's outline separates no colours (docs/tuning/tracker.md#missing-parts)."""
+    missing_part_edges: float = 0.6
+    """See ``min_part_region``: a part whose outline finds image edges this often is not called missing."""
+    present_part_region: float = 0.1
+    """A part found missing stays missing until a check gives it at least this region support (in frames where
+    it has fewer than ``min_region_samples`` it keeps its verdict)."""
+    min_region_samples: int = 20
+    """Contour samples a part needs for the region check."""
+    min_hidden_samples: int = 10
+    """A part hiding at least this many of the structure's contour samples (cast at half resolution), of which the
+    image shows few (``hidden_seen``), is present whatever its own edges and colours (:mod:`.hidden`)."""
+    hidden_seen: float = 0.5
+    """... few: edges at fewer than this share of the frame's edge support (absent parts showed 0.57-1.4 of it, faint
+    present ones 0-0.39: docs/tuning/tracker.md#the-contours-a-part-hides-s53)."""
+    absent_seen: float = 0.85
+    """A part is missing when the structure's contours it hides deep inside its outline (:class:`.hidden.HiddenSeen`),
+    pooled over its last ``absent_checks`` frames, show image edges at this share of the frame's edge support or more
+    (an absent valve: 0.96-1.34, present ones at most 0.75: docs/tuning/tracker.md#absent-small-parts-s54)."""
+    absent_checks: int = 10
+    """See ``absent_seen``: the frames pooled (those where the part hides deep samples)."""
+    absent_samples: int = 20
+    """See ``absent_seen``: the deep samples the pooled frames need for a verdict."""
+    confirm_missing: int = 2
+    """A part last found present is reported missing only after this many missing checks in a row; one check
+    decides for a part never checked: an absent part is missing from frame 0 (docs/tuning/tracker.md#missing-parts)."""
+    movable: MovableConfig = field(default_factory=MovableConfig)
+    """Parts the scene declares movable, each tracked on its own (:mod:`cadalign.infer.track.parts`)."""
+    overlay: bool = True
+    """Write overlay.mp4."""
+    overlay_fps: float = 5.0
+    """Frames per second of overlay.mp4."""
+
+
+PRESETS: dict[str, TrackRunConfig] = {
+    "fast": TrackRunConfig(TrackerConfig(edges=EdgeTrackConfig(levels=(EdgeLevel(0.25, 4, 6.0, 4.0),
+                                                                       EdgeLevel(0.5, 3, 3.0, 2.0))))),
+    "balanced": TrackRunConfig(),
+    "accurate": TrackRunConfig(TrackerConfig(edges=with_levels(EdgeTrackConfig(), iterations=6))),
+}
+"""``none`` is not a tracker preset; the CLI maps the detector pipeline's preset names onto these."""

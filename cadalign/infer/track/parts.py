@@ -10,32 +10,13 @@ of that part, and from the part's CAD place at the structure's pose (a tool that
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 
 from cadalign.infer.pipeline import PoseRecord
-from cadalign.infer.track.acquire import AcquireConfig
-from cadalign.infer.track.config import TrackerConfig
-from cadalign.infer.track.edges import EdgeTrackConfig
+from cadalign.infer.track.config import MovableConfig
 from cadalign.infer.track.tracker import StructureTracker, TrackStep
 from cadalign.sim.structure import Structure
 from cadalign.types import Camera, Rigid3
-
-
-def _part_tracker() -> TrackerConfig:
-    return TrackerConfig(edges=EdgeTrackConfig(prior_px=1.0), acquire=AcquireConfig(max_turn_deg=4.0, max_roll_deg=5.0),
-                         min_samples=30, orbit_step_deg=0.0, turn_step_deg=0.0, unique_margin=0.0)
-
-
-@dataclass(frozen=True)
-class MovableConfig:
-    """How movable parts are tracked."""
-
-    tracker: TrackerConfig = field(default_factory=_part_tracker)
-    """Each part's tracker: the structure's with a prior on each correction (a lone part's few contours leave
-    directions unfixed), fewer samples needed, a 4 deg start search, no turned views and no test of them (a part's
-    symmetry is declared; docs/tuning/tracker.md#movable-parts)."""
 
 
 def part_record(structure: Structure, k: int, T_cam_from_world: Rigid3, mask: np.ndarray, score: float,

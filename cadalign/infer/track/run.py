@@ -29,7 +29,7 @@ import os
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -39,11 +39,12 @@ from cadalign.errors import InputError
 from cadalign.formats.calibration import CameraCalibration, Undistorter
 from cadalign.infer.pipeline import PoseRecord
 from cadalign.infer.run import evaluate_run, video_writer
-from cadalign.infer.track.config import TrackerConfig
-from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, as_gray, with_levels
+from cadalign.infer.track.config import TrackerConfig, TrackRunConfig
+from cadalign.infer.track.edges import as_gray
 from cadalign.infer.track.hidden import HiddenContours, HiddenSeen
+from cadalign.infer.track.missing import PartMemory, part_records
 from cadalign.infer.track.partial import PARTIAL, Finished, join_overlays, take_over
-from cadalign.infer.track.parts import MovableConfig, MovableParts, part_record, split_hypotheses
+from cadalign.infer.track.parts import MovableParts, split_hypotheses
 from cadalign.infer.track.start import pose_from_picks
 from cadalign.infer.track.tracker import StructureTracker, TrackStep
 from cadalign.infer.video import VideoFrame, count_frames, iter_frames
@@ -52,67 +53,6 @@ from cadalign.sim.structure import Structure
 from cadalign.types import Camera, Progress, Rigid3
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class TrackRunConfig:
-    """The tracker stage: the tracker and what is reported of each part."""
-
-    tracker: TrackerConfig = field(default_factory=TrackerConfig)
-    min_visible_px: int = 4
-    """A part is reported in a tracked frame when at least this many of its pixels are visible at the pose."""
-    min_part_samples: int = 30
-    """A part with at least this many contour samples is checked for support (fewer: too little to judge)."""
-    min_part_support: float = 0.05
-    """A checked part whose contour samples find image edges less often than this is reported missing (not
-    where the CAD puts it), not placed."""
-    min_part_concentration: float = 0.0
-    """A checked part whose found edges lie near its outline less often than this (see
-    :attr:`~cadalign.infer.track.edges.EdgeFit.instance_support`) is reported missing: near edges of texture or
-    clutter where the part should be do not make it present."""
-    min_part_region: float = 0.02
-    """Once the parts' colours are learned, a part (with ``min_region_samples``) whose contour samples find their colour
-    boundary less often than this, and image edges less often than ``missing_part_edges``, is reported missing: an
-    absent part's outline separates no colours (docs/tuning/tracker.md#missing-parts)."""
-    missing_part_edges: float = 0.6
-    """See ``min_part_region``: a part whose outline finds image edges this often is not called missing."""
-    present_part_region: float = 0.1
-    """A part found missing stays missing until a check gives it at least this region support (in frames where
-    it has fewer than ``min_region_samples`` it keeps its verdict)."""
-    min_region_samples: int = 20
-    """Contour samples a part needs for the region check."""
-    min_hidden_samples: int = 10
-    """A part hiding at least this many of the structure's contour samples (cast at half resolution), of which the
-    image shows few (``hidden_seen``), is present whatever its own edges and colours (:mod:`.hidden`)."""
-    hidden_seen: float = 0.5
-    """... few: edges at fewer than this share of the frame's edge support (absent parts showed 0.57-1.4 of it, faint
-    present ones 0-0.39: docs/tuning/tracker.md#the-contours-a-part-hides-s53)."""
-    absent_seen: float = 0.85
-    """A part is missing when the structure's contours it hides deep inside its outline (:class:`.hidden.HiddenSeen`),
-    pooled over its last ``absent_checks`` frames, show image edges at this share of the frame's edge support or more
-    (an absent valve: 0.96-1.34, present ones at most 0.75: docs/tuning/tracker.md#absent-small-parts-s54)."""
-    absent_checks: int = 10
-    """See ``absent_seen``: the frames pooled (those where the part hides deep samples)."""
-    absent_samples: int = 20
-    """See ``absent_seen``: the deep samples the pooled frames need for a verdict."""
-    confirm_missing: int = 2
-    """A part last found present is reported missing only after this many missing checks in a row; one check
-    decides for a part never checked: an absent part is missing from frame 0 (docs/tuning/tracker.md#missing-parts)."""
-    movable: MovableConfig = field(default_factory=MovableConfig)
-    """Parts the scene declares movable, each tracked on its own (:mod:`cadalign.infer.track.parts`)."""
-    overlay: bool = True
-    """Write overlay.mp4."""
-    overlay_fps: float = 5.0
-    """Frames per second of overlay.mp4."""
-
-
-PRESETS: dict[str, TrackRunConfig] = {
-    "fast": TrackRunConfig(TrackerConfig(edges=EdgeTrackConfig(levels=(EdgeLevel(0.25, 4, 6.0, 4.0),
-                                                                       EdgeLevel(0.5, 3, 3.0, 2.0))))),
-    "balanced": TrackRunConfig(),
-    "accurate": TrackRunConfig(TrackerConfig(edges=with_levels(EdgeTrackConfig(), iterations=6))),
-}
-"""``none`` is not a tracker preset; the CLI maps the detector pipeline's preset names onto these."""
 
 
 def read_init_pose(path: Path, camera: Camera | None = None) -> Rigid3:
@@ -140,99 +80,6 @@ def read_init_pose(path: Path, camera: Camera | None = None) -> Rigid3:
                          f"..., [0, 0, 0, 1]]}} in metres, the structure (scene) frame in the first camera, or "
                          f"{{\"picks\": [{{\"uv\": [col, row], \"xyz\": [x, y, z]}}, ...]}}: at least 4 points of "
                          "the first frame and where they are on the CAD (metres)") from exc
-
-
-@dataclass
-class PartMemory:
-    """What the missing-part check remembers of each part (ray-cast instance) from frame to frame."""
-
-    missing: dict[int, bool] = field(default_factory=dict)
-    """Whether the part was found missing when last checked (no entry: never checked). Parts too small to check
-    in a frame keep this verdict."""
-    doubts: dict[int, int] = field(default_factory=dict)
-    """Missing verdicts in a row of a part last found present (``TrackRunConfig.confirm_missing``)."""
-    deep: dict[int, list[tuple[int, float, float]]] = field(default_factory=dict)
-    """Per part, its last frames' deep hidden samples: (count, share with an edge, the frame's edge support)."""
-
-    def note_deep(self, k: int, seen: HiddenSeen | None, support: float, frames: int) -> None:
-        """Keep this frame's deep hidden samples of part ``k`` (if any) among its last ``frames``."""
-        if seen is not None and seen.deep_samples > 0:
-            past = self.deep.setdefault(k, [])
-            past.append((seen.deep_samples, seen.deep_seen, support))
-            del past[:-frames]
-
-    def absent(self, k: int, cfg: TrackRunConfig) -> bool:
-        """Whether the structure's contours part ``k`` hides deep inside its outline, pooled over the frames
-        :meth:`note_deep` kept, show as the rest of the structure does (``TrackRunConfig.absent_seen``)."""
-        past = self.deep.get(k, [])
-        n = sum(d[0] for d in past)
-        if n < cfg.absent_samples:
-            return False
-        shown = sum(d[0] * d[1] for d in past) / n
-        return shown >= cfg.absent_seen * float(np.median([d[2] for d in past]))
-
-    def take_over(self, row: dict, structure: Structure) -> None:
-        """The verdicts of a ``track.jsonl`` line (an interrupted run's last frame): its missing parts are missing,
-        the parts it checked otherwise present."""
-        names = {o.name: i + 1 for i, o in enumerate(structure.objects)}
-        for name in row.get("part_support") or {}:
-            if name in names:
-                self.missing[names[name]] = False
-        for name in row.get("missing_parts") or []:
-            if name in names:
-                self.missing[names[name]] = True
-
-    def update(self, k: int, verdict: bool, confirm: int) -> None:
-        """One check's verdict: it decides for a part never checked or found missing; a part found present is
-        called missing after ``confirm`` missing verdicts in a row."""
-        if k not in self.missing or self.missing[k]:
-            self.missing[k], self.doubts[k] = verdict, 0
-            return
-        self.doubts[k] = self.doubts.get(k, 0) + 1 if verdict else 0
-        self.missing[k] = self.doubts[k] >= confirm
-
-
-def part_records(step: TrackStep, frame_index: int, name: str, structure: Structure, cfg: TrackRunConfig,
-                 memory: PartMemory | None = None, hidden: dict[int, HiddenSeen] | None = None,
-                 ) -> tuple[list[PoseRecord], list[str]]:
-    """The records of one tracked frame's visible parts, and the names of parts found missing.
-
-    ``memory``: what earlier frames' checks found (pass the same one for every frame of a video). ``hidden``:
-    per part, the structure's contour samples it hides and the share the image shows
-    (:meth:`~cadalign.infer.track.hidden.HiddenContours.seen`)."""
-    memory = PartMemory() if memory is None else memory
-    if step.T_cam_from_world is None or step.fit is None or step.fit.instance is None:
-        return [], []
-    inst = step.fit.instance
-    counts = np.bincount(inst.ravel(), minlength=len(structure.objects) + 1)
-    out, missing = [], []
-    for i, o in enumerate(structure.objects):
-        k = i + 1
-        if counts[k] < cfg.min_visible_px:
-            continue
-        n, share, conc = step.fit.instance_support.get(k, (0, 0.0, 0.0))
-        region = step.fit.instance_region.get(k, float("nan"))
-        edges_gone = n >= cfg.min_part_samples and (share < cfg.min_part_support or conc < cfg.min_part_concentration)
-        behind = (hidden or {}).get(k)
-        memory.note_deep(k, behind, step.fit.support, cfg.absent_checks)
-        if memory.absent(k, cfg):  # the structure shows where it should be
-            memory.update(k, True, cfg.confirm_missing)
-        elif behind and behind.samples >= cfg.min_hidden_samples and behind.seen < cfg.hidden_seen * step.fit.support:
-            memory.update(k, False, cfg.confirm_missing)  # it hides the structure's contours: it is there
-        elif n >= cfg.min_region_samples and np.isfinite(region):
-            if memory.missing.get(k):
-                memory.update(k, bool(region < cfg.present_part_region or edges_gone), cfg.confirm_missing)
-            else:
-                memory.update(k, bool((region < cfg.min_part_region and share < cfg.missing_part_edges) or edges_gone),
-                              cfg.confirm_missing)
-        elif n >= cfg.min_part_samples:
-            memory.update(k, bool(edges_gone), cfg.confirm_missing)
-        if memory.missing.get(k):
-            missing.append(o.name)
-            continue
-        score = float(share) if n else float(step.fit.support)
-        out.append(part_record(structure, k, step.T_cam_from_world, inst == k, score, frame_index, name, "tracked"))
-    return out, missing
 
 
 def _draw(image: np.ndarray, step: TrackStep, parts: dict[int, TrackStep] | None = None) -> np.ndarray:
@@ -315,6 +162,8 @@ class _VideoRun:
         self.cfg, self.structure, self.camera, self.out_dir = cfg, structure, camera, out_dir
         self.restart_source, self.nav = restart_source, nav
         self.first = not done.rows
+        self.work = working_camera(camera, cfg.max_width)
+        camera = self.work  # what the tracker sees
         self.tracker = StructureTracker(structure.render_meshes(), camera, cfg.tracker)  # the rigid assembly
         self.resumed = done.resume(self.tracker)
         self.start = [("init_pose", init_pose)] if init_pose is not None and not self.resumed else []
@@ -338,7 +187,10 @@ class _VideoRun:
                                          f"the calibration is {self.camera.width}x{self.camera.height}; pass the "
                                          "calibration of this video")
                     image = undistort(vf.image) if undistort is not None else vf.image
+                    if self.work.width != self.camera.width:
+                        image = cv2.resize(image, (self.work.width, self.work.height), interpolation=cv2.INTER_AREA)
                     recs, row, drawn = self._frame(vf, image, source)
+                    recs = [in_frame_pixels(r, self.work, self.camera) for r in recs]
                     fh.write("".join(json.dumps(r.to_json()) + "\n" for r in recs))
                     fh.flush()  # the poses before the frame's track line: a line there means its poses are written
                     th.write(json.dumps(row) + "\n")
@@ -381,6 +233,25 @@ class _VideoRun:
                **({"resumed": True} if self.resumed else {})}
         self.resumed = False  # only the first frame after a resume says so
         return recs, row, _draw(image, step, part_steps) if cfg.overlay else None
+
+
+def working_camera(camera: Camera, max_width: int) -> Camera:
+    """The camera the tracker works with: ``camera``, or the same scaled to ``max_width`` when it is wider."""
+    if max_width <= 0 or camera.width <= max_width:
+        return camera
+    return camera.scaled(max_width, max(int(round(camera.height * max_width / camera.width)), 1))
+
+
+def in_frame_pixels(rec: PoseRecord, work: Camera, camera: Camera) -> PoseRecord:
+    """A record made at the working size with its mask and box in the frame's pixels."""
+    if work.width == camera.width or rec.mask is None:
+        return rec
+    mask = cv2.resize(np.asarray(rec.mask, dtype=np.uint8), (camera.width, camera.height),
+                      interpolation=cv2.INTER_NEAREST) > 0
+    ys, xs = np.nonzero(mask)
+    if not len(xs):
+        return rec
+    return replace(rec, mask=mask, box_xyxy=np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.float64))
 
 
 def _log_end(track_path: Path, cfg: TrackerConfig, n_records: int) -> list[int]:
