@@ -676,14 +676,20 @@ def test_frames_wider_than_max_width_are_tracked_smaller_and_reported_in_their_p
         iio.imwrite(frames / n, cv2.resize(iio.imread(track_sim / "frames" / n)[..., :3], (640, 480),
                                            interpolation=cv2.INTER_NEAREST))
     structure = load_structure(track_sim.parent / "structure.toml")
-    runs = {}
+    runs, seen = {}, []
+
+    def detector(image: np.ndarray, name: str) -> list:  # a restart source sees the frame at its own size
+        seen.append(image.shape[:2])
+        return []
+
     for src, camera, width in ((track_sim / "frames", cam, 0), (frames, big, 320)):
         out = tmp_path / f"w{width}"
         track_video(TrackRunConfig(max_width=width, overlay=False), src, structure, camera, out,
-                    init_pose=_T_cw(cams[names[0]]))
+                    init_pose=_T_cw(cams[names[0]]), restart_source=detector)
         runs[width] = ([json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()],
                        [json.loads(line) for line in (out / "poses.jsonl").read_text().splitlines()])
     (full, _), (rows, recs) = runs[0], runs[320]
+    assert seen == [(240, 320), (480, 640)]  # frame 0 of each run (then tracked: not asked again)
     assert [r["state"] for r in rows] == [r["state"] for r in full] == ["ok"] * len(names)
     for r, f in zip(rows, full, strict=True):
         T, T_small = (Rigid3.from_matrix(np.asarray(x["T_cam_from_world"])) for x in (r, f))

@@ -187,8 +187,6 @@ class _VideoRun:
                                          f"the calibration is {self.camera.width}x{self.camera.height}; pass the "
                                          "calibration of this video")
                     image = undistort(vf.image) if undistort is not None else vf.image
-                    if self.work.width != self.camera.width:
-                        image = cv2.resize(image, (self.work.width, self.work.height), interpolation=cv2.INTER_AREA)
                     recs, row, drawn = self._frame(vf, image, source)
                     recs = [in_frame_pixels(r, self.work, self.camera) for r in recs]
                     fh.write("".join(json.dumps(r.to_json()) + "\n" for r in recs))
@@ -209,16 +207,19 @@ class _VideoRun:
 
     def _frame(self, vf: VideoFrame, image: np.ndarray, source: Path,
                ) -> tuple[list[PoseRecord], dict, np.ndarray | None]:
-        """One frame: its part records, its ``track.jsonl`` line and its overlay picture (None: no overlay)."""
+        """One frame (``image``: undistorted, the frame's size): its part records, its ``track.jsonl`` line and its
+        overlay picture (None: no overlay)."""
         cfg, tracker = self.cfg, self.tracker
         restarts: list[tuple[str, Rigid3]] = list(self.start) if tracker.last_pose is None else []  # until it starts
         part_hyps: dict[str, list] = {}
         detector_ms = None
         if self.restart_source is not None and (tracker.lost or self.parts.lost):
-            t0 = time.perf_counter()
+            t0 = time.perf_counter()  # the detector sees the frame at its own size (its camera's)
             rigid, part_hyps = split_hypotheses(list(self.restart_source(image, vf.name)), self.structure)
             restarts += rigid if tracker.lost else []
             detector_ms = round(1e3 * (time.perf_counter() - t0), 2)
+        if self.work.width != self.camera.width:
+            image = cv2.resize(image, (self.work.width, self.work.height), interpolation=cv2.INTER_AREA)
         rgb = image[..., :3] if image.ndim == 3 else None
         gray = as_gray(image, cfg.tracker.edges.colour)
         step = tracker.step(gray, restarts, rgb, _nav_pose(self.nav, vf.name, self.first, source))
