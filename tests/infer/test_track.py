@@ -654,6 +654,30 @@ def test_a_resumed_track_carries_on_the_last_pose_motion_and_losses(boxes) -> No
     assert not Finished([row(0, False)]).resume(tr) and tr.last_pose is None
 
 
+def test_overlay_pieces_are_joined_in_order_and_an_unfinished_one_is_left_out(tmp_path: Path, caplog) -> None:
+    """A killed run's overlay piece (never closed) cannot be read: the joined overlay holds the other pieces'
+    frames in order, with a warning naming the piece; the pieces are removed."""
+    import imageio.v2 as imageio
+
+    from cadalign.infer.run import video_writer
+    from cadalign.infer.track.partial import join_overlays
+
+    pieces = []
+    for k, shades in enumerate(((0, 40), (80,), (120, 160, 200))):
+        pieces.append(tmp_path / f"overlay.part{k}.mp4")
+        w = video_writer(pieces[-1], 5.0)
+        for v in shades:
+            w.append_data(np.full((48, 64, 3), v, np.uint8))
+        w.close()
+    data = pieces[1].read_bytes()
+    pieces[1].write_bytes(data[:len(data) // 2])  # cut short, as a kill leaves it
+    with caplog.at_level("WARNING"):
+        join_overlays(pieces, tmp_path / "overlay.mp4", 5.0)
+    frames = imageio.mimread(tmp_path / "overlay.mp4")
+    assert [round(float(f.mean()) / 40) for f in frames] == [0, 1, 3, 4, 5]
+    assert "overlay.part1.mp4" in caplog.text and not any(p.exists() for p in pieces)
+
+
 def test_frames_wider_than_max_width_are_tracked_smaller_and_reported_in_their_pixels(tmp_path: Path,
                                                                                      track_sim: Path) -> None:
     """The 320x240 orbit upscaled to 640x480 and tracked with max_width 320 (area-averaged back, intrinsics scaled)

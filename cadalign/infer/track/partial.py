@@ -105,7 +105,8 @@ def join_overlays(pieces: list[Path], path: Path, fps: float) -> None:
                     for im in imageio.get_reader(p, format="FFMPEG"):
                         writer.append_data(im)
                 except (OSError, RuntimeError) as exc:
-                    log.warning("%s: unreadable (%s): its frames are missing from %s", p, exc, path)
+                    log.warning("%s: unreadable (%s; a killed run leaves its overlay unfinished): its frames are "
+                                "missing from %s", p, str(exc).splitlines()[0], path)
         finally:
             writer.close()
     for p in pieces:
