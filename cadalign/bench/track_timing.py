@@ -17,12 +17,14 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from cadalign.config import resolve
 from cadalign.infer.detect import TorchDetector
-from cadalign.infer.track.config import TrackerConfig
+from cadalign.infer.track.config import TrackerConfig, TrackRunConfig
 from cadalign.infer.track.edges import as_gray
+from cadalign.infer.track.run import working_camera
 from cadalign.infer.track.tracker import StructureTracker
 from cadalign.infer.video import iter_frames
 from cadalign.sim.structure import Structure
@@ -117,10 +119,15 @@ def time_detector(frames: list[np.ndarray], camera: Camera, model: Path | None, 
 
 
 def bench_track(source: Path, structure: Structure, camera: Camera, init_pose: Rigid3, *, model: Path | None = None,
-                recipe: Path | None = None, max_frames: int = 30, cfg: TrackerConfig | None = None) -> TrackSpeed:
-    """The tracker and the detector alone on the first ``max_frames`` frames of ``source`` (module doc)."""
+                recipe: Path | None = None, max_frames: int = 30, cfg: TrackerConfig | None = None,
+                max_width: int = TrackRunConfig().max_width) -> TrackSpeed:
+    """The tracker and the detector alone on the first ``max_frames`` frames of ``source`` (module doc); the tracker
+    sees frames wider than ``max_width`` at that width, as ``infer`` gives them to it."""
     frames = [vf.image for vf in iter_frames(source, max_frames=max_frames)]
-    start, per, ok, wall = time_tracker(frames, structure, camera, init_pose, cfg)
+    work = working_camera(camera, max_width)
+    small = frames if work.width == camera.width else [
+        cv2.resize(f, (work.width, work.height), interpolation=cv2.INTER_AREA) for f in frames]
+    start, per, ok, wall = time_tracker(small, structure, work, init_pose, cfg)
     det, what, det_wall = time_detector(frames, camera, model, structure.class_names, recipe)
     return TrackSpeed(len(frames), ok, 1e3 * float(np.mean(per)) if per else float("nan"), 1e3 * start,
                       1e3 * float(np.mean(det)), what, 1e3 * float(np.mean(wall)) if wall else float("nan"),
