@@ -223,6 +223,7 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
     if prepare_stage_dir(out_dir, "infer", record, overwrite=overwrite) and (out_dir / "timings.json").is_file():
         log.info("infer: %s is complete for this config; reusing it", poses_path)
         return poses_path
+    (out_dir / "timings.json").unlink(missing_ok=True)  # this run's mark of completion, not an older run's
     pipeline = PosePipeline(detector, models, class_names, cfg)
     depth = _DepthSource(depth_scene, raw_frames=cfg.enhance == "auto", device=device)
     frames = calib.frames(source, max_frames, topic)

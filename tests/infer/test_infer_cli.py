@@ -93,6 +93,29 @@ def test_video_without_parts_gives_empty_poses(tiny_sim: Path, tmp_path: Path) -
     assert read_json(tmp_path / "out" / "timings.json")["frames"] == 3
 
 
+def test_an_overwrite_stopped_early_is_not_taken_for_the_older_complete_run(tiny_sim: Path, tmp_path: Path,
+                                                                           monkeypatch) -> None:
+    """A finished run, then the same folder with another config and --overwrite, stopped by Ctrl-C in its second
+    frame: the older run's timings.json (the mark of a complete run) is gone, so the next run does not reuse it."""
+    import cadalign.infer.run as infer_run
+
+    frames = tmp_path / "water"
+    for i in range(3):
+        write_image(frames / f"blank_{i}.png", np.full((120, 160, 3), 30, np.uint8))
+    assert _infer(tiny_sim, tmp_path / "out", source=frames).exit_code == 0
+    real, seen = infer_run._infer_frame, []
+
+    def stop(*args, **kwargs):
+        seen.append(1)
+        if len(seen) == 2:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(infer_run, "_infer_frame", stop)
+    res = _infer(tiny_sim, tmp_path / "out", "--preset", "fast", "--overwrite", source=frames)
+    assert res.exit_code == 130 and not (tmp_path / "out" / "timings.json").exists()
+
+
 def test_corrupt_frame_is_skipped_and_named(tiny_sim: Path, tmp_path: Path) -> None:
     frames = tmp_path / "frames"
     shutil.copytree(tiny_sim / "frames", frames)

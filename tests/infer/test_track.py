@@ -620,6 +620,10 @@ def test_an_interrupted_run_keeps_its_frames_and_resumes_after_them(tmp_path: Pa
     again = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
     assert [r["frame"] for r in again] == [0, 1] and not any("resumed" in r for r in again)
     assert not (out / "track.jsonl.partial").exists()
+    with pytest.raises(KeyboardInterrupt):  # an --overwrite run stopped early is not taken for the older complete one
+        track_video(cfg, track_sim / "frames", structure, cam, out, init_pose=init, overwrite=True,
+                    progress=_stop_after(1))
+    assert not (out / "timings.json").exists()
     whole = tmp_path / "whole"
     run(whole)
     ref = [json.loads(line) for line in (whole / "track.jsonl").read_text().splitlines()]

@@ -129,6 +129,8 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
     if same and (out_dir / "timings.json").is_file():
         log.info("infer: %s is complete for this config; reusing it", poses_path)
         return poses_path
+    if not same:  # a new run: an interrupted one must not look complete through an older run's timings
+        (out_dir / "timings.json").unlink(missing_ok=True)
     done = take_over(out_dir, same)
     if done.rows:
         log.info("infer: resuming %s after frame %s (%d frames finished before)", out_dir, done.rows[-1]["frame_name"],
