@@ -233,6 +233,7 @@ def run(cfg: PhotoConfig, photo: Path, out_dir: Path, *, depth_model: Path | Non
     if prepare_stage_dir(out_dir, "emulate_photo", record, overwrite=overwrite) and (out_dir / SUMMARY).is_file():
         log.info("%s: finished photo emulation found, reusing it", out_dir)
         return out_dir
+    (out_dir / SUMMARY).unlink(missing_ok=True)  # this run's mark of completion, not an older run's (--overwrite)
     t = time.perf_counter()
     depth_fn = load_depth_model(depth_model, cfg.pretrained) if depth_model is not None else None
     seg = load_seg_model(seg_model, cfg.pretrained) if seg_model is not None else None

@@ -123,6 +123,7 @@ def run(cfg: FuseConfig, source: Path, out_dir: Path, *, depth: str = "gt", labe
     if prepare_stage_dir(out_dir, "fuse", config, overwrite=overwrite) and (out_dir / REPORT).is_file():
         log.info("fusion already finished in %s; reusing it", out_dir)
         return out_dir
+    (out_dir / REPORT).unlink(missing_ok=True)  # this run's mark of completion, not an older run's (--overwrite)
     map_path = out_dir / "map.npz"
     m, meta = load_map(map_path) if map_path.is_file() and not overwrite else (None, None)
     before = 0 if meta is None else len(meta.frame_ids)

@@ -66,6 +66,13 @@ def test_interrupted_run_continues_from_its_checkpoint(fuse_sim: Path, small_cfg
     report = read_json(tmp_path / "m" / REPORT)
     assert report["timing"]["frames"] == 2
     assert load_map(tmp_path / "m" / "map.npz")[1].frame_ids == list(range(6))
+    # another config with --overwrite, stopped early: the first run's report no longer marks the folder finished
+    calls.clear()
+    monkeypatch.setattr(SemanticTSDF, "integrate", crash_on_fifth)
+    other = dataclasses.replace(small_cfg, voxel_m=small_cfg.voxel_m * 1.5)
+    with pytest.raises(KeyboardInterrupt):
+        run(other, fuse_sim, tmp_path / "m", checkpoint_every=2, with_eval=False, overwrite=True)
+    assert not (tmp_path / "m" / REPORT).exists()
 
 
 def test_missing_models_and_sources_are_clear_errors(fuse_sim: Path, small_cfg: FuseConfig, tmp_path: Path) -> None:
