@@ -57,6 +57,8 @@ def command(
     oracle_noise_t: float = typer.Option(0.03, "--oracle-noise-t", min=0, help="Oracle translation noise RMS, m."),
     oracle_noise_r: float = typer.Option(3.0, "--oracle-noise-r", min=0, help="Oracle rotation noise RMS, deg."),
     max_frames: int | None = typer.Option(None, "--max-frames", min=1, help="Process at most this many frames."),
+    stride: int = typer.Option(1, "--stride", min=1, help="Process every N-th frame (a 25 frames/s video with "
+                               "--stride 5 gives 5 poses a second; frames keep their names, as --nav needs)."),
     cad_unit: str | None = typer.Option(None, "--cad-unit", help="Unit of a CAD mesh file: m, cm, mm or in."),
     device: str = typer.Option("cpu", "--device", help="torch device of the network."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace results made with another config."),
@@ -73,7 +75,7 @@ def command(
             depth is None and oracle_gt is None and (calib is None or not _has_metric_poses(calib)))
         if use_tracker:
             _track(source, cad, out, model, init_pose, gt, calib, max_frames, cad_unit, device, preset, config,
-                   overwrite, topic, gt_poses, nav)
+                   overwrite, topic, gt_poses, nav, stride)
             return
         if (model is None) == (oracle_gt is None):
             raise InputError("pass exactly one detector: --model RUN (a trained network) or --oracle-gt SIM_DIR")
@@ -90,7 +92,7 @@ def command(
         cal = _calibration(calib, det.resolve_scene_dir(oracle_gt) if oracle_gt is not None else gt_scene)
         path = run(cfg, source, detector, structure.models, class_names, out, calib=cal, detector_info=info,
                    depth_scene=depth_scene, gt_scene=gt_scene, max_frames=max_frames, overwrite=overwrite,
-                   progress=track, device=device, topic=topic)
+                   progress=track, device=device, topic=topic, stride=stride)
     console.print(f"[green]poses written to {path}[/]")
     _print_summary(out)
 
@@ -138,7 +140,7 @@ def _has_metric_poses(calib: Path) -> bool:
 def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Path | None, gt: Path | None,
            calib: Path | None, max_frames: int | None, cad_unit: str | None, device: str, preset: str,
            config: Path | None, overwrite: bool, topic: str | None, gt_poses: Path | None,
-           nav: Path | None = None) -> None:
+           nav: Path | None = None, stride: int = 1) -> None:
     """The tracker branch of ``infer`` (:mod:`cadalign.infer.track.run`)."""
     from cadalign.infer.track.config import PRESETS, TrackRunConfig  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.infer.track.run import read_init_pose, track_video  # lazy: pulls cv2; keeps `cadalign --help` light
@@ -186,7 +188,7 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
     navigation = read_frame_poses(nav, "navigation poses") if nav is not None else None
     path = track_video(cfg, source, structure, camera, out, init_pose=T0, restart_source=restart, gt_scene=gt_scene,
                        max_frames=max_frames, overwrite=overwrite, progress=track, lens=lens, topic=topic,
-                       record={"detector": info, "cad": str(cad)}, nav=navigation)
+                       record={"detector": info, "cad": str(cad)}, nav=navigation, stride=stride)
     console.print(f"[green]poses written to {path}[/]")
     if gt_poses is not None:
         from cadalign.infer.track.truth import truth_report  # lazy: pulls matplotlib; keeps `cadalign --help` light

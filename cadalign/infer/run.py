@@ -79,11 +79,12 @@ class Calibration:
             raise InputError(f"no intrinsics for frame {name}: pass --calib cameras.json listing it")
         return K
 
-    def frames(self, source: Path, max_frames: int | None, topic: str | None = None) -> Iterator[VideoFrame]:
-        """The frames of ``source`` as the pipeline sees them: undistorted once by the lens distortion (to the
-        same K), the first checked against the calibration's image size."""
+    def frames(self, source: Path, max_frames: int | None, topic: str | None = None,
+               stride: int = 1) -> Iterator[VideoFrame]:
+        """The frames of ``source`` as the pipeline sees them (every ``stride``-th): undistorted once by the lens
+        distortion (to the same K), the first checked against the calibration's image size."""
         undistort = Undistorter.of(self.lens) if self.lens is not None else None
-        for i, vf in enumerate(iter_frames(source, max_frames=max_frames, topic=topic)):
+        for i, vf in enumerate(iter_frames(source, max_frames=max_frames, topic=topic, stride=stride)):
             if i == 0 and self.lens is not None:
                 h, w = vf.image.shape[:2]
                 self.lens.check_size(w, h, f"frame {vf.name} of {source}")
@@ -207,8 +208,9 @@ def _write_run_files(out_dir: Path, names: list[str], calib: Calibration, stamps
 def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, CadModel], class_names: tuple[str, ...],
         out_dir: Path, *, calib: Calibration, detector_info: dict, depth_scene: Path | None = None,
         gt_scene: Path | None = None, max_frames: int | None = None, overwrite: bool = False,
-        progress: Progress | None = None, device: str = "cpu", topic: str | None = None) -> Path:
-    """Run the pose pipeline over a video or frame folder; returns ``out_dir / "poses.jsonl"`` (see module doc).
+        progress: Progress | None = None, device: str = "cpu", topic: str | None = None, stride: int = 1) -> Path:
+    """Run the pose pipeline over a video or frame folder (every ``stride``-th frame); returns ``out_dir /
+    "poses.jsonl"`` (see module doc).
 
     ``depth_scene``: depth for ICP, a scene with depth maps or a ``cadalign train depth`` run (its predicted
     depth, on ``device``; :class:`_DepthSource`)."""
@@ -216,7 +218,7 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
     prep = resolve_prep(cfg.enhance, detector_info)
     detector_info = {**detector_info, "images": prep}
     record = {"infer": cfg, "source": str(source) if topic is None else f"{source} {topic}",
-              "detector": detector_info, "max_frames": max_frames,
+              "detector": detector_info, "max_frames": max_frames, **({"stride": stride} if stride != 1 else {}),
               "depth": None if depth_scene is None else str(depth_scene),
               "gt": None if gt_scene is None else str(gt_scene)}
     poses_path = out_dir / "poses.jsonl"
@@ -226,7 +228,7 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
     (out_dir / "timings.json").unlink(missing_ok=True)  # this run's mark of completion, not an older run's
     pipeline = PosePipeline(detector, models, class_names, cfg)
     depth = _DepthSource(depth_scene, raw_frames=cfg.enhance == "auto", device=device)
-    frames = calib.frames(source, max_frames, topic)
+    frames = calib.frames(source, max_frames, topic, stride)
     all_records: list[PoseRecord] = []
     names: list[str] = []
     stamps: dict[str, int] = {}
@@ -237,7 +239,7 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
     video_ctx = atomic_path(out_dir / "overlay.mp4") if cfg.overlay else contextlib.nullcontext(None)
     with atomic_path(poses_path) as tmp_poses, video_ctx as tmp_video:
         with open(tmp_poses, "w", encoding="utf-8") as fh:
-            total = count_frames(source, max_frames=max_frames, topic=topic) if progress else None
+            total = count_frames(source, stride=stride, max_frames=max_frames, topic=topic) if progress else None
             for vf in progress(frames, "infer", total) if progress else frames:
                 K = calib.K(vf.name)
                 records, t = _infer_frame(pipeline, vf, K, prep, depth, calib)
@@ -263,7 +265,7 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
         if cfg.complete.enabled:
             t0 = time.perf_counter()
             final, summary = _complete(cfg, pipeline, all_records, source, calib, depth, prep, max_frames, progress,
-                                       topic)
+                                       topic, stride)
             times["complete"] = [time.perf_counter() - t0]
             if summary is not None:
                 with open(tmp_poses, "w", encoding="utf-8") as fh:
@@ -271,7 +273,7 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
                         mask = r.mask.full(shapes[r.frame_name]) if isinstance(r.mask, CroppedMask) else r.mask
                         fh.write(json.dumps(replace(r, mask=mask).to_json()) + "\n")
                 if cfg.overlay and writer is not None:
-                    _redraw_overlay(tmp_video, cfg, final, pipeline, source, calib, max_frames, topic)
+                    _redraw_overlay(tmp_video, cfg, final, pipeline, source, calib, max_frames, topic, stride)
     _write_run_files(out_dir, names, calib, stamps, _timing_summary(times, len(names), len(final), detector_info))
     log.info("infer: %d frames, %d poses -> %s", len(names), len(final), poses_path)
     if gt_scene is not None:
@@ -280,14 +282,14 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
 
 
 def _redraw_overlay(path: Path, cfg: InferConfig, records: list[PoseRecord], pipeline: PosePipeline, source: Path,
-                    calib: Calibration, max_frames: int | None, topic: str | None) -> None:
+                    calib: Calibration, max_frames: int | None, topic: str | None, stride: int = 1) -> None:
     """The overlay video again, from the records after completion (a completed part's label says ``track``)."""
     by_frame: dict[str, list[PoseRecord]] = {}
     for r in records:
         by_frame.setdefault(r.frame_name, []).append(r)
     writer = video_writer(path, cfg.overlay_fps)
     try:
-        for vf in calib.frames(source, max_frames, topic):
+        for vf in calib.frames(source, max_frames, topic, stride):
             writer.append_data(_draw(vf.image, by_frame.get(vf.name, []), pipeline, calib.K(vf.name)))
     finally:
         writer.close()
@@ -295,7 +297,7 @@ def _redraw_overlay(path: Path, cfg: InferConfig, records: list[PoseRecord], pip
 
 def _complete(cfg: InferConfig, pipeline: PosePipeline, records: list[PoseRecord], source: Path, calib: Calibration,
               depth: _DepthSource, prep: dict, max_frames: int | None, progress: Progress | None,
-              topic: str | None) -> tuple[list[PoseRecord], dict | None]:
+              topic: str | None, stride: int = 1) -> tuple[list[PoseRecord], dict | None]:
     """The completion pass (:mod:`cadalign.infer.complete`) over the frames again: the records it reports and its
     summary; the records unchanged and None without depth."""
     cameras = pipeline.fuser.cameras  # frame -> (world, T_world_from_cam): given, or registered on the parts
@@ -305,9 +307,9 @@ def _complete(cfg: InferConfig, pipeline: PosePipeline, records: list[PoseRecord
         return records, None
     completer = TrackCompleter(cfg.complete, pipeline.world_tracks(), records, pipeline.geometry)
     if completer.tracks:
-        frames = calib.frames(source, max_frames, topic)
-        for vf in progress(frames, "complete", count_frames(source, max_frames=max_frames, topic=topic)) \
-                if progress else frames:
+        frames = calib.frames(source, max_frames, topic, stride)
+        total = count_frames(source, stride=stride, max_frames=max_frames, topic=topic) if progress else None
+        for vf in progress(frames, "complete", total) if progress else frames:
             if vf.index not in cameras:
                 continue
             world, T_wc = cameras[vf.index]

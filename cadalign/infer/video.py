@@ -47,9 +47,9 @@ def list_frames(source: Path) -> list[Path]:
     return files
 
 
-def count_frames(source: Path, *, max_frames: int | None = None, topic: str | None = None,
+def count_frames(source: Path, *, stride: int = 1, max_frames: int | None = None, topic: str | None = None,
                  after: int = -1) -> int | None:
-    """How many frames :func:`iter_frames` will yield with the same arguments (stride 1), for a progress bar's
+    """How many frames :func:`iter_frames` will yield with the same arguments, for a progress bar's
     total: a folder's images, a video's frame count as its container gives it, a bag topic's messages (corrupt
     frames, skipped when read, still count); None when the source does not say."""
     source = Path(source)
@@ -65,7 +65,7 @@ def count_frames(source: Path, *, max_frames: int | None = None, topic: str | No
         return None
     if n is None:
         return max_frames
-    n = max(n - (after + 1), 0)
+    n = max((n - 1) // stride - after // stride, 0)  # indices after ``after``, up to n - 1, that stride keeps
     return n if max_frames is None else min(n, max_frames)
 
 

@@ -132,6 +132,11 @@ def test_video_file_input(tiny_sim: Path, tmp_path: Path) -> None:
     res = _infer(tiny_sim, tmp_path / "out", "--preset", "fast", "--max-frames", "2", source=tiny_sim / "video.mp4")
     assert res.exit_code == 0, res.output
     assert read_json(tmp_path / "out" / "frames.json") == ["000000.png", "000001.png"]
+    res = _infer(tiny_sim, tmp_path / "s", "--preset", "fast", "--stride", "2", source=tiny_sim / "video.mp4")
+    assert res.exit_code == 0, res.output  # every second frame, under its own name
+    assert read_json(tmp_path / "s" / "frames.json") == ["000000.png", "000002.png"]
+    recs = [json.loads(x) for x in (tmp_path / "s" / "poses.jsonl").read_text().splitlines()]
+    assert {r["frame_name"] for r in recs} <= {"000000.png", "000002.png"}
 
 
 def test_ros_bag_input_with_topic_gives_the_folders_poses_and_stamps(tiny_sim: Path, oracle_run: Path,

@@ -634,6 +634,28 @@ def test_an_interrupted_run_keeps_its_frames_and_resumes_after_them(tmp_path: Pa
             structure.render_meshes(), cam, T_w, true) + 0.5
 
 
+def test_every_second_frame_is_tracked_with_stride_and_resumed_on_the_same_ones(tmp_path: Path,
+                                                                               track_sim: Path) -> None:
+    """--stride 2: frames 0, 2, 4 keep their names and are tracked (twice the motion between them); a run stopped
+    after frame 0 resumes on frames 2 and 4."""
+    from cadalign.sim.structure import load_structure
+
+    cam, names, cams = _frames(track_sim)
+    structure = load_structure(track_sim.parent / "structure.toml")
+    out = tmp_path / "out"
+    kw = {"init_pose": _T_cw(cams[names[0]]), "stride": 2}
+    with pytest.raises(KeyboardInterrupt):
+        track_video(TrackRunConfig(overlay=False), track_sim / "frames", structure, cam, out, progress=_stop_after(1),
+                    **kw)
+    track_video(TrackRunConfig(overlay=False), track_sim / "frames", structure, cam, out, **kw)
+    rows = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
+    assert [(r["frame"], r["frame_name"]) for r in rows] == [(k, names[k]) for k in (0, 2, 4)]
+    assert rows[1].get("resumed") and all(r["state"] == "ok" for r in rows)
+    for r in rows:
+        T = Rigid3.from_matrix(np.asarray(r["T_cam_from_world"]))
+        assert _reproj_px(structure.render_meshes(), cam, T, _T_cw(cams[r["frame_name"]])) < 0.5
+
+
 def test_a_resumed_track_carries_on_the_last_pose_motion_and_losses(boxes) -> None:
     """Resuming from finished frames: the last tracked pose and the motion into it predict the next frame; frames
     lost at the end stay lost (the restarts start from that pose); nothing tracked: nothing to carry on."""

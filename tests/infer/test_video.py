@@ -72,6 +72,11 @@ def test_frames_up_to_after_are_passed_over_and_not_counted(tmp_path: Path, monk
     assert count_frames(path, after=1) == 2 and count_frames(path, max_frames=1) == 1
     assert count_frames(tmp_path / "f", after=2) == 2 and count_frames(tmp_path / "f", after=9) == 0
     assert count_frames(tmp_path / "f", max_frames=3) == 3 and count_frames(tmp_path / "f") == 5
+    for stride in (1, 2, 3, 4, 6):  # with a stride, and after a resumed run's last frame
+        for after in (-1, 0, 1, 2, 3, 4):
+            want = [f.index for f in iter_frames(tmp_path / "f", stride=stride, after=after)]
+            assert count_frames(tmp_path / "f", stride=stride, after=after) == len(want), (stride, after)
+            assert all(i % stride == 0 and i > after for i in want)
 
 
 def test_bad_sources_raise_input_error(tmp_path: Path) -> None:

@@ -109,20 +109,22 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                 gt_scene: Path | None = None, max_frames: int | None = None, overwrite: bool = False,
                 progress: Progress | None = None, record: dict | None = None,
                 lens: CameraCalibration | None = None, topic: str | None = None,
-                nav: dict[str, Rigid3] | None = None) -> Path:
+                nav: dict[str, Rigid3] | None = None, stride: int = 1) -> Path:
     """Track the structure through a video or frame folder; returns ``out_dir / "poses.jsonl"`` (module doc).
 
     ``init_pose``: ``T_cam_from_world`` of the first frame (rough). ``restart_source(image, name)``: restart
     hypotheses (name, ``T_cam_from_world``) for a frame without a track (e.g. from a detector); at least one of
     the two is needed. ``lens``: the calibration read from the user's file; a lens distortion in it is undone
     on every frame before tracking (``camera`` is then its pinhole part). ``nav``: rough ``T_cam_from_world`` by
-    frame name: each bounds its frame's pose and restarts a lost track (``StructureTracker.step``). An interrupted
+    frame name: each bounds its frame's pose and restarts a lost track (``StructureTracker.step``). ``stride``: track
+    every ``stride``-th frame (the frames keep their names, so navigation poses still match). An interrupted
     run resumes after its last finished frame, from that frame's pose (:data:`PARTIAL`)."""
     if init_pose is None and restart_source is None and not nav:
         raise InputError("the tracker needs a start: pass --init-pose FILE (a rough first-frame pose), --nav FILE "
                          "(rough poses per frame) or --model RUN (a trained detector)")
     out_dir = Path(out_dir)
     rec = {"track": cfg, "source": str(source), "topic": topic, "max_frames": max_frames, "camera": camera.K.tolist(),
+           **({"stride": stride} if stride != 1 else {}),
            **_start_record(lens, init_pose, nav), **(record or {})}
     poses_path = out_dir / "poses.jsonl"
     same = prepare_stage_dir(out_dir, "infer", rec, overwrite=overwrite)
@@ -138,8 +140,8 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
     run = _VideoRun(cfg, structure, camera, out_dir, init_pose, restart_source, nav, done)
     left = None if max_frames is None else max(max_frames - len(done.rows), 0)
     after = done.rows[-1]["frame"] if done.rows else -1
-    frames = iter_frames(source, max_frames=left, topic=topic, after=after)
-    total = count_frames(source, max_frames=left, topic=topic, after=after) if progress else None
+    frames = iter_frames(source, stride=stride, max_frames=left, topic=topic, after=after)
+    total = count_frames(source, stride=stride, max_frames=left, topic=topic, after=after) if progress else None
     run.track(progress(frames, "track", total) if progress else frames, source,
               Undistorter.of(lens) if lens is not None else None)
     rows = read_jsonl(out_dir / f"track.jsonl{PARTIAL}")
