@@ -563,6 +563,18 @@ def test_infer_tracks_rgb_frames_from_an_init_pose(tmp_path: Path, track_sim: Pa
     assert ev["detection"]["tp"] > 0  # accuracy: the boxes tests and the scene benchmarks (a 320x240 orbit of
     # small parts over a flat seabed is near the tracker's limits: see issue 43's note)
     assert (out / "overlay.mp4").is_file() and json.loads((out / "timings.json").read_text())["frames"] == len(names)
+    assert (out / "track.png").stat().st_size > 0
+
+
+def test_the_run_picture_marks_each_part_reported_missing_or_neither() -> None:
+    """track.png's part rows: reported (a poses.jsonl record), missing (track.jsonl's missing_parts), else neither
+    (out of view, unchecked, or the frame lost)."""
+    from cadalign.infer.track.plot import MISSING, NEITHER, REPORTED, part_states
+
+    rows = [{"frame": 0, "state": "ok", "missing_parts": ["b"]}, {"frame": 2, "state": "lost", "missing_parts": []},
+            {"frame": 4, "state": "ok", "missing_parts": []}]
+    states = part_states(rows, {0: {"a"}, 4: {"a", "b"}}, ["a", "b", "c"])
+    assert states.tolist() == [[REPORTED, NEITHER, REPORTED], [MISSING, NEITHER, REPORTED], [NEITHER] * 3]
 
 
 def _stop_after(n: int):

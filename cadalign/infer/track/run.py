@@ -10,6 +10,8 @@ Outputs in ``out_dir`` (the layout of :mod:`cadalign.infer.run`, so ``eval`` and
                     on a lost frame the best-supported fit tried and the test that refused it (``closest_fit``)
     overlay.mp4     the frames with the tracked CAD's contours (green: an image edge supports them, red: none)
                     and the state
+    track.png       the run at a glance: support per frame, lost frames, restarts, and each part reported or
+                    missing per frame (:mod:`~cadalign.infer.track.plot`)
     frames.json     the frame names processed
     timings.json    ms per frame: tracking, restarts, overlay; frames/s
     eval.json, eval.md   with ground truth (--gt): as for the detector pipeline; every section scores the
@@ -45,6 +47,7 @@ from cadalign.infer.track.hidden import HiddenContours, HiddenSeen
 from cadalign.infer.track.missing import PartMemory, part_records
 from cadalign.infer.track.partial import PARTIAL, Finished, join_overlays, take_over
 from cadalign.infer.track.parts import MovableParts, split_hypotheses
+from cadalign.infer.track.plot import plot_track
 from cadalign.infer.track.start import pose_from_picks
 from cadalign.infer.track.tracker import StructureTracker, TrackStep
 from cadalign.infer.video import VideoFrame, count_frames, iter_frames
@@ -152,6 +155,11 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
     for name in ("track.jsonl", "poses.jsonl"):
         os.replace(out_dir / f"{name}{PARTIAL}", out_dir / name)
     _log_end(out_dir / "track.jsonl", cfg.tracker, len(run.records))
+    names = [o.name for o in structure.objects]
+    reported: dict[int, set[str]] = {}
+    for r in run.records:
+        reported.setdefault(r.frame, set()).add(names[r.track_id - 1])
+    plot_track(out_dir / "track.png", rows, reported, names, cfg.tracker.min_support)
     if gt_scene is not None:
         evaluate_run(run.records, [r["frame_name"] for r in rows], gt_scene, out_dir)
     return poses_path
