@@ -12,6 +12,7 @@ import hashlib
 import json
 import os
 import shutil
+import signal
 import tempfile
 from collections.abc import Collection, Iterator
 from pathlib import Path
@@ -200,3 +201,25 @@ def _without(view: Any, keys: Collection[str]) -> Any:
         inner = {key.split(".", 1)[1] for key in keys if "." in key and key.split(".", 1)[0] == k}
         out[k] = _without(v, inner)
     return out
+
+
+@contextlib.contextmanager
+def stop_on_signals() -> Iterator[dict[str, bool]]:
+    """Turn SIGINT/SIGTERM into a flag a long run checks between its steps, to stop there with its work kept
+    (``flag["stop"]``; main thread only, elsewhere Ctrl-C stays a KeyboardInterrupt)."""
+    flag = {"stop": False}
+
+    def handler(signum: int, frame: Any) -> None:
+        flag["stop"] = True
+
+    old: dict[int, Any] = {}
+    try:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old[sig] = signal.signal(sig, handler)
+    except ValueError:  # not the main thread: rely on KeyboardInterrupt
+        pass
+    try:
+        yield flag
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)

@@ -65,7 +65,7 @@ def command(
 ) -> None:
     """Per-frame part poses: the structure tracker on RGB frames (the default without --depth and metric camera
     poses; started by --init-pose, --nav or --model), else the detector refined against the CAD and fused over time.
-    Writes poses.jsonl + overlay; a tracker run stopped early resumes when the same command is run again."""
+    Writes poses.jsonl + overlay; a run stopped early resumes when the same command is run again."""
     from cadalign.infer.config import PRESETS, InferConfig  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.infer.run import run  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.sim.structure import load_structure  # lazy: pulls cv2; keeps `cadalign --help` light

@@ -16,15 +16,18 @@ Outputs in ``out_dir``::
     eval.json, eval.md   with ground truth: detection P/R/F1, Table 4.5, BOP recalls, errors by distance,
                     for the detector's, the refined and the fused poses (the fused ones after completion)
     cadalign_stage.json  the resolved config (a different config in the same folder is refused)
+
+A run stopped early (Ctrl-C, SIGTERM, a crash) resumes when the same command is run again
+(:mod:`cadalign.infer.checkpoint`: ``poses.jsonl.partial``, ``overlay.partN.mp4``, ``infer_state.pkl`` meanwhile).
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
+import os
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -39,13 +42,14 @@ from cadalign.formats.calibration import CameraCalibration, Undistorter, read_ca
 from cadalign.formats.class_map import load_class_map
 from cadalign.formats.coco import rle_to_mask
 from cadalign.fuse.predictors import depth_predictor
+from cadalign.infer.checkpoint import POSES_PARTIAL, STATE, RunState, pieces, take_over
 from cadalign.infer.complete import TrackCompleter
 from cadalign.infer.config import InferConfig
 from cadalign.infer.detect import Detector, frame_ids, models_dir_of
 from cadalign.infer.model_geom import draw_wireframe
 from cadalign.infer.pipeline import PosePipeline, PoseRecord
-from cadalign.infer.video import VideoFrame, count_frames, iter_frames
-from cadalign.io import atomic_path, prepare_stage_dir, read_json, write_json, write_text
+from cadalign.infer.video import VideoFrame, count_frames, iter_frames, join_overlays, video_writer
+from cadalign.io import atomic_path, prepare_stage_dir, read_json, stop_on_signals, write_json, write_text
 from cadalign.metrics.pose_eval import (
     CroppedMask,
     PoseEvalConfig,
@@ -80,11 +84,11 @@ class Calibration:
         return K
 
     def frames(self, source: Path, max_frames: int | None, topic: str | None = None,
-               stride: int = 1) -> Iterator[VideoFrame]:
+               stride: int = 1, after: int = -1) -> Iterator[VideoFrame]:
         """The frames of ``source`` as the pipeline sees them (every ``stride``-th): undistorted once by the lens
         distortion (to the same K), the first checked against the calibration's image size."""
         undistort = Undistorter.of(self.lens) if self.lens is not None else None
-        for i, vf in enumerate(iter_frames(source, max_frames=max_frames, topic=topic, stride=stride)):
+        for i, vf in enumerate(iter_frames(source, max_frames=max_frames, topic=topic, stride=stride, after=after)):
             if i == 0 and self.lens is not None:
                 h, w = vf.image.shape[:2]
                 self.lens.check_size(w, h, f"frame {vf.name} of {source}")
@@ -208,9 +212,11 @@ def _write_run_files(out_dir: Path, names: list[str], calib: Calibration, stamps
 def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, CadModel], class_names: tuple[str, ...],
         out_dir: Path, *, calib: Calibration, detector_info: dict, depth_scene: Path | None = None,
         gt_scene: Path | None = None, max_frames: int | None = None, overwrite: bool = False,
-        progress: Progress | None = None, device: str = "cpu", topic: str | None = None, stride: int = 1) -> Path:
+        progress: Progress | None = None, device: str = "cpu", topic: str | None = None, stride: int = 1,
+        checkpoint_every: int = 25) -> Path:
     """Run the pose pipeline over a video or frame folder (every ``stride``-th frame); returns ``out_dir /
-    "poses.jsonl"`` (see module doc).
+    "poses.jsonl"`` (see module doc). A run stopped early resumes (:mod:`cadalign.infer.checkpoint`): its state is
+    saved every ``checkpoint_every`` frames and when SIGINT / SIGTERM stops it.
 
     ``depth_scene``: depth for ICP, a scene with depth maps or a ``cadalign train depth`` run (its predicted
     depth, on ``device``; :class:`_DepthSource`)."""
@@ -222,63 +228,97 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
               "depth": None if depth_scene is None else str(depth_scene),
               "gt": None if gt_scene is None else str(gt_scene)}
     poses_path = out_dir / "poses.jsonl"
-    if prepare_stage_dir(out_dir, "infer", record, overwrite=overwrite) and (out_dir / "timings.json").is_file():
+    same = prepare_stage_dir(out_dir, "infer", record, overwrite=overwrite)
+    if same and (out_dir / "timings.json").is_file():
         log.info("infer: %s is complete for this config; reusing it", poses_path)
         return poses_path
     (out_dir / "timings.json").unlink(missing_ok=True)  # this run's mark of completion, not an older run's
+    state = take_over(out_dir, same)
     pipeline = PosePipeline(detector, models, class_names, cfg)
+    state.restore(pipeline)
     depth = _DepthSource(depth_scene, raw_frames=cfg.enhance == "auto", device=device)
-    frames = calib.frames(source, max_frames, topic, stride)
-    all_records: list[PoseRecord] = []
-    names: list[str] = []
-    stamps: dict[str, int] = {}
-    shapes: dict[str, tuple[int, int]] = {}
     keep_masks = gt_scene is not None or cfg.complete.enabled
-    times: dict[str, list[float]] = {}
+    if state.names:  # the finished frames' records, as the evaluation and the completion keep them
+        state.records = [r if keep_masks else replace(r, mask=None) for r in read_poses(out_dir / POSES_PARTIAL)]
+    left = None if max_frames is None else max(max_frames - len(state.names), 0)
+    frames = calib.frames(source, left, topic, stride, after=state.last_index)
+    total = count_frames(source, stride=stride, max_frames=left, topic=topic, after=state.last_index) \
+        if progress else None
+    _detect(cfg, pipeline, state, progress(frames, "infer", total) if progress else frames, calib, prep, depth,
+            out_dir, keep_masks, checkpoint_every)
+    final, times, names = state.records, state.times, state.names
+    redrawn = False
+    if cfg.complete.enabled:
+        t0 = time.perf_counter()
+        final, summary = _complete(cfg, pipeline, state.records, source, calib, depth, prep, max_frames, progress,
+                                   topic, stride)
+        times["complete"] = [time.perf_counter() - t0]
+        if summary is not None:
+            with atomic_path(poses_path) as tmp, open(tmp, "w", encoding="utf-8") as fh:
+                for r in final:
+                    mask = r.mask.full(state.shapes[r.frame_name]) if isinstance(r.mask, CroppedMask) else r.mask
+                    fh.write(json.dumps(replace(r, mask=mask).to_json()) + "\n")
+            (out_dir / POSES_PARTIAL).unlink()
+            if cfg.overlay and pieces(out_dir):
+                with atomic_path(out_dir / "overlay.mp4") as tmp:
+                    _redraw_overlay(tmp, cfg, final, pipeline, source, calib, max_frames, topic, stride)
+                redrawn = True
+    if (out_dir / POSES_PARTIAL).is_file():
+        os.replace(out_dir / POSES_PARTIAL, poses_path)
+    if redrawn:
+        for piece in pieces(out_dir):
+            piece.unlink()
+    else:
+        join_overlays(pieces(out_dir), out_dir / "overlay.mp4", cfg.overlay_fps)
+    _write_run_files(out_dir, names, calib, state.stamps,
+                     _timing_summary(times, len(names), len(final), detector_info))
+    (out_dir / STATE).unlink(missing_ok=True)
+    log.info("infer: %d frames, %d poses -> %s", len(names), len(final), poses_path)
+    if gt_scene is not None:
+        evaluate_run(state.records, names, gt_scene, out_dir, fused=final)
+    return poses_path
+
+
+def _detect(cfg: InferConfig, pipeline: PosePipeline, state: RunState, frames: Iterable[VideoFrame],
+            calib: Calibration, prep: dict[str, Any], depth: _DepthSource, out_dir: Path, keep_masks: bool,
+            checkpoint_every: int) -> None:
+    """The pipeline over ``frames``, each frame's poses appended to ``poses.jsonl.partial`` and its picture to the
+    overlay's current piece; ``state`` is saved every ``checkpoint_every`` frames and when a signal stops the run
+    between frames (which then raises KeyboardInterrupt)."""
     writer = None
-    video_ctx = atomic_path(out_dir / "overlay.mp4") if cfg.overlay else contextlib.nullcontext(None)
-    with atomic_path(poses_path) as tmp_poses, video_ctx as tmp_video:
-        with open(tmp_poses, "w", encoding="utf-8") as fh:
-            total = count_frames(source, stride=stride, max_frames=max_frames, topic=topic) if progress else None
-            for vf in progress(frames, "infer", total) if progress else frames:
+    with stop_on_signals() as flag, open(out_dir / POSES_PARTIAL, "a", encoding="utf-8") as fh:
+        try:
+            for vf in frames:
                 K = calib.K(vf.name)
                 records, t = _infer_frame(pipeline, vf, K, prep, depth, calib)
-                for r in records:
-                    fh.write(json.dumps(r.to_json()) + "\n")
+                fh.write("".join(json.dumps(r.to_json()) + "\n" for r in records))
+                fh.flush()
                 if cfg.overlay:
                     t0 = time.perf_counter()
-                    writer = writer or video_writer(tmp_video, cfg.overlay_fps)
+                    writer = writer or video_writer(out_dir / f"overlay.part{state.pieces}.mp4", cfg.overlay_fps)
                     writer.append_data(_draw(vf.image, records, pipeline, K))
                     t["overlay"] = time.perf_counter() - t0
                 for k, v in t.items():
-                    times.setdefault(k, []).append(v)
+                    state.times.setdefault(k, []).append(v)
                 # kept for the evaluation and completion: masks only with either, and cropped to their box
-                all_records.extend(replace(r, mask=CroppedMask.of(r.mask) if keep_masks and r.mask is not None
-                                           else None) for r in records)
-                names.append(vf.name)
+                state.records.extend(replace(r, mask=CroppedMask.of(r.mask) if keep_masks and r.mask is not None
+                                             else None) for r in records)
+                state.names.append(vf.name)
                 if vf.stamp_ns is not None:
-                    stamps[vf.name] = vf.stamp_ns
-                shapes[vf.name] = vf.image.shape[:2]
-        if writer is not None:
-            writer.close()
-        final = all_records
-        if cfg.complete.enabled:
-            t0 = time.perf_counter()
-            final, summary = _complete(cfg, pipeline, all_records, source, calib, depth, prep, max_frames, progress,
-                                       topic, stride)
-            times["complete"] = [time.perf_counter() - t0]
-            if summary is not None:
-                with open(tmp_poses, "w", encoding="utf-8") as fh:
-                    for r in final:
-                        mask = r.mask.full(shapes[r.frame_name]) if isinstance(r.mask, CroppedMask) else r.mask
-                        fh.write(json.dumps(replace(r, mask=mask).to_json()) + "\n")
-                if cfg.overlay and writer is not None:
-                    _redraw_overlay(tmp_video, cfg, final, pipeline, source, calib, max_frames, topic, stride)
-    _write_run_files(out_dir, names, calib, stamps, _timing_summary(times, len(names), len(final), detector_info))
-    log.info("infer: %d frames, %d poses -> %s", len(names), len(final), poses_path)
-    if gt_scene is not None:
-        evaluate_run(all_records, names, gt_scene, out_dir, fused=final)
-    return poses_path
+                    state.stamps[vf.name] = vf.stamp_ns
+                state.shapes[vf.name] = vf.image.shape[:2]
+                state.last_index, state.poses_lines = vf.index, state.poses_lines + len(records)
+                if flag["stop"] or len(state.names) % checkpoint_every == 0:
+                    if writer is not None:  # the piece ends with the checkpoint: a resumed run adds the next one
+                        writer.close()
+                        writer, state.pieces = None, state.pieces + 1
+                    state.save(out_dir, pipeline)
+                if flag["stop"]:
+                    raise KeyboardInterrupt(f"stopped after frame {vf.name}, its work kept in {out_dir}; re-run the "
+                                            "same command to resume")
+        finally:
+            if writer is not None:
+                writer.close()
 
 
 def _redraw_overlay(path: Path, cfg: InferConfig, records: list[PoseRecord], pipeline: PosePipeline, source: Path,
@@ -340,13 +380,6 @@ def resolve_prep(enhance: str, detector_info: dict) -> dict:
                     detector_info["run"])
         return dict(image_prep.RAW)
     return prep
-
-
-def video_writer(path: Path, fps: float):  # -> imageio writer
-    import imageio.v2 as imageio  # lazy: heavy dependency (imageio)
-
-    return imageio.get_writer(path, format="FFMPEG", fps=fps, codec="libx264", quality=7, macro_block_size=16,
-                              ffmpeg_log_level="error")
 
 
 def _timing_summary(times: dict[str, list[float]], n_frames: int, n_poses: int, detector_info: dict) -> dict:

@@ -10,6 +10,7 @@ by their position on the topic (:mod:`cadalign.formats.bag`).
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,7 @@ import numpy as np
 
 from cadalign.errors import InputError
 from cadalign.formats.bag import is_bag, iter_bag_frames, resolve_topic
+from cadalign.io import atomic_path
 from cadalign.sfm.frames import IMAGE_SUFFIXES, VIDEO_SUFFIXES
 
 log = logging.getLogger(__name__)
@@ -143,3 +145,37 @@ def _video(source: Path, after: int = -1) -> Iterator[VideoFrame]:
             i += 1
     finally:
         cap.release()
+
+
+def video_writer(path: Path, fps: float):  # -> imageio writer
+    import imageio.v2 as imageio  # lazy: heavy dependency (imageio)
+
+    return imageio.get_writer(path, format="FFMPEG", fps=fps, codec="libx264", quality=7, macro_block_size=16,
+                              ffmpeg_log_level="error")
+
+
+def join_overlays(pieces: list[Path], path: Path, fps: float) -> None:
+    """``overlay.mp4`` from the overlay's pieces of an interrupted run and its resumption, in order; a piece a
+    killed run left unreadable is left out, with a warning."""
+    pieces = [p for p in pieces if p.is_file()]
+    if len(pieces) == 1:
+        os.replace(pieces[0], path)
+        return
+    if not pieces:
+        return
+    import imageio.v2 as imageio  # lazy: heavy dependency (imageio)
+
+    with atomic_path(path) as tmp:
+        writer = video_writer(tmp, fps)
+        try:
+            for p in pieces:
+                try:
+                    for im in imageio.get_reader(p, format="FFMPEG"):
+                        writer.append_data(im)
+                except (OSError, RuntimeError) as exc:
+                    log.warning("%s: unreadable (%s; a killed run leaves its overlay unfinished): its frames are "
+                                "missing from %s", p, str(exc).splitlines()[0], path)
+        finally:
+            writer.close()
+    for p in pieces:
+        p.unlink()

@@ -15,13 +15,11 @@ slice of the global batch, and only rank 0 writes files.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import os
-import signal
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -34,7 +32,7 @@ from torch.utils.data import DataLoader, Dataset, default_collate
 
 from cadalign.config import bounded, config_differences, to_dict
 from cadalign.errors import ConfigError, TrainingError
-from cadalign.io import read_json, write_json
+from cadalign.io import read_json, stop_on_signals, write_json
 from cadalign.train.batches import StepBatchSampler, check_finite_batch, sample_names, stream_indices
 from cadalign.train.checkpoint import (
     LAST,
@@ -124,27 +122,6 @@ def _lr_lambda(cfg: LoopConfig) -> Callable[[int], float]:
         return 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(t, 1.0)))
 
     return f
-
-
-@contextlib.contextmanager
-def _stop_on_signals() -> Iterator[dict[str, bool]]:
-    """Turn SIGINT/SIGTERM into a flag checked between steps (main thread only)."""
-    flag = {"stop": False}
-
-    def handler(signum: int, frame: Any) -> None:
-        flag["stop"] = True
-
-    old: dict[int, Any] = {}
-    try:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            old[sig] = signal.signal(sig, handler)
-    except ValueError:  # not the main thread: rely on KeyboardInterrupt
-        pass
-    try:
-        yield flag
-    finally:
-        for sig, h in old.items():
-            signal.signal(sig, h)
 
 
 class _Run:
@@ -293,7 +270,7 @@ def train_loop(model: nn.Module, step_fn: StepFn, dataset: Dataset, cfg: LoopCon
     if cfg.amp:
         log.info("bf16 autocast %s on %s", "on" if run.bf16 else "off (no native bf16: fp32)", dev)
     model.train()
-    with _stop_on_signals() as flag:
+    with stop_on_signals() as flag:
         try:
             for batch in loader:
                 loss_v, metrics = _one_step(run, step_fn, batch, dev, augment, world)

@@ -116,6 +116,50 @@ def test_an_overwrite_stopped_early_is_not_taken_for_the_older_complete_run(tiny
     assert res.exit_code == 130 and not (tmp_path / "out" / "timings.json").exists()
 
 
+def test_a_detector_run_stopped_by_a_signal_resumes_to_the_uninterrupted_results(tiny_sim: Path, oracle_run: Path,
+                                                                                   tmp_path: Path,
+                                                                                   monkeypatch) -> None:
+    """SIGINT/SIGTERM between frames 2 and 3 (as the run's signal flag sees it): exit 130 with the state saved, the
+    finished frames' poses and overlay kept; the same command goes on from frame 3 and ends with the uninterrupted
+    run's frames, poses (to the stored precision) and scores."""
+    import contextlib
+
+    import imageio.v2 as imageio
+
+    import cadalign.infer.run as infer_run
+
+    flag, real = {"stop": False}, infer_run._infer_frame
+    calls = []
+
+    def frame(*args, **kwargs):
+        calls.append(1)
+        out = real(*args, **kwargs)
+        flag["stop"] = len(calls) == 2  # a signal arrives during frame 2: the run stops after it
+        return out
+
+    monkeypatch.setattr(infer_run, "stop_on_signals", contextlib.contextmanager(lambda: (yield flag)))
+    monkeypatch.setattr(infer_run, "_infer_frame", frame)
+    out = tmp_path / "out"
+    res = _infer(tiny_sim, out, "--gt", str(tiny_sim), "--depth", str(tiny_sim))
+    assert res.exit_code == 130 and "re-run the same command" in " ".join(res.output.split())
+    assert (out / "infer_state.pkl").is_file() and not (out / "timings.json").exists()
+    assert {json.loads(x)["frame"] for x in (out / "poses.jsonl.partial").read_text().splitlines()} == {0, 1}
+    assert len(imageio.mimread(out / "overlay.part0.mp4")) == 2
+    monkeypatch.undo()
+    res = _infer(tiny_sim, out, "--gt", str(tiny_sim), "--depth", str(tiny_sim))
+    assert res.exit_code == 0, res.output
+    assert read_json(out / "frames.json") == read_json(oracle_run / "frames.json")
+    assert not (out / "infer_state.pkl").exists() and not list(out.glob("*.partial")) and not list(out.glob("*.part*"))
+    assert len(imageio.mimread(out / "overlay.mp4")) == 4
+    ours, theirs = ([json.loads(x) for x in (d / "poses.jsonl").read_text().splitlines()] for d in (out, oracle_run))
+    assert [(r["frame"], r["obj_id"], r["source"]) for r in ours] == [(r["frame"], r["obj_id"], r["source"])
+                                                                      for r in theirs]
+    for a, b in zip(ours, theirs, strict=True):
+        assert np.allclose(a["T_cam_from_obj"], b["T_cam_from_obj"], atol=1e-9)
+    scores = [read_json(d / "eval.json")["fused"]["detection"] for d in (out, oracle_run)]
+    assert scores[0] == scores[1]
+
+
 def test_corrupt_frame_is_skipped_and_named(tiny_sim: Path, tmp_path: Path) -> None:
     frames = tmp_path / "frames"
     shutil.copytree(tiny_sim / "frames", frames)

@@ -697,8 +697,7 @@ def test_overlay_pieces_are_joined_in_order_and_an_unfinished_one_is_left_out(tm
     frames in order, with a warning naming the piece; the pieces are removed."""
     import imageio.v2 as imageio
 
-    from cadalign.infer.run import video_writer
-    from cadalign.infer.track.partial import join_overlays
+    from cadalign.infer.video import join_overlays, video_writer
 
     pieces = []
     for k, shades in enumerate(((0, 40), (80,), (120, 160, 200))):

@@ -9,16 +9,14 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from cadalign.infer.pipeline import PoseRecord
-from cadalign.infer.run import read_poses, video_writer
+from cadalign.infer.run import read_poses
 from cadalign.infer.track.tracker import StructureTracker
-from cadalign.io import atomic_path
 from cadalign.types import Rigid3
 
 log = logging.getLogger(__name__)
@@ -84,30 +82,3 @@ def whole_lines(path: Path) -> list[dict]:
         except ValueError:
             break
     return out
-
-
-def join_overlays(pieces: list[Path], path: Path, fps: float) -> None:
-    """``overlay.mp4`` from the overlay's pieces of an interrupted run and its resumption, in order; a piece a
-    killed run left unreadable is left out, with a warning."""
-    pieces = [p for p in pieces if p.is_file()]
-    if len(pieces) == 1:
-        os.replace(pieces[0], path)
-        return
-    if not pieces:
-        return
-    import imageio.v2 as imageio  # lazy: heavy dependency (imageio)
-
-    with atomic_path(path) as tmp:
-        writer = video_writer(tmp, fps)
-        try:
-            for p in pieces:
-                try:
-                    for im in imageio.get_reader(p, format="FFMPEG"):
-                        writer.append_data(im)
-                except (OSError, RuntimeError) as exc:
-                    log.warning("%s: unreadable (%s; a killed run leaves its overlay unfinished): its frames are "
-                                "missing from %s", p, str(exc).splitlines()[0], path)
-        finally:
-            writer.close()
-    for p in pieces:
-        p.unlink()

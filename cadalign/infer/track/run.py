@@ -40,17 +40,17 @@ import numpy as np
 from cadalign.errors import InputError
 from cadalign.formats.calibration import CameraCalibration, Undistorter
 from cadalign.infer.pipeline import PoseRecord
-from cadalign.infer.run import evaluate_run, video_writer
+from cadalign.infer.run import evaluate_run
 from cadalign.infer.track.config import TrackerConfig, TrackRunConfig
 from cadalign.infer.track.edges import as_gray
 from cadalign.infer.track.hidden import HiddenContours, HiddenSeen
 from cadalign.infer.track.missing import PartMemory, part_records
-from cadalign.infer.track.partial import PARTIAL, Finished, join_overlays, take_over
+from cadalign.infer.track.partial import PARTIAL, Finished, take_over
 from cadalign.infer.track.parts import MovableParts, split_hypotheses
 from cadalign.infer.track.plot import plot_track
 from cadalign.infer.track.start import pose_from_picks
 from cadalign.infer.track.tracker import StructureTracker, TrackStep
-from cadalign.infer.video import VideoFrame, count_frames, iter_frames
+from cadalign.infer.video import VideoFrame, count_frames, iter_frames, join_overlays, video_writer
 from cadalign.io import fingerprint, prepare_stage_dir, read_json, read_jsonl, write_json
 from cadalign.sim.structure import Structure
 from cadalign.types import Camera, Progress, Rigid3
