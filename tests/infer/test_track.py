@@ -668,6 +668,33 @@ def test_every_second_frame_is_tracked_with_stride_and_resumed_on_the_same_ones(
         assert _reproj_px(structure.render_meshes(), cam, T, _T_cw(cams[r["frame_name"]])) < 0.5
 
 
+def test_a_signal_stops_the_tracker_after_the_frame_at_hand(tmp_path: Path, track_sim: Path, monkeypatch) -> None:
+    """SIGINT / SIGTERM during frame 1 (as the run's signal flag sees it): frame 1 is finished and written, the
+    overlay closed whole, and the run stops with KeyboardInterrupt saying how to resume."""
+    import contextlib
+
+    import imageio.v2 as imageio
+
+    import cadalign.infer.track.run as track_run
+    from cadalign.sim.structure import load_structure
+
+    flag = {"stop": False}
+    monkeypatch.setattr(track_run, "stop_on_signals", contextlib.contextmanager(lambda: (yield flag)))
+
+    def progress(items, description, total):
+        for k, item in enumerate(items):
+            flag["stop"] = k == 1
+            yield item
+
+    cam, names, cams = _frames(track_sim)
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt, match="re-run the same command"):
+        track_video(TrackRunConfig(), track_sim / "frames", load_structure(track_sim.parent / "structure.toml"), cam,
+                    out, init_pose=_T_cw(cams[names[0]]), progress=progress)
+    assert len((out / "track.jsonl.partial").read_text().splitlines()) == 2
+    assert len(imageio.mimread(out / "overlay.part0.mp4")) == 2
+
+
 def test_a_resumed_track_carries_on_the_last_pose_motion_and_losses(boxes) -> None:
     """Resuming from finished frames: the last tracked pose and the motion into it predict the next frame; frames
     lost at the end stay lost (the restarts start from that pose); nothing tracked: nothing to carry on."""

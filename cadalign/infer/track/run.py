@@ -51,7 +51,7 @@ from cadalign.infer.track.plot import plot_track
 from cadalign.infer.track.start import pose_from_picks
 from cadalign.infer.track.tracker import StructureTracker, TrackStep
 from cadalign.infer.video import VideoFrame, count_frames, iter_frames, join_overlays, video_writer
-from cadalign.io import fingerprint, prepare_stage_dir, read_json, read_jsonl, write_json
+from cadalign.io import fingerprint, prepare_stage_dir, read_json, read_jsonl, stop_on_signals, write_json
 from cadalign.sim.structure import Structure
 from cadalign.types import Camera, Progress, Rigid3
 
@@ -188,10 +188,11 @@ class _VideoRun:
         self.overlay_s: list[float] = []
 
     def track(self, frames: Iterable[VideoFrame], source: Path, undistort: Undistorter | None) -> None:
-        """Track ``frames``, appending each to the partial files; Ctrl-C keeps every finished frame."""
+        """Track ``frames``, appending each to the partial files; SIGINT / SIGTERM stop the run once the frame at
+        hand is written (a KeyboardInterrupt raised elsewhere, off the main thread, loses only that frame)."""
         writer = None
         try:
-            with open(self.out_dir / f"poses.jsonl{PARTIAL}", "a", encoding="utf-8") as fh, \
+            with stop_on_signals() as flag, open(self.out_dir / f"poses.jsonl{PARTIAL}", "a", encoding="utf-8") as fh, \
                     open(self.out_dir / f"track.jsonl{PARTIAL}", "a", encoding="utf-8") as th:
                 for vf in frames:
                     if vf.image.shape[:2] != (self.camera.height, self.camera.width):
@@ -211,6 +212,9 @@ class _VideoRun:
                         writer = writer or video_writer(self.overlay, self.cfg.overlay_fps)
                         writer.append_data(drawn)
                         self.overlay_s.append(time.perf_counter() - t0)
+                    if flag["stop"]:  # SIGINT / SIGTERM: stop between frames, the overlay closed whole
+                        raise KeyboardInterrupt(f"stopped after frame {vf.name}, its work kept in {self.out_dir}; "
+                                                "re-run the same command to resume")
         finally:
             if writer is not None:
                 writer.close()  # a whole video even when interrupted
