@@ -144,11 +144,14 @@ def track_speed(
     recipe: Path | None = typer.Option(None, "--recipe", help="Training recipe whose architecture the default "
                                        "baseline takes (e.g. training/pose_fast_zoom_improved.toml)."),
     max_frames: int = typer.Option(30, "--max-frames", min=2, help="Frames to time."),
+    preset: str = typer.Option("balanced", "--preset", help="The tracker's preset: fast | balanced | accurate."),
+    config: Path | None = typer.Option(None, "--config", help="TOML/YAML with overrides of the tracker preset."),
     out: Path = OUT,
 ) -> None:
     """The structure tracker's frames/s and restart time against the detector alone, same frames, same run."""
     from cadalign.bench.track_timing import bench_track  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.formats.calibration import read_calibration  # lazy: pulls cv2; keeps `cadalign --help` light
+    from cadalign.infer.track.config import PRESETS, TrackRunConfig  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.infer.track.run import read_init_pose  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.infer.video import iter_frames  # lazy: pulls cv2; keeps `cadalign --help` light
     from cadalign.sim.structure import load_structure  # lazy: pulls cv2; keeps `cadalign --help` light
@@ -158,8 +161,9 @@ def track_speed(
         h, w = first.image.shape[:2]
         lens = read_calibration(calib)
         lens.check_size(w, h, f"{frames}'s first frame")
+        cfg = resolve(TrackRunConfig, PRESETS, preset, config)
         res = bench_track(frames, load_structure(cad), Camera(lens.K, w, h), read_init_pose(init_pose), model=model,
-                          recipe=recipe, max_frames=max_frames)
+                          recipe=recipe, max_frames=max_frames, cfg=cfg.tracker, max_width=cfg.max_width)
         write_json(out / "bench_track.json", res.record())
     rec = res.record()
     if rec["track_ms_cpu"] is None:

@@ -240,6 +240,21 @@ class TestTrackBoxes:
         assert px < 0.5 and t1 < 0.01, (px, r1, t1)
         assert fit.support > 0.9 and fit.residual_px < 0.3
 
+    def test_fitting_every_second_sample_recovers_it_and_judges_on_all(self, boxes) -> None:
+        """``fit_step`` 2 (the fast preset's): the rounds use half the contour samples, the same offset is
+        recovered, and the quality is read on every sample at the final pose."""
+        from dataclasses import replace
+
+        meshes, cam, render = boxes
+        T = _view(2).inverse()
+        start = _perturbed(T, 0.04, 2.0, 2)
+        half = EdgeTracker(meshes, cam, replace(BOXES_TRACKER.edges, fit_step=2)).fit(render(T.inverse()),
+                                                                                      start.inverse())
+        assert _reproj_px(meshes, cam, half.T_world_from_cam.inverse(), T) < 0.5
+        every = EdgeTracker(meshes, cam, BOXES_TRACKER.edges).judge(render(T.inverse()), half.T_world_from_cam)
+        assert abs(half.samples - every.samples) < 0.02 * every.samples  # all (the judge may reuse the last render)
+        assert abs(half.support - every.support) < 0.02
+
     def test_black_frames_are_lost_and_tracking_regained(self, boxes) -> None:
         meshes, cam, render = boxes
         tr = StructureTracker(meshes, cam, BOXES_TRACKER)

@@ -177,8 +177,10 @@ class TrackRunConfig:
 
 
 PRESETS: dict[str, TrackRunConfig] = {
-    "fast": TrackRunConfig(TrackerConfig(edges=EdgeTrackConfig(levels=(EdgeLevel(0.25, 4, 6.0, 4.0),
-                                                                       EdgeLevel(0.5, 3, 3.0, 2.0))))),
+    # no 1/2 level, and each round fits every 2nd contour sample: 1.6-1.7x the detector in wall time at 3 mm on the
+    # default orbit; in turbid water it loses more frames (docs/tuning/tracker.md#a-faster-preset-s55)
+    "fast": TrackRunConfig(TrackerConfig(edges=EdgeTrackConfig(levels=(EdgeLevel(0.25, 5, 6.0, 4.0),
+                                                                       EdgeLevel(1.0, 3, 2.5, 1.5)), fit_step=2))),
     "balanced": TrackRunConfig(),
     "accurate": TrackRunConfig(TrackerConfig(edges=with_levels(EdgeTrackConfig(), iterations=6))),
 }

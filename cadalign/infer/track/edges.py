@@ -62,6 +62,8 @@ class EdgeTrackConfig:
     survey video (3 deg, 0.5 m apart at 11 m) a constant-velocity prediction is off by less."""
     point_step: int = 1
     """Use every n-th contour pixel (raster order) at each level."""
+    fit_step: int = 1
+    """The rounds of each level fit every n-th of those samples; the quality is still read on all of them."""
     colour: bool = False
     """Search the edges in the three colour channels (each sample takes its strongest) rather than in grey: a
     part and its background can differ in hue more than in brightness (a yellow part on a white desk). Off: on
@@ -211,6 +213,8 @@ class EdgeTracker:
             if len(X_w) < self.cfg.min_edges:
                 continue  # too few contours to fit six degrees of freedom
             last = (r, X_w, n, f, g)
+            if self.cfg.fit_step > 1:
+                X_w, uv0, n = X_w[::self.cfg.fit_step], uv0[::self.cfg.fit_step], n[::self.cfg.fit_step]
             region = self._region_level(r, uv0, n, f.instance)
             T_start, s_start, moved_px = T, None, 0.0
             for _ in range(lv.iterations):
