@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from cadalign.infer.pipeline import PosePipeline, PoseRecord
+from cadalign.infer.video import overlay_pieces
 from cadalign.io import atomic_path
 
 log = logging.getLogger(__name__)
@@ -58,11 +59,6 @@ class RunState:
             pipeline.fuser, pipeline._prev, pipeline.points = self.memory
 
 
-def pieces(out_dir: Path) -> list[Path]:
-    """The overlay pieces in ``out_dir``, in order."""
-    return sorted(Path(out_dir).glob("overlay.part*.mp4"), key=lambda p: int(p.stem.removeprefix("overlay.part")))
-
-
 def take_over(out_dir: Path, same_config: bool) -> RunState:
     """The state an earlier run of the same config left in ``out_dir``, its poses and overlay cut back to it (a new
     run without one); with another config, or without a checkpoint, its partial files are deleted."""
@@ -73,18 +69,18 @@ def take_over(out_dir: Path, same_config: bool) -> RunState:
         with open(path, "rb") as fh:
             state = pickle.load(fh)
     if not isinstance(state, RunState):
-        for p in [path, poses, *pieces(out_dir)]:
+        for p in [path, poses, *overlay_pieces(out_dir)]:
             p.unlink(missing_ok=True)
         return RunState()
     lines = poses.read_text(encoding="utf-8").splitlines(keepends=True) if poses.is_file() else []
     if len(lines) < state.poses_lines:
         log.warning("%s holds %d lines but %s counts %d: starting the run again", poses, len(lines), path,
                     state.poses_lines)
-        for p in [path, poses, *pieces(out_dir)]:
+        for p in [path, poses, *overlay_pieces(out_dir)]:
             p.unlink(missing_ok=True)
         return RunState()
     poses.write_text("".join(lines[:state.poses_lines]), encoding="utf-8")
-    for p in pieces(out_dir)[state.pieces:]:
+    for p in overlay_pieces(out_dir)[state.pieces:]:
         p.unlink()
     log.info("infer: resuming %s after frame %s (%d frames finished before)", out_dir,
              state.names[-1] if state.names else "-", len(state.names))

@@ -42,13 +42,21 @@ from cadalign.formats.calibration import CameraCalibration, Undistorter, read_ca
 from cadalign.formats.class_map import load_class_map
 from cadalign.formats.coco import rle_to_mask
 from cadalign.fuse.predictors import depth_predictor
-from cadalign.infer.checkpoint import POSES_PARTIAL, STATE, RunState, pieces, take_over
+from cadalign.infer.checkpoint import POSES_PARTIAL, STATE, RunState, take_over
 from cadalign.infer.complete import TrackCompleter
 from cadalign.infer.config import InferConfig
 from cadalign.infer.detect import Detector, frame_ids, models_dir_of
 from cadalign.infer.model_geom import draw_wireframe
 from cadalign.infer.pipeline import PosePipeline, PoseRecord
-from cadalign.infer.video import VideoFrame, count_frames, iter_frames, join_overlays, video_writer
+from cadalign.infer.video import (
+    VideoFrame,
+    count_frames,
+    iter_frames,
+    join_overlays,
+    overlay_piece,
+    overlay_pieces,
+    video_writer,
+)
 from cadalign.io import atomic_path, prepare_stage_dir, read_json, stop_on_signals, write_json, write_text
 from cadalign.metrics.pose_eval import (
     CroppedMask,
@@ -259,17 +267,17 @@ def run(cfg: InferConfig, source: Path, detector: Detector, models: dict[int, Ca
                     mask = r.mask.full(state.shapes[r.frame_name]) if isinstance(r.mask, CroppedMask) else r.mask
                     fh.write(json.dumps(replace(r, mask=mask).to_json()) + "\n")
             (out_dir / POSES_PARTIAL).unlink()
-            if cfg.overlay and pieces(out_dir):
+            if cfg.overlay and overlay_pieces(out_dir):
                 with atomic_path(out_dir / "overlay.mp4") as tmp:
                     _redraw_overlay(tmp, cfg, final, pipeline, source, calib, max_frames, topic, stride)
                 redrawn = True
     if (out_dir / POSES_PARTIAL).is_file():
         os.replace(out_dir / POSES_PARTIAL, poses_path)
     if redrawn:
-        for piece in pieces(out_dir):
+        for piece in overlay_pieces(out_dir):
             piece.unlink()
     else:
-        join_overlays(pieces(out_dir), out_dir / "overlay.mp4", cfg.overlay_fps)
+        join_overlays(overlay_pieces(out_dir), out_dir / "overlay.mp4", cfg.overlay_fps)
     _write_run_files(out_dir, names, calib, state.stamps,
                      _timing_summary(times, len(names), len(final), detector_info))
     (out_dir / STATE).unlink(missing_ok=True)
@@ -295,7 +303,7 @@ def _detect(cfg: InferConfig, pipeline: PosePipeline, state: RunState, frames: I
                 fh.flush()
                 if cfg.overlay:
                     t0 = time.perf_counter()
-                    writer = writer or video_writer(out_dir / f"overlay.part{state.pieces}.mp4", cfg.overlay_fps)
+                    writer = writer or video_writer(overlay_piece(out_dir, state.pieces), cfg.overlay_fps)
                     writer.append_data(_draw(vf.image, records, pipeline, K))
                     t["overlay"] = time.perf_counter() - t0
                 for k, v in t.items():

@@ -154,6 +154,16 @@ def video_writer(path: Path, fps: float):  # -> imageio writer
                               ffmpeg_log_level="error")
 
 
+def overlay_piece(out_dir: Path, k: int) -> Path:
+    """The ``k``-th piece of a run's overlay while the run goes on (a resumed run adds pieces)."""
+    return Path(out_dir) / f"overlay.part{k}.mp4"
+
+
+def overlay_pieces(out_dir: Path) -> list[Path]:
+    """The overlay pieces in ``out_dir``, in order."""
+    return sorted(Path(out_dir).glob("overlay.part*.mp4"), key=lambda p: int(p.stem.removeprefix("overlay.part")))
+
+
 def join_overlays(pieces: list[Path], path: Path, fps: float) -> None:
     """``overlay.mp4`` from the overlay's pieces of an interrupted run and its resumption, in order; a piece a
     killed run left unreadable is left out, with a warning."""

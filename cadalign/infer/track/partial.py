@@ -17,6 +17,7 @@ import numpy as np
 from cadalign.infer.pipeline import PoseRecord
 from cadalign.infer.run import read_poses
 from cadalign.infer.track.tracker import StructureTracker
+from cadalign.infer.video import overlay_pieces
 from cadalign.types import Rigid3
 
 log = logging.getLogger(__name__)
@@ -60,7 +61,7 @@ def take_over(out_dir: Path, same_config: bool) -> Finished:
     """The finished frames of an interrupted run of the same config in ``out_dir`` (a torn last line dropped, the
     poses of frames without a ``track.jsonl`` line too); with another config, its partial files are deleted."""
     track, poses = out_dir / f"track.jsonl{PARTIAL}", out_dir / f"poses.jsonl{PARTIAL}"
-    overlays = sorted(out_dir.glob("overlay.part*.mp4"), key=lambda p: int(p.stem.removeprefix("overlay.part")))
+    overlays = overlay_pieces(out_dir)
     if not same_config or not track.is_file():
         for p in [track, poses, *overlays]:
             p.unlink(missing_ok=True)

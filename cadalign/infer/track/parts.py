@@ -24,11 +24,15 @@ def part_record(structure: Structure, k: int, T_cam_from_world: Rigid3, mask: np
     """The pose record of part ``k`` (ray-cast instance, object ``k - 1``) placed by ``T_cam_from_world`` (the
     structure's, or a movable part's placement), with its visible ``mask`` (H, W) and its box."""
     o = structure.objects[k - 1]
-    ys, xs = np.nonzero(mask)
-    box = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], dtype=np.float64)
     T = T_cam_from_world @ o.T_world_from_obj
     return PoseRecord(frame_index, frame_name, o.obj_id, k, o.class_id, structure.class_names[o.class_id], score,
-                      box, T, T, T, {}, mask, source)
+                      mask_box(mask), T, T, T, {}, mask, source)
+
+
+def mask_box(mask: np.ndarray) -> np.ndarray:
+    """(4,) ``[x0, y0, x1, y1]`` pixel-edge box of a non-empty (H, W) mask."""
+    ys, xs = np.nonzero(mask)
+    return np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], dtype=np.float64)
 
 
 def split_hypotheses(hypotheses: list[tuple[str, Rigid3]], structure: Structure,

@@ -46,11 +46,11 @@ from cadalign.infer.track.edges import as_gray
 from cadalign.infer.track.hidden import HiddenContours, HiddenSeen
 from cadalign.infer.track.missing import PartMemory, part_records
 from cadalign.infer.track.partial import PARTIAL, Finished, take_over
-from cadalign.infer.track.parts import MovableParts, split_hypotheses
+from cadalign.infer.track.parts import MovableParts, mask_box, split_hypotheses
 from cadalign.infer.track.plot import plot_track
 from cadalign.infer.track.start import pose_from_picks
 from cadalign.infer.track.tracker import StructureTracker, TrackStep
-from cadalign.infer.video import VideoFrame, count_frames, iter_frames, join_overlays, video_writer
+from cadalign.infer.video import VideoFrame, count_frames, iter_frames, join_overlays, overlay_piece, video_writer
 from cadalign.io import fingerprint, prepare_stage_dir, read_json, read_jsonl, stop_on_signals, write_json
 from cadalign.sim.structure import Structure
 from cadalign.types import Camera, Progress, Rigid3
@@ -184,7 +184,7 @@ class _VideoRun:
         for row in [r for r in done.rows if r["state"] == "ok"][-1:]:
             self.memory.take_over(row, structure)  # the parts' verdicts at the last tracked frame
         self.records: list[PoseRecord] = list(done.records)
-        self.overlay = out_dir / f"overlay.part{len(done.overlays)}.mp4" if cfg.overlay else None
+        self.overlay = overlay_piece(out_dir, len(done.overlays)) if cfg.overlay else None
         self.overlay_s: list[float] = []
 
     def track(self, frames: Iterable[VideoFrame], source: Path, undistort: Undistorter | None) -> None:
@@ -265,10 +265,7 @@ def in_frame_pixels(rec: PoseRecord, work: Camera, camera: Camera) -> PoseRecord
         return rec
     mask = cv2.resize(np.asarray(rec.mask, dtype=np.uint8), (camera.width, camera.height),
                       interpolation=cv2.INTER_NEAREST) > 0
-    ys, xs = np.nonzero(mask)
-    if not len(xs):
-        return rec
-    return replace(rec, mask=mask, box_xyxy=np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.float64))
+    return replace(rec, mask=mask, box_xyxy=mask_box(mask)) if mask.any() else rec
 
 
 def _log_end(track_path: Path, cfg: TrackerConfig, n_records: int) -> list[int]:
