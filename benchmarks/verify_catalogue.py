@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from cadalign.align import PRESETS, align
-from cadalign.align.run import load_points
+from cadalign.align.run import load_cloud
 from cadalign.align.surface import sample_surface
 from cadalign.align.verify.core import VerifyConfig, free_space_rays, verify
 from cadalign.align.verify.run import load_views
@@ -46,9 +46,10 @@ def _world_meshes(scene: Path, only: str | None = None) -> list[RenderMesh]:
     return meshes
 
 
-def _case(name: str, scene: Path, points: np.ndarray, rng: np.random.Generator,
-          ) -> tuple[list[RenderMesh], np.ndarray, Sim3 | None, bool]:
-    """(CAD meshes in world metres, SfM points, a forced prior pose or None, whether a right answer exists)."""
+def _case(name: str, scene: Path, points: np.ndarray, views: np.ndarray, rng: np.random.Generator,
+          ) -> tuple[list[RenderMesh], np.ndarray, np.ndarray, Sim3 | None, bool]:
+    """(CAD meshes in world metres, SfM points, images seeing each, a forced prior pose or None, whether a right
+    answer exists). Clutter points count as seen in many images (they weigh on the fitness)."""
     meshes = _world_meshes(scene)
     verts = np.concatenate([m.vertices_m for m in meshes])
     c = 0.5 * (verts.min(0) + verts.max(0))
@@ -57,16 +58,17 @@ def _case(name: str, scene: Path, points: np.ndarray, rng: np.random.Generator,
         return [replace(m, vertices_m=f(m.vertices_m)) for m in meshes]
 
     if name == "mirrored":
-        return mapped(lambda v: v * [-1, 1, 1] + [2 * c[0], 0, 0]), points, None, False
+        return mapped(lambda v: v * [-1, 1, 1] + [2 * c[0], 0, 0]), points, views, None, False
     if name == "twice_as_large":
-        return mapped(lambda v: c + 2.0 * (v - c)), points, None, False
+        return mapped(lambda v: c + 2.0 * (v - c)), points, views, None, False
     if name == "clutter_70":
         lo, hi = points.min(0), points.max(0)
-        keep = points[rng.random(len(points)) < 0.3]
+        kept = rng.random(len(points)) < 0.3
+        keep = points[kept]
         n = int(round(len(keep) * 0.7 / 0.3))
         blobs = lo + rng.random((12, 3)) * (hi - lo)  # clutter in clumps, as other objects would be
         clutter = blobs[rng.integers(0, 12, n)] + rng.normal(0, 0.05 * np.linalg.norm(hi - lo), (n, 3))
-        return meshes, np.concatenate([keep, clutter]), None, True
+        return meshes, np.concatenate([keep, clutter]), np.concatenate([views[kept], np.full(n, 99)]), None, True
     if name == "wrong_structure":
         scenes = Path(__file__).resolve().parents[1] / "datasets" / "scenes"
         other = scenes / ("cluttered_hover.toml" if scene.name == "default.toml" else "default.toml")
@@ -74,12 +76,12 @@ def _case(name: str, scene: Path, points: np.ndarray, rng: np.random.Generator,
         wv = np.concatenate([m.vertices_m for m in wrong])
         k = np.linalg.norm(np.ptp(verts, 0)) / np.linalg.norm(np.ptp(wv, 0))  # same size: only the shape is wrong
         wc = 0.5 * (wv.min(0) + wv.max(0))
-        return [replace(m, vertices_m=c + k * (m.vertices_m - wc)) for m in wrong], points, None, False
+        return [replace(m, vertices_m=c + k * (m.vertices_m - wc)) for m in wrong], points, views, None, False
     if name == "small_cad":
         st = load_structure(scene)
         name_small = min(st.objects, key=lambda o: np.ptp(st.models[o.obj_id].vertices_m, 0).max()).name
-        return _world_meshes(scene, name_small), points, None, True
-    return meshes, points, None, True
+        return _world_meshes(scene, name_small), points, views, None, True
+    return meshes, points, views, None, True
 
 
 def run_case(name: str, build: Path, scene: Path, sim: Path, cfg: VerifyConfig | None = None) -> dict:
@@ -88,8 +90,8 @@ def run_case(name: str, build: Path, scene: Path, sim: Path, cfg: VerifyConfig |
     cfg = cfg or VerifyConfig()
     rng = np.random.default_rng(0)
     rec = pycolmap.Reconstruction(str(build / "sfm" / "sparse" / "0"))
-    points = load_points(build / "sfm" / "sparse" / "0")
-    meshes, pts, prior, has_answer = _case(name, scene, points, rng)
+    points, views = load_cloud(build / "sfm" / "sparse" / "0")
+    meshes, pts, pts_views, prior, has_answer = _case(name, scene, points, views, rng)
     truth = true_cad_from_sfm(read_json(build / "sfm" / "cameras.json")["frames"],
                               read_json(sim / "gt" / "sim" / "000000" / "cameras.json")["frames"])
     parts = [CadModel(f"m{i}", m.vertices_m, m.faces) for i, m in enumerate(meshes)]
@@ -107,11 +109,14 @@ def run_case(name: str, build: Path, scene: Path, sim: Path, cfg: VerifyConfig |
         if name == "from_truth":  # as good picks would start it: the right answer must be accepted
             prior = truth
         try:
-            res = align(pts, surf, acfg, prior=prior)
+            res = align(pts, surf, acfg, prior=prior, views=pts_views)
             hyps, scores = [h for h, _ in res.hypotheses], [s for _, s in res.hypotheses]
+            row["fitness"] = round(res.metrics.fitness, 4)
         except AlignmentError as exc:
             row.update(outcome="refused (cloud gates)", reason=str(exc).splitlines()[0][:160],
                        align_s=time.perf_counter() - t0)
+            if getattr(exc, "metrics", None) is not None:
+                row["fitness"] = round(exc.metrics.fitness, 4)
             return row
     row["align_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()

@@ -134,6 +134,10 @@ class GateConfig:
     """Cap on ``roi_dist_m`` as a fraction of the CAD diameter."""
     min_fitness: float = bounded(0.6, ge=0, le=1)
     """Smallest fraction of the points in the fitness region that are inliers."""
+    fitness_min_views: int = bounded(3, ge=1)
+    """The fitness counts the region's points seen in at least this many images (when the cloud says: a COLMAP
+    model does); a two-view point scatters along its rays. Fewer than ``min_inliers`` such points: all count.
+    See docs/tuning/verify.md#fitness-on-multi-view-points-s56."""
     max_rmse_m: float = bounded(0.03, gt=0)
     """Largest RMS distance of the inliers to the CAD surface, metres."""
     min_rmse_m: float = bounded(2e-4, ge=0)

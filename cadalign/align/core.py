@@ -127,6 +127,7 @@ def align(
     picks: Picks | None = None,
     prior: Sim3 | None = None,
     context: str = "the SfM cloud",
+    views: np.ndarray | None = None,
 ) -> AlignResult:
     """Estimate ``cad_from_sfm`` (SfM coordinates -> CAD/world metres) and check its quality.
 
@@ -142,6 +143,8 @@ def align(
         picks: point correspondences for ``coarse = picks`` (or ``auto``).
         prior: a prior ``cad_from_sfm`` for ``coarse = prior`` (or ``auto``).
         context: how messages name the input (e.g. its path).
+        views: (N,) the number of images each point is seen in, if known (the fitness gate counts the
+            multi-view points, :attr:`~cadalign.align.config.GateConfig.fitness_min_views`).
 
     Returns:
         The gated :class:`AlignResult`.
@@ -155,6 +158,8 @@ def align(
     cfg = cfg or AlignConfig()
     t0 = time.perf_counter()
     points = check_points(points_sfm)
+    if views is not None:  # the rows check_points kept
+        views = np.asarray(views)[np.all(np.isfinite(np.asarray(points_sfm, dtype=np.float64)), axis=1)]
     method = _coarse_method(cfg, picks, prior)
     surface = cad if isinstance(cad, CadSurface) else sample_surface(cad, cfg.cad_samples, cfg.seed)
     t1 = time.perf_counter()
@@ -175,7 +180,7 @@ def align(
                     "(%.3f vs %.3f); the structure looks nearly symmetric from this cloud, check align.png or "
                     "give picks", DISTINCT_DEG, scores[1], scores[0])
     t4 = time.perf_counter()
-    metrics = measure(points, surface, T, cfg.gates)
+    metrics = measure(points, surface, T, cfg.gates, views)
     checks = check_gates(metrics, T, coarse, surface, cfg.gates, scores)
     seconds["gates"] = time.perf_counter() - t4
     raise_if_failed(checks, metrics, T, context)

@@ -53,8 +53,10 @@ def gate_distances(surface: CadSurface, cfg: GateConfig) -> tuple[float, float]:
             min(cfg.roi_dist_m, cfg.roi_dist_rel * surface.diameter_m))
 
 
-def measure(points_sfm: np.ndarray, surface: CadSurface, cad_from_sfm: Sim3, cfg: GateConfig) -> AlignMetrics:
-    """Residual statistics of ``cad_from_sfm`` (see :class:`AlignMetrics` and :class:`GateConfig`)."""
+def measure(points_sfm: np.ndarray, surface: CadSurface, cad_from_sfm: Sim3, cfg: GateConfig,
+            views: np.ndarray | None = None) -> AlignMetrics:
+    """Residual statistics of ``cad_from_sfm`` (see :class:`AlignMetrics` and :class:`GateConfig`); ``views``
+    (N,) the number of images each point is seen in, when known (the fitness counts the multi-view ones)."""
     inlier_m, roi_m = gate_distances(surface, cfg)
     y = cad_from_sfm.apply(points_sfm)
     d = surface.distances(y)
@@ -62,6 +64,10 @@ def measure(points_sfm: np.ndarray, surface: CadSurface, cad_from_sfm: Sim3, cfg
     lo, hi = surface.points_m.min(axis=0) + roi_m, surface.points_m.max(axis=0) - roi_m
     roi = (d <= roi_m) | np.all((y > lo) & (y < hi), axis=1)
     n_inl, n_roi = int(inl.sum()), int(roi.sum())
+    counted = roi if views is None else roi & (np.asarray(views) >= cfg.fitness_min_views)
+    if counted.sum() < cfg.min_inliers:  # too few multi-view points to judge by: all count
+        counted = roi
+    n_fit = int(counted.sum())
     if n_inl:
         cov_d, _ = cKDTree(y[inl]).query(surface.points_m, distance_upper_bound=inlier_m,
                                          workers=query_workers(len(surface.points_m)))
@@ -69,13 +75,14 @@ def measure(points_sfm: np.ndarray, surface: CadSurface, cad_from_sfm: Sim3, cfg
     else:
         coverage = 0.0
     return AlignMetrics(
-        fitness=n_inl / n_roi if n_roi else 0.0,
+        fitness=int((inl & counted).sum()) / n_fit if n_fit else 0.0,
         inlier_rmse_m=float(np.sqrt(np.mean(d[inl] ** 2))) if n_inl else float("inf"),
         n_inliers=n_inl,
         n_roi=n_roi,
         n_points=len(points_sfm),
         coverage=coverage,
         median_residual_m=float(np.median(d[roi])) if n_roi else float("inf"),
+        n_fitness=n_fit,
     )
 
 
@@ -185,7 +192,8 @@ def format_report(checks: tuple[GateCheck, ...], metrics: AlignMetrics, cad_from
     head = (f"alignment of {context} failed {len(failed)} quality gate(s): {', '.join(c.name for c in failed)}"
             if failed else f"alignment of {context} passed all quality gates")
     lines = [head, f"  scale {cad_from_sfm.s:.6g} m per SfM unit; {metrics.n_points} points, {metrics.n_roi} in "
-                   f"the fitness region, {metrics.n_inliers} inliers, coverage {metrics.coverage:.2f}"]
+                   f"the fitness region ({metrics.n_fitness} counted), {metrics.n_inliers} inliers, coverage "
+                   f"{metrics.coverage:.2f}"]
     lines += ["  " + c.line() for c in checks]
     lines += [f"  likely cause {i}: {c}" for i, c in enumerate(likely_causes(failed, metrics), 1)]
     return "\n".join(lines)

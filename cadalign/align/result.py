@@ -66,6 +66,7 @@ class AlignMetrics:
         coverage: fraction of CAD samples with an inlier within the inlier distance (how much of the
             structure the cloud explains; low for a partial survey, which is not an error).
         median_residual_m: median distance of the fitness-region points to the CAD surface, metres.
+        n_fitness: fitness-region points the fitness counts (those seen in enough images, when known).
     """
 
     fitness: float
@@ -75,6 +76,7 @@ class AlignMetrics:
     n_points: int
     coverage: float
     median_residual_m: float
+    n_fitness: int = 0
 
 
 @dataclass(frozen=True)

@@ -56,13 +56,19 @@ def load_points(source: str | Path | np.ndarray) -> np.ndarray:
     Raises:
         InputError: missing or unreadable file, or no points in it.
     """
+    return load_cloud(source)[0]
+
+
+def load_cloud(source: str | Path | np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`load_points` and, for a COLMAP model, the number of images each point is seen in (else None)."""
     if isinstance(source, np.ndarray):
-        return source
+        return source, None
     path = Path(source)
     if not path.exists():
         raise InputError(f"SfM points not found: {path}")
+    views = None
     if path.is_dir() or path.stem == "points3D":
-        pts = _colmap_points(path if path.is_dir() else path.parent)
+        pts, views = _colmap_points(path if path.is_dir() else path.parent)
     elif path.suffix.lower() == ".npy":
         pts = np.load(path, allow_pickle=False)
     elif path.suffix.lower() in POINT_CLOUD_SUFFIXES:
@@ -74,10 +80,10 @@ def load_points(source: str | Path | np.ndarray) -> np.ndarray:
                          "sparse model folder")
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
         raise InputError(f"{path}: expected N x 3 points, got an array of shape {pts.shape}")
-    return pts
+    return pts, views
 
 
-def _colmap_points(folder: Path) -> np.ndarray:
+def _colmap_points(folder: Path) -> tuple[np.ndarray, np.ndarray]:
     import pycolmap  # lazy: heavy dependency (pycolmap)
 
     if not ((folder / "points3D.bin").is_file() or (folder / "points3D.txt").is_file()):
@@ -86,7 +92,9 @@ def _colmap_points(folder: Path) -> np.ndarray:
         rec = pycolmap.Reconstruction(str(folder))
     except Exception as exc:  # pycolmap raises bare RuntimeErrors for corrupt models
         raise InputError(f"{folder}: could not read the COLMAP model ({exc}); re-run SfM") from exc
-    return np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
+    points = list(rec.points3D.values())
+    return (np.array([p.xyz for p in points], dtype=np.float64).reshape(-1, 3),
+            np.array([p.track.length() for p in points], dtype=np.int64))
 
 
 def load_cad_parts(cad: Sequence[CadInput]) -> list[CadPart]:
@@ -171,6 +179,7 @@ def run(
     picks: str | Path | Picks | None = None,
     prior: Sim3 | str | Path | None = None,
     overwrite: bool = False,
+    views: np.ndarray | None = None,
 ) -> Path:
     """Align, gate and write ``OUT/align.json`` (+ ``align.png``); returns the path of ``align.json``.
 
@@ -185,13 +194,15 @@ def run(
         picks: point correspondences (a picks JSON file or :class:`Picks`).
         prior: a prior ``cad_from_sfm`` (a Sim3, or a JSON file read by :func:`read_sim3`).
         overwrite: replace results made with another config.
+        views: for an array of points, the number of images each is seen in (a COLMAP model gives its own).
 
     Raises:
         AlignmentGateError: the alignment failed a quality gate (nothing is written).
         InputError, DegenerateGeometryError, ConfigError: unusable inputs or directory.
     """
     out_dir = Path(out_dir)
-    points = load_points(points_sfm)
+    points, model_views = load_cloud(points_sfm)
+    views = model_views if views is None else views
     parts = load_cad_parts(cad)
     picks_obj = read_picks(picks) if isinstance(picks, (str, Path)) else picks
     prior_obj = read_sim3(prior) if isinstance(prior, (str, Path)) else prior
@@ -208,7 +219,7 @@ def run(
     surface = sample_surface(parts, cfg.cad_samples, cfg.seed)
     sample_s = time.perf_counter() - t0
     try:
-        result = align(points, surface, cfg, picks=picks_obj, prior=prior_obj, context=context)
+        result = align(points, surface, cfg, picks=picks_obj, prior=prior_obj, context=context, views=views)
     except CadalignError:
         (out_dir / MANIFEST_NAME).unlink(missing_ok=True)  # nothing was written: free the directory
         raise

@@ -41,7 +41,7 @@ from cadalign.align.camera_refine import CameraRefineConfig, RefinedCamera, rays
 from cadalign.align.edge_refine import edge_align_frames
 from cadalign.align.gates import check_gates, measure, raise_if_failed
 from cadalign.align.roi import read_roi, roi_mask
-from cadalign.align.run import load_points
+from cadalign.align.run import load_cloud
 from cadalign.align.seabed import SeabedConfig, seabed_from_model
 from cadalign.align.surface import sample_surface
 from cadalign.align.verify.core import VerifyConfig
@@ -201,16 +201,16 @@ def _edge_align(meshes: list[RenderMesh], rec: Any, refined: dict[str, RefinedCa
     return _edge_align(meshes, rec, refined, sfm_dir, ds, refine, progress)
 
 
-def _roi_points(model: Path, roi: Path, sfm_dir: Path) -> np.ndarray:
-    """The SfM points of ``model`` inside the region of interest ``roi``."""
+def _roi_points(model: Path, roi: Path, sfm_dir: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """The SfM points of ``model`` inside the region of interest ``roi``, and how many images see each."""
 
-    pts = load_points(model)
+    pts, views = load_cloud(model)
     keep = roi_mask(pts, read_roi(roi), read_json(sfm_dir / "cameras.json")["frames"])
     log.info("region of interest %s: %d of %d SfM points", roi, int(keep.sum()), len(pts))
     if keep.sum() < 50:
         raise InputError(f"{roi}: the region of interest holds {int(keep.sum())} of {len(pts)} SfM points; the "
                          "alignment needs many more: enlarge the box or the clicked outlines")
-    return pts[keep]
+    return pts[keep], None if views is None else views[keep]
 
 
 def hypotheses_of(align_json: Path) -> tuple[list[Sim3], list[float]]:
@@ -222,13 +222,13 @@ def hypotheses_of(align_json: Path) -> tuple[list[Sim3], list[float]]:
             [float(h["score"]) for h in hyps])
 
 
-def _gate(cfg: Any, points: Path | np.ndarray, parts: list, cad_from_sfm: Sim3) -> None:
+def _gate(cfg: Any, points: Path | np.ndarray, views: np.ndarray | None, parts: list, cad_from_sfm: Sim3) -> None:
     """The alignment's quality gates on another hypothesis (``cfg``: an AlignConfig); raises
     ``AlignmentGateError`` when one fails."""
 
-    pts = load_points(points)
+    pts, model_views = load_cloud(points)
     surface = sample_surface(parts, cfg.cad_samples, cfg.seed)
-    metrics = measure(pts, surface, cad_from_sfm, cfg.gates)
+    metrics = measure(pts, surface, cad_from_sfm, cfg.gates, model_views if views is None else views)
     checks = check_gates(metrics, cad_from_sfm, cad_from_sfm, surface, cfg.gates)
     raise_if_failed(checks, metrics, cad_from_sfm, "the hypothesis the images chose")
 
@@ -378,9 +378,11 @@ def _align_and_verify(preset: str, structure: Structure, sfm_dir: Path, out: Pat
     t0 = time.perf_counter()
     parts = [(structure.models[o.obj_id], o.T_world_from_obj) for o in structure.objects]
     points: Path | np.ndarray = sfm_dir / "sparse" / "0"
+    views = None
     if roi is not None:
-        points = _roi_points(points, Path(roi), sfm_dir)
-    align_json = align_run(ALIGN_PRESETS[preset], points, parts, out / "align", picks=picks, overwrite=overwrite)
+        points, views = _roi_points(points, Path(roi), sfm_dir)
+    align_json = align_run(ALIGN_PRESETS[preset], points, parts, out / "align", picks=picks, overwrite=overwrite,
+                           views=views)
     seconds["align"] = time.perf_counter() - t0
     cad_from_sfm = read_sim3(align_json)
     verification = None
@@ -389,7 +391,7 @@ def _align_and_verify(preset: str, structure: Structure, sfm_dir: Path, out: Pat
         verification = _verify(verify, structure, align_json, sfm_dir, out / "verify", hypothesis,
                                {"seconds": seconds, "sfm_report": read_json(sfm_dir / "sfm_report.json")})
         if verification.chosen != 0:  # the cloud gates judged hypothesis 0: judge the chosen one too
-            _gate(ALIGN_PRESETS[preset], points, parts, verification.cad_from_sfm)
+            _gate(ALIGN_PRESETS[preset], points, views, parts, verification.cad_from_sfm)
         cad_from_sfm = verification.cad_from_sfm
         seconds["verify"] = time.perf_counter() - t0
     return align_json, cad_from_sfm, verification

@@ -110,3 +110,27 @@ def test_gate_values_are_never_nan_passes(small_cloud, surface):
     m = measure(small_cloud.points_sfm, surface, far, FAST.gates)
     checks = {c.name: c for c in check_gates(m, far, far, surface, FAST.gates)}
     assert m.n_inliers == 0 and not checks["inlier_rmse_m"].passed and not checks["inlier_rmse_floor_m"].passed
+
+
+def test_fitness_counts_the_multi_view_points(small_cloud, surface):
+    """Points seen in two images only scatter along their rays: scattered off the surface and marked two-view,
+    they leave the fitness as it was; marked as seen in three images they lower it. Too few multi-view points
+    to judge by: every point counts."""
+    T = small_cloud.cad_from_sfm
+    pts = small_cloud.points_sfm
+    n = len(pts)
+    rng = np.random.default_rng(0)
+    # the same points again, moved 8-20 cm off along random directions (in CAD metres, then back to SfM units)
+    off = rng.normal(size=(n, 3))
+    off *= (rng.uniform(0.08, 0.2, n) / np.linalg.norm(off, axis=1))[:, None]
+    scattered = T.inverse().apply(T.apply(pts) + off)
+    both = np.concatenate([pts, scattered])
+    clean = measure(pts, surface, T, FAST.gates)
+    two_view = measure(both, surface, T, FAST.gates, np.r_[np.full(n, 5), np.full(n, 2)])
+    three_view = measure(both, surface, T, FAST.gates, np.r_[np.full(n, 5), np.full(n, 3)])
+    unknown = measure(both, surface, T, FAST.gates)
+    assert two_view.fitness == pytest.approx(clean.fitness) and two_view.n_fitness == clean.n_roi
+    assert three_view.fitness < 0.8 * clean.fitness and unknown.fitness == pytest.approx(three_view.fitness)
+    assert two_view.n_roi == three_view.n_roi > clean.n_roi  # the other metrics see every point
+    few = measure(both, surface, T, replace(FAST.gates, min_inliers=n + 1), np.r_[np.full(n, 5), np.full(n, 2)])
+    assert few.fitness == pytest.approx(unknown.fitness)
