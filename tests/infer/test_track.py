@@ -255,6 +255,35 @@ class TestTrackBoxes:
         assert abs(half.samples - every.samples) < 0.02 * every.samples  # all (the judge may reuse the last render)
         assert abs(half.support - every.support) < 0.02
 
+    def test_the_last_judged_contours_serve_a_start_near_it(self, boxes) -> None:
+        """``carry_deg`` (the fast preset's): a fit starting within that turn of the last judged pose moves that
+        render's contours to its start instead of rendering the full-resolution level again (its one full render
+        is the judge's, at the final pose), and recovers the offset as well; a start turned further renders its
+        own level."""
+        from dataclasses import replace
+
+        meshes, cam, render = boxes
+        T = _view(1).inverse()
+        start = _perturbed(T, 0.04, 2.0, 1)
+        image = render(T.inverse())
+        results = {}
+        for name, carry, judged in [("off", 0.0, start), ("near", 5.0, _perturbed(T, 0.03, 1.0, 5)),
+                                    ("far", 5.0, Rigid3(axis_angle_to_matrix(np.radians([0, 0, 20.0])), np.zeros(3))
+                                     @ T)]:
+            et = EdgeTracker(meshes, cam, replace(BOXES_TRACKER.edges, carry_deg=carry))
+            et.judge(image, judged.inverse())  # the last frame's judgement
+            full, calls = et.renderer(1.0), []
+            cast = full.render
+            full.render = lambda pose, *a, _c=cast, _l=calls, **k: _l.append(pose) or _c(pose, *a, **k)
+            fit = et.fit(image, start.inverse())
+            # whether the full resolution was rendered anywhere but at the final pose (the level's own render)
+            level = any(c is not fit.T_world_from_cam for c in calls)
+            results[name] = (level, len(calls), _reproj_px(meshes, cam, fit.T_world_from_cam.inverse(), T),
+                             fit.support)
+        assert not results["near"][0] and results["near"][1] == 1, results
+        assert results["far"][0] and results["off"][0], results
+        assert all(px < 0.5 and support > 0.9 for _, _, px, support in results.values()), results
+
     def test_black_frames_are_lost_and_tracking_regained(self, boxes) -> None:
         meshes, cam, render = boxes
         tr = StructureTracker(meshes, cam, BOXES_TRACKER)
@@ -811,13 +840,11 @@ def test_frames_lost_to_the_navigation_bound_are_reported(tmp_path: Path, caplog
             {"frame": 1, "state": "lost", "nav_offset_deg_m": [88.0, 4.0]},
             {"frame": 2, "state": "lost"}, {"frame": 3, "state": "lost", "nav_offset_deg_m": [92.0, 6.0]}]
     path = tmp_path / "track.jsonl"
-    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
     with caplog.at_level("WARNING"):
-        assert _log_end(path, TrackerConfig(), 3) == [1, 3]
+        assert _log_end(path, rows, TrackerConfig(), 3) == [1, 3]
     assert "2 of 4 frames" in caplog.text and "90.0 deg / 5.00 m" in caplog.text and "nav_max_m" in caplog.text
-    path.write_text("".join(json.dumps(r) + "\n" for r in rows[:1] + rows[2:3]))
     caplog.clear()
-    assert _log_end(path, TrackerConfig(), 3) == [] and "navigation" not in caplog.text
+    assert _log_end(path, rows[:1] + rows[2:3], TrackerConfig(), 3) == [] and "navigation" not in caplog.text
 
 
 def test_a_mostly_lost_run_says_why(tmp_path: Path, caplog) -> None:
@@ -831,15 +858,13 @@ def test_a_mostly_lost_run_says_why(tmp_path: Path, caplog) -> None:
     rows = [{"frame": 0, "state": "ok"}, lost(1, 0.30, "edge support: 0.30 < 0.45"),
             lost(2, 0.32, "edge support: 0.32 < 0.45"), lost(3, 0.50, "region support: 0.10 < 0.20")]
     path = tmp_path / "track.jsonl"
-    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
     with caplog.at_level("WARNING"):
-        _log_end(path, TrackerConfig(), 1)
+        _log_end(path, rows, TrackerConfig(), 1)
     assert "3 of 4 frames were lost" in caplog.text and "edge support 0.32 (median; a start needs 0.45)" in caplog.text
     assert "refused for their edge support" in caplog.text and str(path) in caplog.text
     caplog.clear()
-    path.write_text("".join(json.dumps(r) + "\n" for r in rows[:2] + [{"frame": 2, "state": "ok"}]))
     with caplog.at_level("WARNING"):
-        _log_end(path, TrackerConfig(), 2)
+        _log_end(path, rows[:2] + [{"frame": 2, "state": "ok"}], TrackerConfig(), 2)
     assert "were lost" not in caplog.text  # a third lost: no warning
 
 

@@ -154,7 +154,7 @@ def track_video(cfg: TrackRunConfig, source: Path, structure: Structure, camera:
                    cfg.overlay_fps)
     for name in ("track.jsonl", "poses.jsonl"):
         os.replace(out_dir / f"{name}{PARTIAL}", out_dir / name)
-    _log_end(out_dir / "track.jsonl", cfg.tracker, len(run.records))
+    _log_end(out_dir / "track.jsonl", rows, cfg.tracker, len(run.records))
     names = [o.name for o in structure.objects]
     reported: dict[int, set[str]] = {}
     for r in run.records:
@@ -268,10 +268,10 @@ def in_frame_pixels(rec: PoseRecord, work: Camera, camera: Camera) -> PoseRecord
     return replace(rec, mask=mask, box_xyxy=mask_box(mask)) if mask.any() else rec
 
 
-def _log_end(track_path: Path, cfg: TrackerConfig, n_records: int) -> list[int]:
-    """Log what was tracked, and warn when frames were lost only because their fit was too far from the
-    navigation pose (the navigation may be in another frame, or rougher than the bounds); returns those frames."""
-    rows = read_jsonl(track_path)
+def _log_end(track_path: Path, rows: list[dict], cfg: TrackerConfig, n_records: int) -> list[int]:
+    """Log what was tracked (``rows``: the run's ``track_path``), and warn when frames were lost only because their
+    fit was too far from the navigation pose (the navigation may be in another frame, or rougher than the bounds);
+    returns those frames."""
     ok = sum(r["state"] == "ok" for r in rows)
     log.info("track: %d frames, %d tracked, %d lost, %d poses -> %s", len(rows), ok, len(rows) - ok, n_records,
              track_path.parent / "poses.jsonl")
