@@ -124,13 +124,17 @@ def contour_samples(depth: np.ndarray, rays_unit: np.ndarray, range_m: np.ndarra
     far = np.stack([fx[ys, xs], fy[ys, xs]], axis=1).astype(np.float64)
     # the inverse depth's Sobel gradient at those pixels only (as cv2.Sobel, reflect-101 border), negated:
     # towards smaller inverse depth, the far side
-    inv = np.pad(np.where(np.isfinite(z), 1.0 / z, 0.0), 1, mode="reflect")
-    y, x = ys + 1, xs + 1
-    # (summed in cv2's order, so the samples are bit for bit those of the whole-image filter)
-    gx = (inv[y - 1, x + 1] - inv[y - 1, x - 1]) + (inv[y + 1, x + 1] - inv[y + 1, x - 1]) \
-        + 2 * (inv[y, x + 1] - inv[y, x - 1])
-    gy = (inv[y + 1, x - 1] + 2 * inv[y + 1, x] + inv[y + 1, x + 1]) \
-        - (inv[y - 1, x - 1] + 2 * inv[y - 1, x] + inv[y - 1, x + 1])
+    # (summed in cv2's order, so the samples are bit for bit those of the whole-image filter; the inverse depth is
+    # taken at the samples' neighbours only)
+    ym, yp = _reflect(ys - 1, H), _reflect(ys + 1, H)
+    xm, xp = _reflect(xs - 1, W), _reflect(xs + 1, W)
+
+    def inv(r: np.ndarray, c: np.ndarray) -> np.ndarray:
+        v = z[r, c]
+        return np.where(np.isfinite(v), 1.0 / v, 0.0)
+
+    gx = (inv(ym, xp) - inv(ym, xm)) + (inv(yp, xp) - inv(yp, xm)) + 2 * (inv(ys, xp) - inv(ys, xm))
+    gy = (inv(yp, xm) + 2 * inv(yp, xs) + inv(yp, xp)) - (inv(ym, xm) + 2 * inv(ym, xs) + inv(ym, xp))
     n = -np.stack([gx, gy], axis=1)
     norm = np.linalg.norm(n, axis=1)
     ok = (norm > 0) & (np.einsum("nk,nk->n", n, far) > 0)
@@ -140,6 +144,11 @@ def contour_samples(depth: np.ndarray, rays_unit: np.ndarray, range_m: np.ndarra
     uv = np.stack([xs, ys], axis=1).astype(np.float64) + 0.5 * step
     X = rays_unit[ys, xs].astype(np.float64) * range_m[ys, xs, None]
     return X, uv, n
+
+
+def _reflect(i: np.ndarray, n: int) -> np.ndarray:
+    """Indices one step outside ``[0, n)`` mirrored without repeating the edge (reflect-101, as cv2's border)."""
+    return np.where(i < 0, -i, np.where(i >= n, 2 * (n - 1) - i, i))
 
 
 def search_edges(gray: np.ndarray, uv: np.ndarray, normal: np.ndarray, cfg: EdgeRefineConfig) -> np.ndarray:

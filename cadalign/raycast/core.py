@@ -112,7 +112,8 @@ class RaycastRenderer:
     """Exact depth, normals, instance and class maps, and full (unoccluded) masks, by ray casting.
 
     One ``RaycastingScene`` holds every mesh; each instance also gets a scene of its own for its full
-    mask, cast only inside the instance's projected bounding box.
+    mask, cast only inside the instance's projected bounding box. A renderer keeps one buffer of rays: give each
+    thread its own.
     """
 
     def __init__(self, meshes: Sequence[RenderMesh], camera: Camera, rays_cam: np.ndarray | None = None) -> None:
@@ -157,14 +158,18 @@ class RaycastRenderer:
         self._ray_len = np.linalg.norm(self._dirs_cam, axis=-1).astype(np.float32)
         self._rays_unit = (self._dirs_cam / self._ray_len[..., None]).astype(np.float32)
         self._dirs_cam32 = self._dirs_cam.astype(np.float32)
+        self._buffer: np.ndarray | None = None  # the whole frame's rays, made on the first render
         self._rays_unit.flags.writeable = False  # shared by every frame's result
 
-    def _rays(self, T_world_from_cam: Rigid3, rows: slice, cols: slice) -> np.ndarray:
+    def _rays(self, T_world_from_cam: Rigid3, rows: slice, cols: slice, out: np.ndarray | None = None) -> np.ndarray:
+        """(h, w, 6) float32 origins and directions of the pixels' rays, relative to the scene centre, into ``out``
+        (a buffer of that shape) or a new array."""
         d = self._dirs_cam[rows, cols]
-        out = np.empty((*d.shape[:2], 6), dtype=np.float32)
+        if out is None:
+            out = np.empty((*d.shape[:2], 6), dtype=np.float32)
         out[..., :3] = (T_world_from_cam.t - self._origin).astype(np.float32)
-        # turned in double precision (cv2's SIMD transform: 1.4 against numpy's 2.4 ms at 640x480, the same single-
-        # precision rays), stored in single as Open3D casts
+        # turned in double precision (cv2's SIMD transform), stored in single as Open3D casts: turned in single, the
+        # directions differ in the last bit, which moves edge pixels' hits and the tracker's poses by millimetres
         out[..., 3:] = cv2.transform(np.ascontiguousarray(d), T_world_from_cam.R)
         return out
 
@@ -175,14 +180,17 @@ class RaycastRenderer:
         import open3d as o3d  # lazy: heavy dependency (open3d)
 
         H, W = self.camera.height, self.camera.width
-        rays = self._rays(T_world_from_cam, slice(None), slice(None))
-        ans = self._all.cast_rays(o3d.core.Tensor(rays), nthreads=0)
+        if self._buffer is None:
+            self._buffer = np.empty((H, W, 6), dtype=np.float32)
+        # the rays in a buffer kept for every render, which Open3D reads in place (the cast is synchronous)
+        rays = self._rays(T_world_from_cam, slice(None), slice(None), self._buffer)
+        ans = self._all.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=0)
         t = ans["t_hit"].numpy()
         hit = np.isfinite(t)
         depth = np.where(hit, t, np.float32(0.0))
         range_m = t * self._ray_len  # inf where nothing was hit
-        gid = np.where(hit, ans["geometry_ids"].numpy(), len(self._lut_instance) - 1)
-        instance = self._lut_instance[gid]  # the last LUT slot maps to background
+        # a miss has Open3D's invalid id (the largest uint32): the last LUT slot, which maps to background
+        instance = self._lut_instance[np.minimum(ans["geometry_ids"].numpy(), len(self._lut_instance) - 1)]
         if with_normals:
             n_cam = ans["primitive_normals"].numpy() @ T_world_from_cam.R.astype(np.float32)
             # face the camera; zero where nothing was hit (Open3D returns zero normals there already)

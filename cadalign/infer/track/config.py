@@ -177,10 +177,13 @@ class TrackRunConfig:
 
 
 PRESETS: dict[str, TrackRunConfig] = {
-    # no 1/2 level, and each round fits every 2nd contour sample: 1.6-1.7x the detector in wall time at 3 mm on the
-    # default orbit; in turbid water it loses more frames (docs/tuning/tracker.md#a-faster-preset-s55)
+    # no 1/2 level, each round fits every 2nd contour sample, the full-resolution level fits the last judged render's
+    # contours, and the flow follows 200 corners: 3 mm on the default orbit; in turbid water it loses more frames
+    # (docs/tuning/tracker.md#a-faster-preset-s55, #carried-contours-s56)
     "fast": TrackRunConfig(TrackerConfig(edges=EdgeTrackConfig(levels=(EdgeLevel(0.25, 5, 6.0, 4.0),
-                                                                       EdgeLevel(1.0, 3, 2.5, 1.5)), fit_step=2))),
+                                                                       EdgeLevel(1.0, 3, 2.5, 1.5)), fit_step=2,
+                                                               carry_deg=5.0),
+                                         flow=FlowConfig(max_points=200))),
     "balanced": TrackRunConfig(),
     "accurate": TrackRunConfig(TrackerConfig(edges=with_levels(EdgeTrackConfig(), iterations=6))),
 }

@@ -29,6 +29,7 @@ from cadalign.align.edge_refine import (
     moved_camera,
     search_edges,
 )
+from cadalign.geometry import geodesic_angle
 from cadalign.geometry.camera import project
 from cadalign.infer.track.region import RegionConfig, RegionModel, sample_instances
 from cadalign.raycast.core import RaycastRenderer, RenderMesh
@@ -96,9 +97,9 @@ class EdgeTrackConfig:
     """See ``prior_px``: the rotation scale, degrees."""
     prior_m: float = 0.05
     """See ``prior_px``: the translation scale, metres."""
-    judge_scale: float = 1.0
-    """Scale the quality is read at: 1 renders the frame once more at full resolution; otherwise the last
-    level's render is reused (it must be that level's scale)."""
+    carry_deg: float = 0.0
+    """The full-resolution level fits the contours of the last judged render (moved with the pose) instead of
+    rendering again when its start turned, and moved as seen from the contours, by at most this (degrees); 0: never."""
 
 
 @dataclass(frozen=True)
@@ -150,6 +151,7 @@ class EdgeTracker:
         """The parts' colours, taught by the tracker on tracked frames."""
         self._colour: np.ndarray | None = None
         self._colour_at: dict[int, np.ndarray] = {}  # the colour frame at each level's width, float32
+        self._carry: tuple | None = None  # the last judged render (see EdgeTrackConfig.carry_deg)
 
     @property
     def colour_frame(self) -> np.ndarray | None:
@@ -207,12 +209,16 @@ class EdgeTracker:
             g = gray if lv.scale == 1.0 else cv2.resize(gray, (r.camera.width, r.camera.height),
                                                           interpolation=cv2.INTER_AREA)
             lcfg = self._level_cfg(lv.search_px)
-            f = r.render(T, with_full_masks=False, with_normals=False)
-            X_cam, uv0, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, lcfg, f.instance)
-            X_w = T.apply(X_cam)
+            carried = self._carried(T) if lv.scale == 1.0 else None
+            if carried is not None:
+                X_w, uv0, n, f = carried
+            else:
+                f = r.render(T, with_full_masks=False, with_normals=False)
+                X_cam, uv0, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, lcfg, f.instance)
+                X_w = T.apply(X_cam)
             if len(X_w) < self.cfg.min_edges:
                 continue  # too few contours to fit six degrees of freedom
-            last = (r, X_w, n, f, g)
+            last = (r, X_w, n, f, g) if carried is None else None
             if self.cfg.fit_step > 1:
                 X_w, uv0, n = X_w[::self.cfg.fit_step], uv0[::self.cfg.fit_step], n[::self.cfg.fit_step]
             region = self._region_level(r, uv0, n, f.instance)
@@ -275,12 +281,27 @@ class EdgeTracker:
         uv = array_pixels(r.camera.K, Xc) + 0.5 * n
         return self._support(T, uv, n, g, f.instance, cfg, self.cfg.support_px * s, 1.0 / s, f.depth_m)
 
+    def _carried(self, T: Rigid3) -> tuple | None:
+        """The last judged render's contours (points in the world, pixels, normals, render) when ``T`` is near
+        its pose (``carry_deg``, ``carry_m``), else None."""
+        c = self._carry
+        if not self.cfg.carry_deg or c is None:
+            return None
+        T0, depth = c[0], c[-1]
+        turn = np.degrees(geodesic_angle(T0.R, T.R))
+        seen_turn = np.degrees(np.linalg.norm(T0.t - T.t) / depth)  # the move as seen from the contours
+        if turn > self.cfg.carry_deg or seen_turn > self.cfg.carry_deg:
+            return None
+        return c[1:-1]
+
     def judge(self, gray: np.ndarray, T_world_from_cam: Rigid3) -> EdgeFit:
         """Edge support of the CAD's contours at ``T_world_from_cam`` in ``gray`` (full resolution)."""
         r = self.renderer(1.0)
         f = r.render(T_world_from_cam, with_full_masks=False, with_normals=False)
         cfg = self._level_cfg(2.0 * self.cfg.support_px)
-        X_cam, _, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, cfg, f.instance)
+        X_cam, uv0, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, cfg, f.instance)
+        self._carry = (T_world_from_cam, T_world_from_cam.apply(X_cam), uv0, n, f,
+                       float(np.median(X_cam[:, 2])) if len(X_cam) else np.inf)
         return self._support(T_world_from_cam, array_pixels(r.camera.K, X_cam) + 0.5 * n, n, gray, f.instance, cfg,
                              self.cfg.support_px, 1.0, f.depth_m)
 

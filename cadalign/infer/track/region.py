@@ -56,8 +56,12 @@ class RegionModel:
 
     def _bin(self, rgb: np.ndarray) -> np.ndarray:
         """Histogram bin of each colour (..., 3) (0-255)."""
-        q = np.clip(rgb, 0, 255).astype(np.int32) * self.cfg.bins // 256
-        return (q[..., 0] * self.cfg.bins + q[..., 1]) * self.cfg.bins + q[..., 2]
+        b = self.cfg.bins
+        if rgb.dtype == np.uint8:  # a frame's own pixels: one table lookup per channel
+            lut = np.arange(256, dtype=np.int32) * b // 256
+            return (lut[rgb[..., 0]] * b + lut[rgb[..., 1]]) * b + lut[rgb[..., 2]]
+        q = np.clip(rgb, 0, 255).astype(np.int32) * b // 256
+        return (q[..., 0] * b + q[..., 1]) * b + q[..., 2]
 
     def learn(self, rgb: np.ndarray, uv: np.ndarray, normal: np.ndarray, sample_instance: np.ndarray,
               instance: np.ndarray) -> None:
@@ -70,14 +74,16 @@ class RegionModel:
         H, W = instance.shape
         t = np.arange(self.cfg.line_px) + 0.5
         for side, sign in (("fg", -1.0), ("bg", 1.0)):
-            p = uv[:, None, :] + sign * t[None, :, None] * normal[:, None, :]
-            x, y = np.floor(p[..., 0] + 0.5).astype(int), np.floor(p[..., 1] + 0.5).astype(int)
+            st = sign * t
+            x = np.floor(uv[:, 0, None] + st[None, :] * normal[:, 0, None] + 0.5).astype(int)
+            y = np.floor(uv[:, 1, None] + st[None, :] * normal[:, 1, None] + 0.5).astype(int)
             inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
             x, y = np.clip(x, 0, W - 1), np.clip(y, 0, H - 1)
-            own = instance[y, x] == sample_instance[:, None]
+            own = instance.ravel()[y * W + x] == sample_instance[:, None]
             keep = inside & (own if side == "fg" else ~own)
             nb, k_of = self.cfg.bins**3, sample_instance.astype(np.int64)  # parts: small non-negative ids
-            flat = (k_of.reshape(-1, 1) * nb + self._bin(rgb[y, x]))[keep]  # (part, colour bin) of each pixel kept
+            # (part, colour bin) of each pixel kept
+            flat = np.broadcast_to(k_of[:, None], keep.shape)[keep] * nb + self._bin(rgb[y[keep], x[keep]])
             counts = np.bincount(flat, minlength=(k_of.max() + 1) * nb).reshape(-1, nb)
             store = self.fg if side == "fg" else self.bg
             for k in np.flatnonzero(np.bincount(k_of)):
