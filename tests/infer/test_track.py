@@ -284,6 +284,27 @@ class TestTrackBoxes:
         assert results["far"][0] and results["off"][0], results
         assert all(px < 0.5 and support > 0.9 for _, _, px, support in results.values()), results
 
+    def test_a_carried_fit_that_loses_support_is_fitted_again(self, boxes, monkeypatch) -> None:
+        """A fit on carried contours whose support falls more than ``carry_drop`` below the carried render's (here
+        the frame changed under it: its left half blacked out) is fitted again on fresh renders; one that keeps
+        its support is not."""
+        from dataclasses import replace
+
+        meshes, cam, render = boxes
+        T = _view(1).inverse()
+        image = render(T.inverse())
+        dark = image.copy()
+        dark[:, : cam.width // 2] = 0.0
+        for frame, refits in [(image, 0), (dark, 1)]:
+            et = EdgeTracker(meshes, cam, replace(BOXES_TRACKER.edges, carry_deg=5.0))
+            et.judge(image, T.inverse())  # the last frame's judgement, on the whole picture
+            calls = []
+            inner = et._fit
+            monkeypatch.setattr(et, "_fit",
+                                lambda *a, _f=inner, _c=calls, **k: _c.append(k["use_carry"]) or _f(*a, **k))
+            fit = et.fit(frame, _perturbed(T, 0.01, 0.5, 3).inverse())
+            assert calls.count(False) == refits, (calls, fit.support)
+
     def test_black_frames_are_lost_and_tracking_regained(self, boxes) -> None:
         meshes, cam, render = boxes
         tr = StructureTracker(meshes, cam, BOXES_TRACKER)

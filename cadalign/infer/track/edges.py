@@ -100,6 +100,9 @@ class EdgeTrackConfig:
     carry_deg: float = 0.0
     """The full-resolution level fits the contours of the last judged render (moved with the pose) instead of
     rendering again when its start turned, and moved as seen from the contours, by at most this (degrees); 0: never."""
+    carry_drop: float = 0.05
+    """A fit on carried contours whose support is lower than the carried render's by more than this is fitted
+    again on fresh renders (docs/tuning/tracker.md#carried-contours-s56)."""
 
 
 @dataclass(frozen=True)
@@ -198,10 +201,24 @@ class EdgeTracker:
 
         Each level renders the CAD once, at the pose it starts from; its rounds move the contour samples' 3-D
         points with the pose and search again (the contour generator hardly moves within a level's
-        correction), as model-based edge trackers do."""
+        correction), as model-based edge trackers do. A fit on carried contours (``carry_deg``) whose support
+        falls more than ``carry_drop`` below the carried render's is fitted again on fresh renders, and the
+        better-supported of the two is kept."""
 
+        carry = self._carry
+        fit, carried = self._fit(gray, T_world_from_cam, levels, use_carry=True)
+        if carried and carry is not None and fit.support < carry[-1] - self.cfg.carry_drop:
+            again, _ = self._fit(gray, T_world_from_cam, levels, use_carry=False)
+            if again.support > fit.support:
+                return again
+        return fit
+
+    def _fit(self, gray: np.ndarray, T_world_from_cam: Rigid3, levels: tuple[EdgeLevel, ...] | None,
+             use_carry: bool) -> tuple[EdgeFit, bool]:
+        """:meth:`fit`'s levels and judgement; and whether a level fitted carried contours."""
         T = T_world_from_cam
         last: tuple[Any, np.ndarray, Any] | None = None
+        any_carried = False
         for lv in self.cfg.levels if levels is None else levels:
             if self.usable(lv.scale) != lv.scale:  # too small an image to fit (a small video's coarse levels)
                 continue
@@ -209,9 +226,10 @@ class EdgeTracker:
             g = gray if lv.scale == 1.0 else cv2.resize(gray, (r.camera.width, r.camera.height),
                                                           interpolation=cv2.INTER_AREA)
             lcfg = self._level_cfg(lv.search_px)
-            carried = self._carried(T) if lv.scale == 1.0 else None
+            carried = self._carried(T) if lv.scale == 1.0 and use_carry else None
             if carried is not None:
                 X_w, uv0, n, f = carried
+                any_carried = True
             else:
                 f = r.render(T, with_full_masks=False, with_normals=False)
                 X_cam, uv0, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, lcfg, f.instance)
@@ -251,8 +269,8 @@ class EdgeTracker:
         # judged at the final pose (its instance map gives the parts' masks): the last full-resolution level's
         # render serves when that level moved the contours by less than reuse_px, else one more render
         if last is not None and last[0] is self.renderer(1.0) and moved_px < self.cfg.reuse_px:
-            return self._judge_last(T, last)
-        return self.judge(gray, T)
+            return self._judge_last(T, last), any_carried
+        return self.judge(gray, T), any_carried
 
     def _region_level(self, r: RaycastRenderer, uv: np.ndarray, n: np.ndarray, instance: np.ndarray,
                       ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -287,12 +305,12 @@ class EdgeTracker:
         c = self._carry
         if not self.cfg.carry_deg or c is None:
             return None
-        T0, depth = c[0], c[-1]
+        T0, depth = c[0], c[-2]
         turn = np.degrees(geodesic_angle(T0.R, T.R))
         seen_turn = np.degrees(np.linalg.norm(T0.t - T.t) / depth)  # the move as seen from the contours
         if turn > self.cfg.carry_deg or seen_turn > self.cfg.carry_deg:
             return None
-        return c[1:-1]
+        return c[1:-2]
 
     def judge(self, gray: np.ndarray, T_world_from_cam: Rigid3) -> EdgeFit:
         """Edge support of the CAD's contours at ``T_world_from_cam`` in ``gray`` (full resolution)."""
@@ -300,10 +318,11 @@ class EdgeTracker:
         f = r.render(T_world_from_cam, with_full_masks=False, with_normals=False)
         cfg = self._level_cfg(2.0 * self.cfg.support_px)
         X_cam, uv0, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, cfg, f.instance)
+        fit = self._support(T_world_from_cam, array_pixels(r.camera.K, X_cam) + 0.5 * n, n, gray, f.instance, cfg,
+                            self.cfg.support_px, 1.0, f.depth_m)
         self._carry = (T_world_from_cam, T_world_from_cam.apply(X_cam), uv0, n, f,
-                       float(np.median(X_cam[:, 2])) if len(X_cam) else np.inf)
-        return self._support(T_world_from_cam, array_pixels(r.camera.K, X_cam) + 0.5 * n, n, gray, f.instance, cfg,
-                             self.cfg.support_px, 1.0, f.depth_m)
+                       float(np.median(X_cam[:, 2])) if len(X_cam) else np.inf, fit.support)
+        return fit
 
     def _support(self, T: Rigid3, uv: np.ndarray, n: np.ndarray, g: np.ndarray, instance: np.ndarray,
                  cfg: EdgeRefineConfig, tol_px: float, to_full: float, depth_m: np.ndarray | None = None) -> EdgeFit:
