@@ -154,7 +154,7 @@ class EdgeTracker:
         """The parts' colours, taught by the tracker on tracked frames."""
         self._colour: np.ndarray | None = None
         self._colour_at: dict[int, np.ndarray] = {}  # the colour frame at each level's width, float32
-        self._carry: tuple | None = None  # the last judged render (see EdgeTrackConfig.carry_deg)
+        self._carry: _Judged | None = None  # the last judged render (see EdgeTrackConfig.carry_deg)
 
     @property
     def colour_frame(self) -> np.ndarray | None:
@@ -207,7 +207,7 @@ class EdgeTracker:
 
         carry = self._carry
         fit, carried = self._fit(gray, T_world_from_cam, levels, use_carry=True)
-        if carried and carry is not None and fit.support < carry[-1] - self.cfg.carry_drop:
+        if carried and carry is not None and fit.support < carry.support - self.cfg.carry_drop:
             again, _ = self._fit(gray, T_world_from_cam, levels, use_carry=False)
             if again.support > fit.support:
                 return again
@@ -228,7 +228,7 @@ class EdgeTracker:
             lcfg = self._level_cfg(lv.search_px)
             carried = self._carried(T) if lv.scale == 1.0 and use_carry else None
             if carried is not None:
-                X_w, uv0, n, f = carried
+                X_w, uv0, n, f = carried.X_w, carried.uv, carried.normal, carried.frame
                 any_carried = True
             else:
                 f = r.render(T, with_full_masks=False, with_normals=False)
@@ -299,18 +299,14 @@ class EdgeTracker:
         uv = array_pixels(r.camera.K, Xc) + 0.5 * n
         return self._support(T, uv, n, g, f.instance, cfg, self.cfg.support_px * s, 1.0 / s, f.depth_m)
 
-    def _carried(self, T: Rigid3) -> tuple | None:
-        """The last judged render's contours (points in the world, pixels, normals, render) when ``T`` is near
-        its pose (``carry_deg``, ``carry_m``), else None."""
+    def _carried(self, T: Rigid3) -> _Judged | None:
+        """The last judged render when ``T`` is near its pose (``carry_deg``), else None."""
         c = self._carry
         if not self.cfg.carry_deg or c is None:
             return None
-        T0, depth = c[0], c[-2]
-        turn = np.degrees(geodesic_angle(T0.R, T.R))
-        seen_turn = np.degrees(np.linalg.norm(T0.t - T.t) / depth)  # the move as seen from the contours
-        if turn > self.cfg.carry_deg or seen_turn > self.cfg.carry_deg:
-            return None
-        return c[1:-2]
+        turn = np.degrees(geodesic_angle(c.T_world_from_cam.R, T.R))
+        seen_turn = np.degrees(np.linalg.norm(c.T_world_from_cam.t - T.t) / c.depth_m)  # as seen from the contours
+        return c if turn <= self.cfg.carry_deg and seen_turn <= self.cfg.carry_deg else None
 
     def judge(self, gray: np.ndarray, T_world_from_cam: Rigid3) -> EdgeFit:
         """Edge support of the CAD's contours at ``T_world_from_cam`` in ``gray`` (full resolution)."""
@@ -320,8 +316,9 @@ class EdgeTracker:
         X_cam, uv0, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, cfg, f.instance)
         fit = self._support(T_world_from_cam, array_pixels(r.camera.K, X_cam) + 0.5 * n, n, gray, f.instance, cfg,
                             self.cfg.support_px, 1.0, f.depth_m)
-        self._carry = (T_world_from_cam, T_world_from_cam.apply(X_cam), uv0, n, f,
-                       float(np.median(X_cam[:, 2])) if len(X_cam) else np.inf, fit.support)
+        if self.cfg.carry_deg:
+            self._carry = _Judged(T_world_from_cam, T_world_from_cam.apply(X_cam), uv0, n, f,
+                                  float(np.median(X_cam[:, 2])) if len(X_cam) else np.inf, fit.support)
         return fit
 
     def _support(self, T: Rigid3, uv: np.ndarray, n: np.ndarray, g: np.ndarray, instance: np.ndarray,
@@ -364,6 +361,19 @@ class EdgeTracker:
             return fit
         rsup, rper = self._region_support(fit.uv, fit.normal, fit.sample_instance, fit.instance.shape, 1.0)
         return replace(fit, region_support=rsup, instance_region=rper)
+
+
+@dataclass(frozen=True)
+class _Judged:
+    """A judged full-resolution render, kept for the next frame's level (``EdgeTrackConfig.carry_deg``)."""
+
+    T_world_from_cam: Rigid3
+    X_w: np.ndarray  # (N, 3) its contour samples' points, world metres
+    uv: np.ndarray  # (N, 2) their pixels in the render
+    normal: np.ndarray  # (N, 2)
+    frame: Any  # the RaycastFrame (its instance map gives the samples' parts)
+    depth_m: float  # the samples' median depth
+    support: float  # the judgement's edge support
 
 
 def _share_within(off: np.ndarray, tol_px: float) -> float:
