@@ -28,8 +28,8 @@ class TrackerConfig:
     )
     """The contour fit of a restart hypothesis: a wider basin than a tracked frame's (a 1/8 level, more rounds)."""
     flow_levels: tuple[EdgeLevel, ...] | None = None
-    """The contour fit of a frame the flow predicted; None: the same levels as any frame (skipping the 1/4 level there
-    saves CPU but costs accuracy: docs/tuning/tracker.md#trackerconfigflow_levels)."""
+    """The contour fit of a frame the flow predicted; None: the same levels as any frame. The fast preset fits such a
+    frame at full resolution only (docs/tuning/tracker.md#trackerconfigflow_levels, #carried-contours-s56)."""
     steady_heading: bool = True
     """When the constant-velocity prediction fails, also try the last step's translation (in the camera's frame
     and in the world's) with the last orientation: a survey ROV's heading jitters while its track holds
@@ -178,12 +178,14 @@ class TrackRunConfig:
 
 PRESETS: dict[str, TrackRunConfig] = {
     # no 1/2 level, each round fits every 2nd contour sample, the full-resolution level fits the last judged render's
-    # contours, and the flow follows 200 corners: 3 mm on the default orbit; in turbid water it loses more frames
-    # (docs/tuning/tracker.md#a-faster-preset-s55, #carried-contours-s56)
+    # contours, the flow follows 200 corners and a frame it predicted is fitted at full resolution only: 3 mm on the
+    # default orbit; in turbid water it loses more frames (docs/tuning/tracker.md#a-faster-preset-s55,
+    # #carried-contours-s56)
     "fast": TrackRunConfig(TrackerConfig(edges=EdgeTrackConfig(levels=(EdgeLevel(0.25, 5, 6.0, 4.0),
                                                                        EdgeLevel(1.0, 3, 2.5, 1.5)), fit_step=2,
                                                                carry_deg=5.0),
-                                         flow=FlowConfig(max_points=200))),
+                                         flow=FlowConfig(max_points=200),
+                                         flow_levels=(EdgeLevel(1.0, 3, 2.5, 1.5),))),
     "balanced": TrackRunConfig(),
     "accurate": TrackRunConfig(TrackerConfig(edges=with_levels(EdgeTrackConfig(), iterations=6))),
 }
