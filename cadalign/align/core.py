@@ -39,6 +39,11 @@ def check_points(points: object, name: str = "points_sfm") -> np.ndarray:
     Raises:
         InputError: wrong shape, or fewer than :data:`MIN_POINTS` finite points.
     """
+    return _finite_points(points, name)[0]
+
+
+def _finite_points(points: object, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`check_points`, and which rows of ``points`` it kept (N,) bool."""
     arr = np.asarray(points, dtype=np.float64)
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise InputError(f"{name} must have shape (N, 3), got {arr.shape}")
@@ -49,7 +54,7 @@ def check_points(points: object, name: str = "points_sfm") -> np.ndarray:
     if len(arr) < MIN_POINTS:
         raise InputError(f"{name} has {len(arr)} finite points; the alignment needs at least {MIN_POINTS} "
                          "(many more in practice): check the SfM reconstruction")
-    return arr
+    return arr, finite
 
 
 def _coarse_method(cfg: AlignConfig, picks: Picks | None, prior: Sim3 | None) -> str:
@@ -157,9 +162,8 @@ def align(
     """
     cfg = cfg or AlignConfig()
     t0 = time.perf_counter()
-    points = check_points(points_sfm)
-    if views is not None:  # the rows check_points kept
-        views = np.asarray(views)[np.all(np.isfinite(np.asarray(points_sfm, dtype=np.float64)), axis=1)]
+    points, kept = _finite_points(points_sfm, "points_sfm")
+    views = None if views is None else np.asarray(views)[kept]
     method = _coarse_method(cfg, picks, prior)
     surface = cad if isinstance(cad, CadSurface) else sample_surface(cad, cfg.cad_samples, cfg.seed)
     t1 = time.perf_counter()

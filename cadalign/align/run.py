@@ -59,16 +59,18 @@ def load_points(source: str | Path | np.ndarray) -> np.ndarray:
     return load_cloud(source)[0]
 
 
-def load_cloud(source: str | Path | np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-    """:func:`load_points` and, for a COLMAP model, the number of images each point is seen in (else None)."""
+def load_cloud(source: str | Path | np.ndarray, views: np.ndarray | None = None,
+               ) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`load_points` and the number of images each point is seen in: ``views`` when given (for an array of
+    points), a COLMAP model's own, else None."""
     if isinstance(source, np.ndarray):
-        return source, None
+        return source, views
     path = Path(source)
     if not path.exists():
         raise InputError(f"SfM points not found: {path}")
-    views = None
     if path.is_dir() or path.stem == "points3D":
-        pts, views = _colmap_points(path if path.is_dir() else path.parent)
+        pts, model_views = _colmap_points(path if path.is_dir() else path.parent)
+        views = model_views if views is None else views
     elif path.suffix.lower() == ".npy":
         pts = np.load(path, allow_pickle=False)
     elif path.suffix.lower() in POINT_CLOUD_SUFFIXES:
@@ -201,8 +203,7 @@ def run(
         InputError, DegenerateGeometryError, ConfigError: unusable inputs or directory.
     """
     out_dir = Path(out_dir)
-    points, model_views = load_cloud(points_sfm)
-    views = model_views if views is None else views
+    points, views = load_cloud(points_sfm, views)
     parts = load_cad_parts(cad)
     picks_obj = read_picks(picks) if isinstance(picks, (str, Path)) else picks
     prior_obj = read_sim3(prior) if isinstance(prior, (str, Path)) else prior

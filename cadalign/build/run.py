@@ -226,9 +226,9 @@ def _gate(cfg: Any, points: Path | np.ndarray, views: np.ndarray | None, parts: 
     """The alignment's quality gates on another hypothesis (``cfg``: an AlignConfig); raises
     ``AlignmentGateError`` when one fails."""
 
-    pts, model_views = load_cloud(points)
+    pts, views = load_cloud(points, views)
     surface = sample_surface(parts, cfg.cad_samples, cfg.seed)
-    metrics = measure(pts, surface, cad_from_sfm, cfg.gates, model_views if views is None else views)
+    metrics = measure(pts, surface, cad_from_sfm, cfg.gates, views)
     checks = check_gates(metrics, cad_from_sfm, cad_from_sfm, surface, cfg.gates)
     raise_if_failed(checks, metrics, cad_from_sfm, "the hypothesis the images chose")
 

@@ -48,6 +48,7 @@ class RegionModel:
         self.fg: dict[int, np.ndarray] = {}
         self.bg: dict[int, np.ndarray] = {}
         self._luts: tuple[np.ndarray, np.ndarray] | None = None  # log pf, log (1 - pf) per (part, bin)
+        self._byte_bins = np.arange(256, dtype=np.int32) * cfg.bins // 256  # each channel byte's bin
 
     @property
     def ready(self) -> bool:
@@ -58,7 +59,7 @@ class RegionModel:
         """Histogram bin of each colour (..., 3) (0-255)."""
         b = self.cfg.bins
         if rgb.dtype == np.uint8:  # a frame's own pixels: one table lookup per channel
-            lut = np.arange(256, dtype=np.int32) * b // 256
+            lut = self._byte_bins
             return (lut[rgb[..., 0]] * b + lut[rgb[..., 1]]) * b + lut[rgb[..., 2]]
         q = np.clip(rgb, 0, 255).astype(np.int32) * b // 256
         return (q[..., 0] * b + q[..., 1]) * b + q[..., 2]
