@@ -378,6 +378,28 @@ class TestTrackBoxes:
         assert tr._best_of(img, [("turn_5", near)], own=True)[0][1] == "turn_5"
         assert tr._best_of(img, [("nav", far)], own=False)[0][1] == "nav"
 
+    @pytest.mark.parametrize("limit", [True, False])
+    def test_a_tracked_frame_whose_fit_runs_off_its_prediction_is_not_reported(self, boxes, monkeypatch,
+                                                                               limit: bool) -> None:
+        """A tracked frame's fit that turned the camera by more than one pan/tilt search reaches (a lattice's
+        corner seen alone pulled a survey's fit 64 deg round) is refused like such a restart: the frame is lost
+        and no pose is reported. With ``own_turn_limit`` off the same fit is reported."""
+        from dataclasses import replace
+
+        meshes, cam, render = boxes
+        tr = StructureTracker(meshes, cam, replace(BOXES_TRACKER, own_turn_limit=limit))
+        assert tr.step(render(_view(0)), [("init", _view(0).inverse())]).state == "ok"
+        assert tr.step(render(_view(1))).state == "ok"
+        fit, turn = tr.edges.fit, Rigid3(axis_angle_to_matrix(np.radians([0.0, 0.0, 40.0])), np.zeros(3))
+        monkeypatch.setattr(tr.edges, "fit", lambda gray, T, levels=None: replace(
+            fit(gray, T, levels), T_world_from_cam=T @ turn))  # every fit turns its start by 40 deg
+        step = tr.step(render(_view(2)))
+        if limit:
+            assert step.state == "lost" and step.T_cam_from_world is None
+        else:
+            assert step.state == "ok" and step.source == "track"
+            assert abs(np.degrees(geodesic_angle(step.T_cam_from_world.R, _view(2).R.T)) - 40.0) < 3.0
+
     @pytest.mark.parametrize("margin", [0.05, 0.0])
     def test_a_restart_onto_a_symmetric_structure_is_refused_without_navigation(self, margin: float) -> None:
         """Four like boxes round a fifth: the structure fits itself turned a quarter round its vertical, so where

@@ -49,9 +49,9 @@ class TrackerConfig:
     turn_frames: int = 4
     """... on each of the first this many lost frames (dead reckoning drifts by about a step each frame)."""
     own_turn_limit: bool = True
-    """Refuse a restart from the tracker's own hypotheses (dead reckoning, turned views) whose fit turned the
-    camera further from the hypothesis than one pan/tilt search reaches: on the turbid survey right restarts
-    turned 4-7 deg, wrong ones 17-89 (docs/tuning/tracker.md#prediction-and-turns)."""
+    """Refuse a fit from the tracker's own belief (a tracked frame's prediction, dead reckoning, turned views) that
+    turned the camera further than one pan/tilt search reaches: right ones turned at most 9 deg on eight captures,
+    wrong ones 17-89 (docs/tuning/tracker.md#prediction-and-turns, #tracked-frames-that-turn-s57)."""
     unique_margin: float = 0.05
     """A restart from the tracker's own hypotheses (no navigation pose) is taken only when the view turned by quarter
     turns round the structure's vertical ranks this much lower (:meth:`StructureTracker.rank`): a lattice fits

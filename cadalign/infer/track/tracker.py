@@ -289,23 +289,24 @@ class StructureTracker:
                 self._learn_colours(self.edges.judge(gray, pred))
             self._warm = False
             fit = self.edges.fit(gray, pred, self.cfg.flow_levels if flow is not None else None)
-            if self.good(fit) and fit.support < self.cfg.doubt_support * self._typical_support():
+            passed = self.good(fit) and not self.ran_off(pred, fit, "the track")
+            if passed and fit.support < self.cfg.doubt_support * self._typical_support():
                 # passes, but well below the track's usual support: a wrong nearby pose fits that way too, so
                 # the search round the prediction decides (the better-supported wins)
                 other, n = self._search(gray, pred)
                 tried += n
-                if other is not None and other.support > fit.support:
+                if other is not None and other.support > fit.support and not self.ran_off(pred, other, "search"):
                     fit = other
-            if self.good(fit):
+            if passed:
                 # a track resumed after lost frames rests on the tracker's own belief, as its restarts do
                 refused, n = self._turned_alike(gray, fit, "the resumed track") if self.lost else (False, 0)
                 tried += n
                 if not refused:
                     return self._accept(gray, k, fit, "track", t0, tried)
             if self._prev is not None:  # the motion changed: the other predictions, the best-ranked passing one
-                fits = [self.edges.fit(gray, T) for T in self._other_predictions()]
-                tried += len(fits)
-                fits = [f for f in fits if self.good(f)]
+                tries = [(T, self.edges.fit(gray, T)) for T in self._other_predictions()]
+                tried += len(tries)
+                fits = [f for T, f in tries if self.good(f) and not self.ran_off(T, f, "a prediction")]
                 if fits:
                     return self._accept(gray, k, max(fits, key=self.rank), "track", t0, tried)
         best, n = self._best_of(gray, restarts)
@@ -341,12 +342,22 @@ class StructureTracker:
         self.edges.region.learn(rgb, fit.uv, fit.normal, fit.sample_instance, fit.instance)
         return True
 
+    def ran_off(self, start: Rigid3, fit: EdgeFit, what: str) -> bool:
+        """Whether a fit from the tracker's own belief (``start``, ``T_world_from_cam``: a tracked frame's
+        prediction, dead reckoning, a turned view) turned the camera further from it than a pan/tilt search reaches
+        (``acquire.max_turn_deg``): it ran off onto other edges, and is refused (``own_turn_limit``)."""
+        turn = float(np.degrees(geodesic_angle(fit.T_world_from_cam.R, start.R)))
+        if not self.cfg.own_turn_limit or turn <= self.cfg.acquire.max_turn_deg:
+            return False
+        log.debug("frame %d: %s refused: its fit turned the camera by %.0f deg (more than %.0f)", self._frames - 1,
+                  what, turn, self.cfg.acquire.max_turn_deg)
+        return True
+
     def _best_of(self, gray: np.ndarray, hypotheses: Sequence[tuple[str, Rigid3]], own: bool = False,
                   ) -> tuple[tuple[EdgeFit, str] | None, int]:
         """The best-supported passing (fit, name) of searches from (name, ``T_cam_from_world``) hypotheses,
-        and the number of fits tried. ``own``: the tracker's own hypotheses (where it believes the camera is):
-        a fit that turned the camera further from one than a pan/tilt search reaches (``acquire.max_turn_deg``)
-        ran off it, and is refused (``own_turn_limit``)."""
+        and the number of fits tried. ``own``: the tracker's own hypotheses (where it believes the camera is),
+        whose fits may not run off (:meth:`ran_off`)."""
         best: tuple[EdgeFit, str] | None = None
         tried = 0
         for name, T_cw in hypotheses:
@@ -354,10 +365,7 @@ class StructureTracker:
                 continue
             fit, n = self._search(gray, T_cw.inverse())
             tried += n
-            if fit is not None and own and self.cfg.own_turn_limit and geodesic_angle(
-                    fit.T_world_from_cam.R, T_cw.R.T) > np.radians(self.cfg.acquire.max_turn_deg):
-                log.debug("restart from %s refused: it turned the camera by more than %.0f deg", name,
-                          self.cfg.acquire.max_turn_deg)
+            if fit is not None and own and self.ran_off(T_cw.inverse(), fit, f"restart from {name}"):
                 continue
             if fit is not None and (best is None or self.rank(fit) > self.rank(best[0])):
                 best = (fit, name)
