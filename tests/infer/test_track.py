@@ -378,16 +378,16 @@ class TestTrackBoxes:
         assert tr._best_of(img, [("turn_5", near)], own=True)[0][1] == "turn_5"
         assert tr._best_of(img, [("nav", far)], own=False)[0][1] == "nav"
 
-    @pytest.mark.parametrize("limit", [True, False])
+    @pytest.mark.parametrize("limit", [15.0, 0.0])
     def test_a_tracked_frame_whose_fit_runs_off_its_prediction_is_not_reported(self, boxes, monkeypatch,
-                                                                               limit: bool) -> None:
-        """A tracked frame's fit that turned the camera by more than one pan/tilt search reaches (a lattice's
-        corner seen alone pulled a survey's fit 64 deg round) is refused like such a restart: the frame is lost
-        and no pose is reported. With ``own_turn_limit`` off the same fit is reported."""
+                                                                               limit: float) -> None:
+        """A tracked frame's fit that turned the camera further from its prediction than ``track_turn_deg`` (a
+        lattice's corner seen alone pulled a survey's fit 64 deg round) is refused, and so are the restarts that
+        turn as far: the frame is lost and no pose is reported. With the bound off the same fit is reported."""
         from dataclasses import replace
 
         meshes, cam, render = boxes
-        tr = StructureTracker(meshes, cam, replace(BOXES_TRACKER, own_turn_limit=limit))
+        tr = StructureTracker(meshes, cam, replace(BOXES_TRACKER, track_turn_deg=limit))
         assert tr.step(render(_view(0)), [("init", _view(0).inverse())]).state == "ok"
         assert tr.step(render(_view(1))).state == "ok"
         fit, turn = tr.edges.fit, Rigid3(axis_angle_to_matrix(np.radians([0.0, 0.0, 40.0])), np.zeros(3))

@@ -49,9 +49,13 @@ class TrackerConfig:
     turn_frames: int = 4
     """... on each of the first this many lost frames (dead reckoning drifts by about a step each frame)."""
     own_turn_limit: bool = True
-    """Refuse a fit from the tracker's own belief (a tracked frame's prediction, dead reckoning, turned views) that
-    turned the camera further than one pan/tilt search reaches: right ones turned at most 9 deg on eight captures,
-    wrong ones 17-89 (docs/tuning/tracker.md#prediction-and-turns, #tracked-frames-that-turn-s57)."""
+    """Refuse a restart from the tracker's own hypotheses (dead reckoning, turned views) whose fit turned the
+    camera further from the hypothesis than one pan/tilt search reaches: on the turbid survey right restarts
+    turned 4-7 deg, wrong ones 17-89 (docs/tuning/tracker.md#prediction-and-turns)."""
+    track_turn_deg: float = 15.0
+    """A tracked frame's fit that turned the camera further than this from its prediction ran off onto other edges
+    and is refused, degrees (0: off): right ones turned at most 9 deg on eight captures, a lattice's corner seen
+    alone 64 (docs/tuning/tracker.md#tracked-frames-that-turn-s57)."""
     unique_margin: float = 0.05
     """A restart from the tracker's own hypotheses (no navigation pose) is taken only when the view turned by quarter
     turns round the structure's vertical ranks this much lower (:meth:`StructureTracker.rank`): a lattice fits

@@ -289,13 +289,14 @@ class StructureTracker:
                 self._learn_colours(self.edges.judge(gray, pred))
             self._warm = False
             fit = self.edges.fit(gray, pred, self.cfg.flow_levels if flow is not None else None)
-            passed = self.good(fit) and not self.ran_off(pred, fit, "the track")
+            passed = self.good(fit) and not self.ran_off(pred, fit, "the track", self.cfg.track_turn_deg)
             if passed and fit.support < self.cfg.doubt_support * self._typical_support():
                 # passes, but well below the track's usual support: a wrong nearby pose fits that way too, so
                 # the search round the prediction decides (the better-supported wins)
                 other, n = self._search(gray, pred)
                 tried += n
-                if other is not None and other.support > fit.support and not self.ran_off(pred, other, "search"):
+                if other is not None and other.support > fit.support and \
+                        not self.ran_off(pred, other, "search", self.cfg.track_turn_deg):
                     fit = other
             if passed:
                 # a track resumed after lost frames rests on the tracker's own belief, as its restarts do
@@ -306,7 +307,8 @@ class StructureTracker:
             if self._prev is not None:  # the motion changed: the other predictions, the best-ranked passing one
                 tries = [(T, self.edges.fit(gray, T)) for T in self._other_predictions()]
                 tried += len(tries)
-                fits = [f for T, f in tries if self.good(f) and not self.ran_off(T, f, "a prediction")]
+                fits = [f for T, f in tries
+                        if self.good(f) and not self.ran_off(T, f, "a prediction", self.cfg.track_turn_deg)]
                 if fits:
                     return self._accept(gray, k, max(fits, key=self.rank), "track", t0, tried)
         best, n = self._best_of(gray, restarts)
@@ -342,22 +344,23 @@ class StructureTracker:
         self.edges.region.learn(rgb, fit.uv, fit.normal, fit.sample_instance, fit.instance)
         return True
 
-    def ran_off(self, start: Rigid3, fit: EdgeFit, what: str) -> bool:
+    def ran_off(self, start: Rigid3, fit: EdgeFit, what: str, limit_deg: float) -> bool:
         """Whether a fit from the tracker's own belief (``start``, ``T_world_from_cam``: a tracked frame's
-        prediction, dead reckoning, a turned view) turned the camera further from it than a pan/tilt search reaches
-        (``acquire.max_turn_deg``): it ran off onto other edges, and is refused (``own_turn_limit``)."""
+        prediction, dead reckoning, a turned view) turned the camera further from it than ``limit_deg`` (0: no
+        limit): it ran off onto other edges, and is refused."""
         turn = float(np.degrees(geodesic_angle(fit.T_world_from_cam.R, start.R)))
-        if not self.cfg.own_turn_limit or turn <= self.cfg.acquire.max_turn_deg:
+        if limit_deg <= 0 or turn <= limit_deg:
             return False
         log.debug("frame %d: %s refused: its fit turned the camera by %.0f deg (more than %.0f)", self._frames - 1,
-                  what, turn, self.cfg.acquire.max_turn_deg)
+                  what, turn, limit_deg)
         return True
 
     def _best_of(self, gray: np.ndarray, hypotheses: Sequence[tuple[str, Rigid3]], own: bool = False,
                   ) -> tuple[tuple[EdgeFit, str] | None, int]:
         """The best-supported passing (fit, name) of searches from (name, ``T_cam_from_world``) hypotheses,
-        and the number of fits tried. ``own``: the tracker's own hypotheses (where it believes the camera is),
-        whose fits may not run off (:meth:`ran_off`)."""
+        and the number of fits tried. ``own``: the tracker's own hypotheses (where it believes the camera is):
+        a fit that turned the camera further from one than a pan/tilt search reaches (``acquire.max_turn_deg``)
+        ran off it, and is refused (``own_turn_limit``)."""
         best: tuple[EdgeFit, str] | None = None
         tried = 0
         for name, T_cw in hypotheses:
@@ -365,7 +368,8 @@ class StructureTracker:
                 continue
             fit, n = self._search(gray, T_cw.inverse())
             tried += n
-            if fit is not None and own and self.ran_off(T_cw.inverse(), fit, f"restart from {name}"):
+            if fit is not None and own and self.cfg.own_turn_limit and self.ran_off(
+                    T_cw.inverse(), fit, f"restart from {name}", self.cfg.acquire.max_turn_deg):
                 continue
             if fit is not None and (best is None or self.rank(fit) > self.rank(best[0])):
                 best = (fit, name)
