@@ -400,6 +400,55 @@ class TestTrackBoxes:
             assert step.state == "ok" and step.source == "track"
             assert abs(np.degrees(geodesic_angle(step.T_cam_from_world.R, _view(2).R.T)) - 40.0) < 3.0
 
+    @pytest.mark.parametrize("every", [1, 2])
+    def test_colours_are_learned_on_every_nth_tracked_frame(self, boxes, monkeypatch, every: int) -> None:
+        """``learn_every``: the parts' colours are taught by the track's first frame, then by every n-th tracked
+        frame (the fast preset's 2 saves a lesson's 5 ms every other frame)."""
+        from dataclasses import replace
+
+        meshes, cam, render = boxes
+        tr = StructureTracker(meshes, cam, replace(BOXES_TRACKER, learn_every=every))
+        taught, learn = [], tr.edges.region.learn
+
+        def counted(*args) -> None:
+            taught.append(tr._frames - 1)
+            learn(*args)
+
+        monkeypatch.setattr(tr.edges.region, "learn", counted)
+        for k in range(5):
+            g = render(_view(k))
+            rgb = np.repeat(np.clip(g, 0, 255)[..., None], 3, axis=2).astype(np.uint8)
+            assert tr.step(g, [("init", _view(0).inverse())] if k == 0 else [], rgb).state == "ok"
+        assert taught == ([0, 1, 2, 3, 4] if every == 1 else [0, 1, 3])
+
+    @pytest.mark.parametrize("iterations, eps", [(30, 0.01), (10, 0.03)])
+    def test_the_flow_predicts_the_next_view_from_the_cad_s_depth(self, boxes, iterations: int, eps: float) -> None:
+        """Corners of a solid texture on the boxes, lifted to 3-D with the CAD's depth in one view and followed into
+        a view 6 deg further round (0.58 m, about 25 px), give that view's pose by PnP to about 2 cm, a start well
+        inside the contour fit's reach; with the fast preset's Lucas-Kanade stop (10 iterations, 0.03 px) as well
+        as with the default's."""
+        from cadalign.infer.track.flow import FlowConfig, FlowPredictor
+        from cadalign.raycast.core import RaycastRenderer
+
+        meshes, cam, _ = boxes
+        renderer = RaycastRenderer(meshes, cam)
+
+        def textured(T_wc: Rigid3):
+            f = renderer.render(T_wc, with_full_masks=False)
+            X = T_wc.apply((f.rays_cam * np.where(np.isfinite(f.range_m), f.range_m, 0.0)[..., None]).reshape(-1, 3))
+            tex = np.sin(9 * X[:, 0]) * np.sin(9 * X[:, 1]) * np.sin(9 * X[:, 2])  # a solid texture: same on the
+            g = np.where(f.instance.ravel() > 0, 128 + 100 * tex, 20.0).reshape(f.depth_m.shape)  # boxes in views
+            return g.astype(np.float32), f
+
+        flow = FlowPredictor(cam.K, FlowConfig(lk_iterations=iterations, lk_eps_px=eps))
+        g0, f0 = textured(_view(0))
+        flow.remember(g0, f0.depth_m, f0.instance, _view(0))
+        assert flow.ready
+        g1, _ = textured(_view(1))
+        T = flow.predict(g1, _view(0))
+        assert T is not None
+        assert np.linalg.norm(T.t - _view(1).t) < 0.03 and np.degrees(geodesic_angle(T.R, _view(1).R)) < 0.3
+
     @pytest.mark.parametrize("margin", [0.05, 0.0])
     def test_a_restart_onto_a_symmetric_structure_is_refused_without_navigation(self, margin: float) -> None:
         """Four like boxes round a fifth: the structure fits itself turned a quarter round its vertical, so where

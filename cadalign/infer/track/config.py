@@ -20,6 +20,9 @@ class TrackerConfig:
     """The pan/tilt/roll search around a restart hypothesis (a rough pose)."""
     flow: FlowConfig = field(default_factory=FlowConfig)
     """The prediction from sparse flow since the last tracked frame (model-based visual odometry)."""
+    learn_every: int = 1
+    """The parts' colours are learned on every this many tracked frames (and on a track's first); the fast preset's 2
+    saves about 3 ms a frame (docs/tuning/tracker.md#fewer-colour-lessons-and-a-shorter-lucas-kanade-s57)."""
     restart_levels: tuple[EdgeLevel, ...] = (
         EdgeLevel(0.125, 8, 4.0, 3.0),
         EdgeLevel(0.25, 8, 6.0, 4.0),
@@ -182,13 +185,15 @@ class TrackRunConfig:
 
 PRESETS: dict[str, TrackRunConfig] = {
     # no 1/2 level, each round fits every 2nd contour sample, the full-resolution level fits the last judged render's
-    # contours, the flow follows 200 corners and a frame it predicted is fitted at full resolution only: 3 mm on the
-    # default orbit; in turbid water it loses more frames (docs/tuning/tracker.md#a-faster-preset-s55,
-    # #carried-contours-s56)
+    # contours, the flow follows 200 corners (Lucas-Kanade stopping at 10 iterations or 0.03 px), a frame it predicted
+    # is fitted at full resolution only, and the colours are learned on every second frame: 3 mm on the default orbit;
+    # in turbid water it loses more frames (docs/tuning/tracker.md#a-faster-preset-s55, #carried-contours-s56,
+    # #fewer-colour-lessons-and-a-shorter-lucas-kanade-s57)
     "fast": TrackRunConfig(TrackerConfig(edges=EdgeTrackConfig(levels=(EdgeLevel(0.25, 5, 6.0, 4.0),
                                                                        EdgeLevel(1.0, 3, 2.5, 1.5)), fit_step=2,
                                                                carry_deg=5.0),
-                                         flow=FlowConfig(max_points=200),
+                                         flow=FlowConfig(max_points=200, lk_iterations=10, lk_eps_px=0.03),
+                                         learn_every=2,
                                          flow_levels=(EdgeLevel(1.0, 3, 2.5, 1.5),))),
     "balanced": TrackRunConfig(),
     "accurate": TrackRunConfig(TrackerConfig(edges=with_levels(EdgeTrackConfig(), iterations=6))),

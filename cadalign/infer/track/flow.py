@@ -36,6 +36,10 @@ class FlowConfig:
     """Lucas-Kanade window, pixels."""
     pyramid_levels: int = 4
     """Pyramid levels above the frame: motions of ~2^levels x window / 2 pixels are followed."""
+    lk_iterations: int = 30
+    """Lucas-Kanade iterations per pyramid level at most (OpenCV's termination count)."""
+    lk_eps_px: float = 0.01
+    """... or fewer once an iteration moves a corner by less than this, pixels (OpenCV's epsilon)."""
     max_fb_px: float = 1.0
     """A corner followed forward then backward must land within this of where it started, pixels."""
     ransac_px: float = 2.0
@@ -89,7 +93,7 @@ class FlowPredictor:
         assert self._gray is not None and self._pts is not None and self._X_w is not None
         img = np.clip(gray, 0, 255).astype(np.uint8)
         lk = {"winSize": (self.cfg.window_px, self.cfg.window_px), "maxLevel": self.cfg.pyramid_levels,
-              "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
+              "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, self.cfg.lk_iterations, self.cfg.lk_eps_px)}
         p0 = self._pts.reshape(-1, 1, 2)
         p1, st, _ = cv2.calcOpticalFlowPyrLK(self._gray, img, p0, None, **lk)
         if p1 is None:

@@ -71,6 +71,7 @@ class StructureTracker:
         self._last: Rigid3 | None = None  # T_world_from_cam of the last ok frame
         self._prev: Rigid3 | None = None  # and of the ok frame before it (for the velocity)
         self._frames = 0
+        self._tracked = 0  # frames accepted (learn_every counts them)
         self.lost = True
         """Whether the last frame was lost (or none was tracked yet)."""
         self._supports: list[float] = []
@@ -436,7 +437,9 @@ class StructureTracker:
             self._regions = (self._regions + [fit.region_support])[-self.cfg.history:]
         if fit.depth_m is not None and fit.instance is not None:
             self.flow.remember(gray, fit.depth_m, fit.instance, fit.T_world_from_cam)
-        if self._learn_colours(fit):
+        self._tracked += 1
+        learn = not self.edges.region.ready or self._tracked % max(self.cfg.learn_every, 1) == 0
+        if learn and self._learn_colours(fit):
             if not np.isfinite(fit.region_support):  # the first frame: read with the colours it just taught
                 fit = self.edges.with_region(fit)  # (for the parts' check only: not in the track's history)
         return TrackStep(k, "ok", fit.T_world_from_cam.inverse(), fit, source, time.perf_counter() - t0, tried,
