@@ -21,8 +21,8 @@ class TrackerConfig:
     flow: FlowConfig = field(default_factory=FlowConfig)
     """The prediction from sparse flow since the last tracked frame (model-based visual odometry)."""
     learn_every: int = 1
-    """The parts' colours are learned on every this many tracked frames (and on a track's first); the fast preset's 2
-    saves about 3 ms a frame (docs/tuning/tracker.md#fewer-colour-lessons-and-a-shorter-lucas-kanade-s57)."""
+    """The parts' colours are learned on every this many tracked frames (and on any while none are known); the fast
+    preset's 2 saves about 3 ms a frame (docs/tuning/tracker.md#fewer-colour-lessons-and-a-shorter-lucas-kanade-s57)."""
     restart_levels: tuple[EdgeLevel, ...] = (
         EdgeLevel(0.125, 8, 4.0, 3.0),
         EdgeLevel(0.25, 8, 6.0, 4.0),
