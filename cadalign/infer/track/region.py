@@ -74,20 +74,20 @@ class RegionModel:
             return
         H, W = instance.shape
         t = np.arange(self.cfg.line_px) + 0.5
-        for side, sign in (("fg", -1.0), ("bg", 1.0)):
+        nb, k_of = self.cfg.bins**3, sample_instance.astype(np.int64)  # parts: small non-negative ids
+        parts = np.flatnonzero(np.bincount(k_of))
+        for store, sign in ((self.fg, -1.0), (self.bg, 1.0)):  # inside the contour, then beyond it
             st = sign * t
             x = np.floor(uv[:, 0, None] + st[None, :] * normal[:, 0, None] + 0.5).astype(int)
             y = np.floor(uv[:, 1, None] + st[None, :] * normal[:, 1, None] + 0.5).astype(int)
             inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
             x, y = np.clip(x, 0, W - 1), np.clip(y, 0, H - 1)
             own = instance.ravel()[y * W + x] == sample_instance[:, None]
-            keep = inside & (own if side == "fg" else ~own)
-            nb, k_of = self.cfg.bins**3, sample_instance.astype(np.int64)  # parts: small non-negative ids
+            keep = inside & (own if store is self.fg else ~own)
             # (part, colour bin) of each pixel kept
             flat = np.broadcast_to(k_of[:, None], keep.shape)[keep] * nb + self._bin(rgb[y[keep], x[keep]])
             counts = np.bincount(flat, minlength=(k_of.max() + 1) * nb).reshape(-1, nb)
-            store = self.fg if side == "fg" else self.bg
-            for k in np.flatnonzero(np.bincount(k_of)):
+            for k in parts:
                 c = counts[k]
                 if c.sum() < 20:
                     continue
