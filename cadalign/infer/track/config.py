@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from cadalign.infer.track.acquire import AcquireConfig
 from cadalign.infer.track.edges import EdgeLevel, EdgeTrackConfig, with_levels
 from cadalign.infer.track.flow import FlowConfig
+from cadalign.infer.track.survey import SurveyConfig
 
 
 @dataclass(frozen=True)
@@ -51,6 +52,9 @@ class TrackerConfig:
     0: off. The best ``orbit_fits`` by the search's score are fitted (docs/tuning/tracker.md#prediction-and-turns)."""
     turn_frames: int = 4
     """... on each of the first this many lost frames (dead reckoning drifts by about a step each frame)."""
+    survey: SurveyConfig = field(default_factory=SurveyConfig)
+    """While lost and after the turned views, the last view's height, tilt and roll searched over the whole ground
+    at any heading, ranked by the learned colours (:mod:`cadalign.infer.track.survey`)."""
     own_turn_limit: bool = True
     """Refuse a restart from the tracker's own hypotheses (dead reckoning, turned views) whose fit turned the
     camera further from the hypothesis than one pan/tilt search reaches: on the turbid survey right restarts
@@ -114,7 +118,8 @@ class TrackerConfig:
 
 def _part_tracker() -> TrackerConfig:
     return TrackerConfig(edges=EdgeTrackConfig(prior_px=1.0), acquire=AcquireConfig(max_turn_deg=4.0, max_roll_deg=5.0),
-                         min_samples=30, orbit_step_deg=0.0, turn_step_deg=0.0, unique_margin=0.0)
+                         min_samples=30, orbit_step_deg=0.0, turn_step_deg=0.0, unique_margin=0.0,
+                         survey=SurveyConfig(every=0))
 
 
 @dataclass(frozen=True)

@@ -98,6 +98,18 @@ class RegionModel:
                 store[k] = (1 - a) * store.get(k, h) + a * h
         self._luts = None
 
+    def pooled_log_odds(self, rgb: np.ndarray) -> np.ndarray | None:
+        """(H, W) each pixel's log odds ``log pf / (1 - pf)`` of showing any learned part, from the parts' histograms
+        pooled (each part's weighing alike), ``pf`` clipped as the lines' are; None before any part is learned."""
+        known = [k for k in self.fg if k in self.bg]
+        if not known:
+            return None
+        fg = np.mean([self.fg[k] for k in known], axis=0)
+        bg = np.mean([self.bg[k] for k in known], axis=0)
+        s = fg + bg
+        pf = np.clip(np.where(s > 1e-12, fg / np.maximum(s, 1e-12), 0.5), self.cfg.p_clip, 1 - self.cfg.p_clip)
+        return (np.log(pf) - np.log1p(-pf))[self._bin(rgb)]
+
     def foreground(self, colours: np.ndarray, sample_instance: np.ndarray) -> np.ndarray:
         """(N, M) foreground probability of colours (N, M, 3) along the lines of samples of parts
         ``sample_instance`` (N,); 0.5 for a part (or a colour) neither histogram knows."""

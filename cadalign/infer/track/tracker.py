@@ -21,6 +21,7 @@ from cadalign.infer.track.acquire import candidates
 from cadalign.infer.track.config import TrackerConfig
 from cadalign.infer.track.edges import EdgeFit, EdgeTracker
 from cadalign.infer.track.flow import FlowPredictor
+from cadalign.infer.track.survey import best_by_colour, ground_views
 from cadalign.raycast.core import RenderMesh
 from cadalign.types import Camera, Rigid3
 
@@ -86,6 +87,7 @@ class StructureTracker:
         lo = np.min([m.vertices_m.min(axis=0) for m in meshes], axis=0)
         hi = np.max([m.vertices_m.max(axis=0) for m in meshes], axis=0)
         self._centre = (lo + hi) / 2  # the structure's centre, world frame
+        self._box = (lo, hi)  # the structure's world box
 
     @property
     def last_pose(self) -> Rigid3 | None:
@@ -249,6 +251,15 @@ class StructureTracker:
             views.append((f"turn_{a:.0f}", Rigid3(R @ self._last.R, c)))
         return self._best_views(gray, views)
 
+    def _survey_hypotheses(self, gray: np.ndarray) -> list[tuple[str, Rigid3]]:
+        """The last view's height, tilt and roll over the whole ground, any heading, best by the learned colours
+        (:mod:`cadalign.infer.track.survey`): a survey's return after turning out of view."""
+        cfg, rgb = self.cfg.survey, self.edges.colour_frame
+        if self._last is None or rgb is None or cfg.every <= 0 or self._lost_frames % cfg.every:
+            return []
+        views = [T for T in ground_views(self._last, *self._box, cfg) if self.reachable(T)]
+        return [(f"survey_{i}", T.inverse()) for i, T in enumerate(best_by_colour(self.edges, rgb, views, cfg))]
+
     def _best_views(self, gray: np.ndarray, views: list[tuple[str, Rigid3]]) -> list[tuple[str, Rigid3]]:
         """Of (name, ``T_world_from_cam``) views, the best ``orbit_fits`` by the pan/tilt/roll search's score,
         as (name, ``T_cam_from_world``); views the navigation pose rules out (:meth:`reachable`) are skipped."""
@@ -326,6 +337,9 @@ class StructureTracker:
         if best is None and own and self._lost_frames % max(self.cfg.orbit_every, 1) == 0:  # round the structure
             best, n = self._best_of(gray, self._orbit_hypotheses(gray), True)
             tried += n
+        if best is None and own:  # a survey's return: anywhere over the ground at the last height
+            best, n = self._best_of(gray, self._survey_hypotheses(gray), True, unique=True)
+            tried += n
         if best is not None:
             self._supports = []  # a restart has no history of support
             return self._accept(gray, k, best[0], best[1], t0, tried)
@@ -357,12 +371,14 @@ class StructureTracker:
         return True
 
     def _best_of(self, gray: np.ndarray, hypotheses: Sequence[tuple[str, Rigid3]], own: bool = False,
-                  ) -> tuple[tuple[EdgeFit, str] | None, int]:
+                 unique: bool = False) -> tuple[tuple[EdgeFit, str] | None, int]:
         """The best-supported passing (fit, name) of searches from (name, ``T_cam_from_world``) hypotheses,
         and the number of fits tried. ``own``: the tracker's own hypotheses (where it believes the camera is):
         a fit that turned the camera further from one than a pan/tilt search reaches (``acquire.max_turn_deg``)
-        ran off it, and is refused (``own_turn_limit``)."""
-        best: tuple[EdgeFit, str] | None = None
+        ran off it, and is refused (``own_turn_limit``). ``unique`` (a search over the whole ground): refused too
+        when another passing fit, apart from the best (``survey.apart_m`` / ``apart_deg``), ranks within
+        ``unique_margin`` of it, or when the best's region support is below ``survey.region`` of the track's usual."""
+        passing: list[tuple[EdgeFit, str]] = []
         tried = 0
         for name, T_cw in hypotheses:
             if own and not self.reachable(T_cw.inverse()):
@@ -372,14 +388,31 @@ class StructureTracker:
             if fit is not None and own and self.cfg.own_turn_limit and self.ran_off(
                     T_cw.inverse(), fit, f"restart from {name}", self.cfg.acquire.max_turn_deg):
                 continue
-            if fit is not None and (best is None or self.rank(fit) > self.rank(best[0])):
-                best = (fit, name)
-        if best is not None and own:
+            if fit is not None:
+                passing.append((fit, name))
+        if not passing:
+            return None, tried
+        best = max(passing, key=lambda p: self.rank(p[0]))  # the first of equals
+        if unique and any(self._apart(f, best[0]) and self.rank(f) > self.rank(best[0]) - self.cfg.unique_margin
+                          for f, _ in passing):
+            log.info("frame %d: %s refused: a view elsewhere fits as well", self._frames - 1, best[1])
+            return None, tried
+        if unique and self._regions and not best[0].region_support >= self.cfg.survey.region * np.median(self._regions):
+            log.info("frame %d: %s refused: region support %.2f below the track's usual %.2f", self._frames - 1,
+                     best[1], best[0].region_support, np.median(self._regions))
+            return None, tried
+        if own:
             refused, n = self._turned_alike(gray, best[0], best[1])
             tried += n
             if refused:
                 return None, tried
         return best, tried
+
+    def _apart(self, a: EdgeFit, b: EdgeFit) -> bool:
+        """Whether two fits are different views (``survey.apart_m`` / ``apart_deg`` apart)."""
+        A, B = a.T_world_from_cam, b.T_world_from_cam
+        return bool(np.linalg.norm(A.t - B.t) >= self.cfg.survey.apart_m
+                    or np.degrees(geodesic_angle(A.R, B.R)) >= self.cfg.survey.apart_deg)
 
     def _turned_alike(self, gray: np.ndarray, fit: EdgeFit, name: str) -> tuple[bool, int]:
         """(whether a pose the tracker found by itself, with no navigation pose to bound it, is refused: the view
