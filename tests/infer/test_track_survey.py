@@ -102,18 +102,20 @@ def test_the_learned_colours_rank_the_view_after_a_turn_first(scene) -> None:
     assert t < 0.6 and r < 10, (t, r)
 
 
-@pytest.mark.parametrize("survey", [True, False])
-def test_a_lost_survey_is_regained_after_a_quarter_turn_out_of_view(scene, survey: bool) -> None:
+@pytest.mark.parametrize("survey", ["on", "off", "poor colours"])
+def test_a_lost_survey_is_regained_after_a_quarter_turn_out_of_view(scene, survey: str) -> None:
     meshes, render = scene
-    cfg = TRACKER if survey else replace(TRACKER, survey=replace(SURVEY, every=0))
+    cfg = {"on": TRACKER, "off": replace(TRACKER, survey=replace(SURVEY, every=0)),
+           "poor colours": replace(TRACKER, survey=replace(SURVEY, min_region=1.01))}[survey]  # above any support
     tr = StructureTracker(meshes, CAM, cfg)
     gray, rgb = render(FIRST)
     assert tr.step(gray, [("init", FIRST.inverse())], rgb).state == "ok"
+    assert tr.step(gray, (), rgb).state == "ok"  # the track's first region support (the first frame taught them)
     black = np.zeros_like(rgb)
     assert tr.step(as_gray(black), (), black).state == "lost"  # out of view (a frame with no edges)
     gray, rgb = render(TURNED)
     s = tr.step(gray, (), rgb)
-    if not survey:  # dead reckoning and the last pose are a quarter turn off: nothing else regains it
+    if survey != "on":  # dead reckoning and the last pose are a quarter turn off: nothing else regains it
         assert s.state == "lost" and s.T_cam_from_world is None
         return
     assert s.state == "ok" and s.source.startswith("survey"), s
@@ -154,3 +156,4 @@ def test_a_frame_without_the_structure_gives_no_view(scene) -> None:
     ground = np.broadcast_to(COLOURS[0].astype(np.uint8), rgb.shape).copy()
     assert best_by_colour(tr.edges, ground, ground_views(FIRST, lo, hi, SURVEY), SURVEY) == []
     assert best_by_colour(tr.edges, rgb, ground_views(FIRST, lo, hi, SURVEY), SURVEY) != []
+

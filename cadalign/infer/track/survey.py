@@ -31,6 +31,9 @@ class SurveyConfig:
     every: int = 1
     """While lost with nothing else to restart from, the search runs on every this many lost frames once the
     colours are learned and the turned views found nothing; 0: off."""
+    min_region: float = 0.35
+    """... and the track's median region support is at least this: colours that hardly tell the parts from their
+    surroundings rank views poorly (docs/tuning/tracker.md#a-lost-survey-s58)."""
     step_m: float = 1.0
     """Grid step of the optical axis' meeting point with the structure's mid-height plane, metres (a fit's basin
     reaches about 1.5 m at 8 m range; 1.5 m steps ranked right views 10x lower on clear_lawnmower)."""
@@ -48,7 +51,7 @@ class SurveyConfig:
     """See ``fits``, metres."""
     apart_deg: float = 15.0
     """See ``fits``, degrees."""
-    region: float = 1.0
+    region: float = 0.95
     """The search's best fit needs region support of at least this share of the track's median: a view drawn from
     thousands must look as right as a tracked frame (docs/tuning/tracker.md#a-lost-survey-s58)."""
 

@@ -255,7 +255,8 @@ class StructureTracker:
         """The last view's height, tilt and roll over the whole ground, any heading, best by the learned colours
         (:mod:`cadalign.infer.track.survey`): a survey's return after turning out of view."""
         cfg, rgb = self.cfg.survey, self.edges.colour_frame
-        if self._last is None or rgb is None or cfg.every <= 0 or self._lost_frames % cfg.every:
+        if self._last is None or rgb is None or cfg.every <= 0 or self._lost_frames % cfg.every \
+                or not (self._regions and np.median(self._regions) >= cfg.min_region):
             return []
         views = [T for T in ground_views(self._last, *self._box, cfg) if self.reachable(T)]
         return [(f"survey_{i}", T.inverse()) for i, T in enumerate(best_by_colour(self.edges, rgb, views, cfg))]
