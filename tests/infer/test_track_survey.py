@@ -157,3 +157,17 @@ def test_a_frame_without_the_structure_gives_no_view(scene) -> None:
     assert best_by_colour(tr.edges, ground, ground_views(FIRST, lo, hi, SURVEY), SURVEY) == []
     assert best_by_colour(tr.edges, rgb, ground_views(FIRST, lo, hi, SURVEY), SURVEY) != []
 
+
+
+def test_silhouettes_of_many_views_are_the_renders_masks(scene) -> None:
+    """One batched cast per chunk gives what a render per view gives (chunks smaller than the views: the seams)."""
+    from cadalign.raycast.core import RaycastRenderer
+
+    meshes, _ = scene
+    small = Camera(np.array([[32.5, 0, 20], [0, 32.5, 15], [0, 0, 1]]), 40, 30)
+    r = RaycastRenderer(meshes, small)
+    views = [FIRST, TURNED, _down_view(np.array([3.0, 3.0, 4.0]), 225.0), _down_view(np.array([9.0, 9.0, 4.0]), 45.0)]
+    sil = r.silhouettes(views, chunk=3)
+    for T, s in zip(views, sil, strict=True):
+        np.testing.assert_array_equal(s, r.render(T, with_full_masks=False).instance.ravel() > 0)
+    assert sil[0].any() and sil[1].any() and not sil[3].any()  # the last looks away from the boxes
