@@ -215,15 +215,14 @@ class RaycastRenderer:
         ``chunk`` views (many low-resolution views in one call: a search over poses)."""
         import open3d as o3d  # lazy: heavy dependency (open3d)
 
-        HW = self.camera.height * self.camera.width
-        d = self._dirs_cam.reshape(HW, 3)
+        H, W = self.camera.height, self.camera.width
+        HW = H * W
         out = np.zeros((len(views), HW), dtype=bool)
         for a in range(0, len(views), chunk):
             part = views[a:a + chunk]
-            rays = np.empty((len(part), HW, 6), dtype=np.float32)
+            rays = np.empty((len(part), H, W, 6), dtype=np.float32)
             for i, T in enumerate(part):
-                rays[i, :, :3] = (T.t - self._origin).astype(np.float32)
-                rays[i, :, 3:] = d @ T.R.T
+                self._rays(T, slice(None), slice(None), rays[i])
             t = self._all.cast_rays(o3d.core.Tensor.from_numpy(rays.reshape(-1, 6)), nthreads=0)["t_hit"].numpy()
             out[a:a + len(part)] = np.isfinite(t).reshape(len(part), HW)
         return out

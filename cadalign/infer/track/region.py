@@ -104,10 +104,7 @@ class RegionModel:
         known = [k for k in self.fg if k in self.bg]
         if not known:
             return None
-        fg = np.mean([self.fg[k] for k in known], axis=0)
-        bg = np.mean([self.bg[k] for k in known], axis=0)
-        s = fg + bg
-        pf = np.clip(np.where(s > 1e-12, fg / np.maximum(s, 1e-12), 0.5), self.cfg.p_clip, 1 - self.cfg.p_clip)
+        pf = self._share(np.mean([self.fg[k] for k in known], axis=0), np.mean([self.bg[k] for k in known], axis=0))
         return (np.log(pf) - np.log1p(-pf))[self._bin(rgb)]
 
     def foreground(self, colours: np.ndarray, sample_instance: np.ndarray) -> np.ndarray:
@@ -133,11 +130,14 @@ class RegionModel:
         known = [k for k in self.fg if k in self.bg]
         pf = np.full((max(known, default=0) + 2, self.cfg.bins**3), 0.5)
         for k in known:
-            f, b = self.fg[k], self.bg[k]
-            s = f + b
-            pf[k] = np.where(s > 1e-9, f / np.maximum(s, 1e-12), 0.5)
-        pf = np.clip(pf, self.cfg.p_clip, 1 - self.cfg.p_clip)
+            pf[k] = self._share(self.fg[k], self.bg[k])
         return np.log(pf), np.log(1 - pf)
+
+    def _share(self, f: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """pf = f / (f + b) per colour bin of foreground and background histograms, 0.5 where neither has mass,
+        clipped to [p_clip, 1 - p_clip]."""
+        s = f + b
+        return np.clip(np.where(s > 1e-9, f / np.maximum(s, 1e-12), 0.5), self.cfg.p_clip, 1 - self.cfg.p_clip)
 
     def offsets(self, rgb: np.ndarray, uv: np.ndarray, normal: np.ndarray, sample_instance: np.ndarray,
                 search_px: float) -> np.ndarray:

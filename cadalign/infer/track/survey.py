@@ -77,6 +77,11 @@ def ground_views(last: Rigid3, lo: np.ndarray, hi: np.ndarray, cfg: SurveyConfig
     return out
 
 
+def apart(A: Rigid3, B: Rigid3, cfg: SurveyConfig) -> bool:
+    """Whether two camera poses are different views: ``apart_m`` or ``apart_deg`` from each other."""
+    return bool(np.linalg.norm(A.t - B.t) >= cfg.apart_m or np.degrees(geodesic_angle(A.R, B.R)) >= cfg.apart_deg)
+
+
 def best_by_colour(edges: EdgeTracker, rgb: np.ndarray, views: list[Rigid3], cfg: SurveyConfig) -> list[Rigid3]:
     """The best ``cfg.fits`` of ``views`` (``T_world_from_cam``) by the colour score of their silhouettes, apart
     from each other, best first: only views that score above 0 (explain the frame's colours better with the
@@ -92,8 +97,7 @@ def best_by_colour(edges: EdgeTracker, rgb: np.ndarray, views: list[Rigid3], cfg
         if not score[i] > 0:  # the view explains the colours no better with the structure than without it
             break
         T = views[int(i)]
-        if any(np.linalg.norm(T.t - C.t) < cfg.apart_m and np.degrees(geodesic_angle(T.R, C.R)) < cfg.apart_deg
-               for C in out):
+        if not all(apart(T, C, cfg) for C in out):
             continue
         out.append(T)
         if len(out) >= cfg.fits:

@@ -21,7 +21,7 @@ from cadalign.infer.track.acquire import candidates
 from cadalign.infer.track.config import TrackerConfig
 from cadalign.infer.track.edges import EdgeFit, EdgeTracker
 from cadalign.infer.track.flow import FlowPredictor
-from cadalign.infer.track.survey import best_by_colour, ground_views
+from cadalign.infer.track.survey import apart, best_by_colour, ground_views
 from cadalign.raycast.core import RenderMesh
 from cadalign.types import Camera, Rigid3
 
@@ -134,9 +134,9 @@ class StructureTracker:
         if not fit.support >= floor:
             return f"edge support: {fit.support:.2f} < {floor:.2f}"
         if np.isfinite(fit.region_support):  # the colours are learned: they must agree
-            region = c.min_region_support
-            if self._regions:
-                region = max(region, c.relative_region * float(np.median(self._regions)))
+            region, usual = c.min_region_support, self._typical_region()
+            if usual is not None:
+                region = max(region, c.relative_region * usual)
             if not fit.region_support >= region:
                 return f"region support: {fit.region_support:.2f} < {region:.2f}"
             if not fit.residual_px <= c.max_residual_region_px:
@@ -182,6 +182,10 @@ class StructureTracker:
 
     def _typical_support(self) -> float:
         return float(np.median(self._supports)) if self._supports else 0.0
+
+    def _typical_region(self) -> float | None:
+        """The median region support of the last tracked frames; None before any."""
+        return float(np.median(self._regions)) if self._regions else None
 
     def _prediction(self) -> Rigid3 | None:
         if self._last is None:
@@ -255,8 +259,9 @@ class StructureTracker:
         """The last view's height, tilt and roll over the whole ground, any heading, best by the learned colours
         (:mod:`cadalign.infer.track.survey`): a survey's return after turning out of view."""
         cfg, rgb = self.cfg.survey, self.edges.colour_frame
+        usual = self._typical_region()
         if self._last is None or rgb is None or cfg.every <= 0 or self._lost_frames % cfg.every \
-                or not (self._regions and np.median(self._regions) >= cfg.min_region):
+                or usual is None or usual < cfg.min_region:
             return []
         views = [T for T in ground_views(self._last, *self._box, cfg) if self.reachable(T)]
         return [(f"survey_{i}", T.inverse()) for i, T in enumerate(best_by_colour(self.edges, rgb, views, cfg))]
@@ -394,13 +399,14 @@ class StructureTracker:
         if not passing:
             return None, tried
         best = max(passing, key=lambda p: self.rank(p[0]))  # the first of equals
-        if unique and any(self._apart(f, best[0]) and self.rank(f) > self.rank(best[0]) - self.cfg.unique_margin
-                          for f, _ in passing):
+        if unique and any(apart(f.T_world_from_cam, best[0].T_world_from_cam, self.cfg.survey)
+                          and self.rank(f) > self.rank(best[0]) - self.cfg.unique_margin for f, _ in passing):
             log.info("frame %d: %s refused: a view elsewhere fits as well", self._frames - 1, best[1])
             return None, tried
-        if unique and self._regions and not best[0].region_support >= self.cfg.survey.region * np.median(self._regions):
+        usual = self._typical_region()
+        if unique and usual is not None and not best[0].region_support >= self.cfg.survey.region * usual:
             log.info("frame %d: %s refused: region support %.2f below the track's usual %.2f", self._frames - 1,
-                     best[1], best[0].region_support, np.median(self._regions))
+                     best[1], best[0].region_support, usual)
             return None, tried
         if own:
             refused, n = self._turned_alike(gray, best[0], best[1])
@@ -408,12 +414,6 @@ class StructureTracker:
             if refused:
                 return None, tried
         return best, tried
-
-    def _apart(self, a: EdgeFit, b: EdgeFit) -> bool:
-        """Whether two fits are different views (``survey.apart_m`` / ``apart_deg`` apart)."""
-        A, B = a.T_world_from_cam, b.T_world_from_cam
-        return bool(np.linalg.norm(A.t - B.t) >= self.cfg.survey.apart_m
-                    or np.degrees(geodesic_angle(A.R, B.R)) >= self.cfg.survey.apart_deg)
 
     def _turned_alike(self, gray: np.ndarray, fit: EdgeFit, name: str) -> tuple[bool, int]:
         """(whether a pose the tracker found by itself, with no navigation pose to bound it, is refused: the view
