@@ -255,6 +255,30 @@ class TestTrackBoxes:
         assert abs(half.samples - every.samples) < 0.02 * every.samples  # all (the judge may reuse the last render)
         assert abs(half.support - every.support) < 0.02
 
+    @pytest.mark.parametrize("restart_step", [1, 2])
+    def test_a_restart_fits_every_sample_whatever_the_tracked_frames_fit(self, boxes, monkeypatch,
+                                                                         restart_step: int) -> None:
+        """``restart_fit_step``: a start's fits use every ``restart_fit_step``-th contour sample while the tracked
+        frames keep ``edges.fit_step`` (the fast preset's 2); a fit told its step fits as a tracker configured
+        with that step does."""
+        from dataclasses import replace
+
+        meshes, cam, render = boxes
+        cfg = replace(BOXES_TRACKER, edges=replace(BOXES_TRACKER.edges, fit_step=2), restart_fit_step=restart_step)
+        tr = StructureTracker(meshes, cam, cfg)
+        steps, inner = [], tr.edges._fit
+        monkeypatch.setattr(tr.edges, "_fit", lambda *a, _f=inner, **k: steps.append(a[3]) or _f(*a, **k))
+        start = _perturbed(_view(0).inverse(), 0.1, 3.0, 3)
+        assert tr.step(render(_view(0)), [("init", start)]).source == "init"
+        at_start, steps[:] = list(steps), []
+        assert tr.step(render(_view(1))).source == "track"
+        assert at_start and set(at_start) == {restart_step} and set(steps) == {2}, (at_start, steps)
+        told = EdgeTracker(meshes, cam, cfg.edges).fit(render(_view(0)), start.inverse(), cfg.restart_levels, 1)
+        every = EdgeTracker(meshes, cam, BOXES_TRACKER.edges).fit(render(_view(0)), start.inverse(),
+                                                                  cfg.restart_levels)
+        assert np.allclose(told.T_world_from_cam.matrix(), every.T_world_from_cam.matrix(), atol=1e-9)
+        assert told.support == every.support
+
     def test_the_last_judged_contours_serve_a_start_near_it(self, boxes) -> None:
         """``carry_deg`` (the fast preset's): a fit starting within that turn of the last judged pose moves that
         render's contours to its start instead of rendering the full-resolution level again (its one full render
@@ -391,8 +415,8 @@ class TestTrackBoxes:
         assert tr.step(render(_view(0)), [("init", _view(0).inverse())]).state == "ok"
         assert tr.step(render(_view(1))).state == "ok"
         fit, turn = tr.edges.fit, Rigid3(axis_angle_to_matrix(np.radians([0.0, 0.0, 40.0])), np.zeros(3))
-        monkeypatch.setattr(tr.edges, "fit", lambda gray, T, levels=None: replace(
-            fit(gray, T, levels), T_world_from_cam=T @ turn))  # every fit turns its start by 40 deg
+        monkeypatch.setattr(tr.edges, "fit", lambda gray, T, levels=None, fit_step=None: replace(
+            fit(gray, T, levels, fit_step), T_world_from_cam=T @ turn))  # every fit turns its start by 40 deg
         step = tr.step(render(_view(2)))
         if limit:
             assert step.state == "lost" and step.T_cam_from_world is None

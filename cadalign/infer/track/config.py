@@ -31,6 +31,9 @@ class TrackerConfig:
         EdgeLevel(1.0, 3, 2.5, 1.5),
     )
     """The contour fit of a restart hypothesis: a wider basin than a tracked frame's (a 1/8 level, more rounds)."""
+    restart_fit_step: int = 1
+    """A restart's fit fits every this many contour samples, whatever ``edges.fit_step`` (a start decides the track;
+    fast's 2 left turbid starts 0.5 m off or lost: docs/tuning/tracker.md#starts-fit-every-sample-s59)."""
     flow_levels: tuple[EdgeLevel, ...] | None = None
     """The contour fit of a frame the flow predicted; None: the same levels as any frame. The fast preset fits such a
     frame at full resolution only (docs/tuning/tracker.md#trackerconfigflow_levels, #carried-contours-s56)."""

@@ -194,10 +194,10 @@ class EdgeTracker:
                                 min_contrast=c.min_contrast)
 
     def fit(self, gray: np.ndarray, T_world_from_cam: Rigid3, levels: tuple[EdgeLevel, ...] | None = None,
-            ) -> EdgeFit:
+            fit_step: int | None = None) -> EdgeFit:
         """Correct ``T_world_from_cam`` (the prediction) against ``gray`` ((H, W) float32, 0-255, the frame's
-        full resolution) and judge the result. ``levels``: instead of the config's (e.g. a restart's wider
-        basin).
+        full resolution) and judge the result. ``levels``, ``fit_step``: instead of the config's (e.g. a
+        restart's wider basin, fitted on every sample).
 
         Each level renders the CAD once, at the pose it starts from; its rounds move the contour samples' 3-D
         points with the pose and search again (the contour generator hardly moves within a level's
@@ -206,15 +206,16 @@ class EdgeTracker:
         better-supported of the two is kept."""
 
         carry = self._carry
-        fit, carried = self._fit(gray, T_world_from_cam, levels, use_carry=True)
+        step = self.cfg.fit_step if fit_step is None else fit_step
+        fit, carried = self._fit(gray, T_world_from_cam, levels, step, use_carry=True)
         if carried and carry is not None and fit.support < carry.support - self.cfg.carry_drop:
-            again, _ = self._fit(gray, T_world_from_cam, levels, use_carry=False)
+            again, _ = self._fit(gray, T_world_from_cam, levels, step, use_carry=False)
             if again.support > fit.support:
                 return again
         return fit
 
     def _fit(self, gray: np.ndarray, T_world_from_cam: Rigid3, levels: tuple[EdgeLevel, ...] | None,
-             use_carry: bool) -> tuple[EdgeFit, bool]:
+             fit_step: int, use_carry: bool) -> tuple[EdgeFit, bool]:
         """:meth:`fit`'s levels and judgement; and whether a level fitted carried contours."""
         T = T_world_from_cam
         last: tuple[Any, np.ndarray, Any] | None = None
@@ -237,8 +238,8 @@ class EdgeTracker:
             if len(X_w) < self.cfg.min_edges:
                 continue  # too few contours to fit six degrees of freedom
             last = (r, X_w, n, f, g) if carried is None else None
-            if self.cfg.fit_step > 1:
-                X_w, uv0, n = X_w[::self.cfg.fit_step], uv0[::self.cfg.fit_step], n[::self.cfg.fit_step]
+            if fit_step > 1:
+                X_w, uv0, n = X_w[::fit_step], uv0[::fit_step], n[::fit_step]
             region = self._region_level(r, uv0, n, f.instance)
             T_start, s_start, moved_px = T, None, 0.0
             for _ in range(lv.iterations):

@@ -423,7 +423,8 @@ class StructureTracker:
             return False, 0
         tried = 0
         for a in (90, 180, 270):
-            alt = self.edges.fit(gray, self._round_structure(a, fit.T_world_from_cam), self.cfg.restart_levels)
+            alt = self.edges.fit(gray, self._round_structure(a, fit.T_world_from_cam), self.cfg.restart_levels,
+                                 self.cfg.restart_fit_step)
             tried += 1
             if self.good(alt, start=True) and self.rank(alt) > self.rank(fit) - self.cfg.unique_margin:
                 log.info("frame %d: %s refused: the structure turned %d deg round its vertical fits as well (rank "
@@ -439,13 +440,13 @@ class StructureTracker:
         candidate beats its support by ``start_margin`` (clutter lends wrong candidates support too)."""
         start, tried = T_world_from_cam, 0
         for _ in range(max(self.cfg.acquire_rounds, 1)):
-            own = self.edges.fit(gray, start, self.cfg.restart_levels)
+            own = self.edges.fit(gray, start, self.cfg.restart_levels, self.cfg.restart_fit_step)
             tried += 1
             best = own if self.good(own, start=True) else None
             top = own
             for _, T_wc in candidates(self.edges, gray, start, self.cfg.acquire):
                 tried += 1
-                fit = self.edges.fit(gray, T_wc, self.cfg.restart_levels)
+                fit = self.edges.fit(gray, T_wc, self.cfg.restart_levels, self.cfg.restart_fit_step)
                 if self.good(fit, start=True) and (best is None or self.rank(fit) > self.rank(best) + (
                         self.cfg.start_margin if best is own else 0.0)):
                     best = fit
