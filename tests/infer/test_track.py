@@ -346,6 +346,31 @@ class TestTrackBoxes:
         assert back.state == "ok" and back.source in ("motion", "last_pose")
         assert _reproj_px(meshes, cam, back.T_cam_from_world, _view(4).inverse()) < 0.5
 
+    @pytest.mark.parametrize("climbs", [3, 0])
+    def test_a_start_searches_round_its_fit_again_while_the_support_rises(self, boxes, monkeypatch,
+                                                                          climbs: int) -> None:
+        """``start_climbs``: a start's best fit is searched round again while the support rises by more than
+        ``climb_gain`` (a search from a rough fix can stop on a nearby pose); a restart of a track is not."""
+        from dataclasses import replace
+
+        meshes, cam, render = boxes
+        tr = StructureTracker(meshes, cam, replace(BOXES_TRACKER, start_climbs=climbs, climb_gain=0.01))
+        img = render(_view(0))
+        base = tr.edges.fit(img, _view(0))
+        supports, starts = iter([0.6, 0.7, 0.75, 0.755, 0.9, 0.8, 0.95]), []
+
+        def search(gray, T_wc):
+            starts.append(T_wc)
+            return replace(base, support=next(supports), T_world_from_cam=T_wc), 1
+
+        monkeypatch.setattr(tr, "_search", search)
+        s = tr.step(img, [("init", _view(0).inverse())])
+        assert s.state == "ok" and s.source == "init"
+        # 0.6 (the hypothesis' search), 0.7, 0.75, then 0.755: a rise of 0.005 stops the climb at 0.75
+        assert s.fit.support == (0.75 if climbs else 0.6) and len(starts) == (4 if climbs else 1)
+        n, black = len(starts), np.zeros_like(img)  # the track fails on a black frame: its restart is not climbed
+        assert tr.step(black, [("init", _view(0).inverse())]).source == "init" and len(starts) == n + 1
+
     def test_a_cut_to_the_other_side_is_regained(self, boxes) -> None:
         meshes, cam, render = boxes
         tr = StructureTracker(meshes, cam, BOXES_TRACKER)

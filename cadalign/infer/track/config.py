@@ -75,6 +75,11 @@ class TrackerConfig:
     start_margin: float = 0.05
     """A restart hypothesis' own fit is kept unless a candidate of the search round it has this much more
     support (on a cluttered desk, wrong candidates reached the right pose's support)."""
+    start_climbs: int = 3
+    """A start (no track yet) searches round its best fit again up to this many times while the support rises by more
+    than ``climb_gain`` (docs/tuning/tracker.md#starts-that-climb-s59)."""
+    climb_gain: float = 0.01
+    """See ``start_climbs``: a share of the contour samples."""
     acquire_rounds: int = 2
     """Searches per hypothesis: when none of a search's candidates passes, the next searches round the best of
     them (a rough pose whose error is partly translation needs two)."""

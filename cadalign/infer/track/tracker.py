@@ -331,6 +331,9 @@ class StructureTracker:
                     return self._accept(gray, k, max(fits, key=self.rank), "track", t0, tried)
         best, n = self._best_of(gray, restarts)
         tried += n
+        if best is not None and self._last is None:  # a start: searched round again while its support rises
+            climbed, n = self._climb(gray, best[0])
+            best, tried = (climbed, best[1]), tried + n
         # the tracker's own hypotheses: when lost with nothing else to restart from, or when a navigation pose
         # bounds where they may go
         own = self._last is not None and (not restarts or nav is not None)
@@ -414,6 +417,18 @@ class StructureTracker:
             if refused:
                 return None, tried
         return best, tried
+
+    def _climb(self, gray: np.ndarray, fit: EdgeFit) -> tuple[EdgeFit, int]:
+        """(a start's fit searched round again, up to ``start_climbs`` times, while the best passing fit's support
+        rises by more than ``climb_gain``; fits tried): the search from a rough fix can stop on a nearby pose."""
+        tried = 0
+        for _ in range(self.cfg.start_climbs):
+            other, n = self._search(gray, fit.T_world_from_cam)
+            tried += n
+            if other is None or not other.support > fit.support + self.cfg.climb_gain:
+                break
+            fit = other
+        return fit, tried
 
     def _turned_alike(self, gray: np.ndarray, fit: EdgeFit, name: str) -> tuple[bool, int]:
         """(whether a pose the tracker found by itself, with no navigation pose to bound it, is refused: the view
