@@ -438,8 +438,7 @@ class StructureTracker:
             return False, 0
         tried = 0
         for a in (90, 180, 270):
-            alt = self.edges.fit(gray, self._round_structure(a, fit.T_world_from_cam), self.cfg.restart_levels,
-                                 self.cfg.restart_fit_step)
+            alt = self._restart_fit(gray, self._round_structure(a, fit.T_world_from_cam))
             tried += 1
             if self.good(alt, start=True) and self.rank(alt) > self.rank(fit) - self.cfg.unique_margin:
                 log.info("frame %d: %s refused: the structure turned %d deg round its vertical fits as well (rank "
@@ -448,6 +447,10 @@ class StructureTracker:
                 return True, tried
         return False, tried
 
+    def _restart_fit(self, gray: np.ndarray, T_world_from_cam: Rigid3) -> EdgeFit:
+        """A restart's contour fit: ``restart_levels``, every ``restart_fit_step``-th sample."""
+        return self.edges.fit(gray, T_world_from_cam, self.cfg.restart_levels, self.cfg.restart_fit_step)
+
     def _search(self, gray: np.ndarray, T_world_from_cam: Rigid3) -> tuple[EdgeFit | None, int]:
         """The best-supported passing fit from a rough pose: the pose itself and the candidates of the
         pan/tilt/roll search round it, in up to ``acquire_rounds`` searches (each round the best fit of the
@@ -455,13 +458,13 @@ class StructureTracker:
         candidate beats its support by ``start_margin`` (clutter lends wrong candidates support too)."""
         start, tried = T_world_from_cam, 0
         for _ in range(max(self.cfg.acquire_rounds, 1)):
-            own = self.edges.fit(gray, start, self.cfg.restart_levels, self.cfg.restart_fit_step)
+            own = self._restart_fit(gray, start)
             tried += 1
             best = own if self.good(own, start=True) else None
             top = own
             for _, T_wc in candidates(self.edges, gray, start, self.cfg.acquire):
                 tried += 1
-                fit = self.edges.fit(gray, T_wc, self.cfg.restart_levels, self.cfg.restart_fit_step)
+                fit = self._restart_fit(gray, T_wc)
                 if self.good(fit, start=True) and (best is None or self.rank(fit) > self.rank(best) + (
                         self.cfg.start_margin if best is own else 0.0)):
                     best = fit
