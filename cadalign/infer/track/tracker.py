@@ -21,7 +21,8 @@ from cadalign.infer.track.acquire import candidates
 from cadalign.infer.track.config import TrackerConfig
 from cadalign.infer.track.edges import EdgeFit, EdgeTracker
 from cadalign.infer.track.flow import FlowPredictor
-from cadalign.infer.track.survey import apart, best_by_colour, ground_views
+from cadalign.infer.track.survey import apart
+from cadalign.infer.track.views import orbit_views, round_structure, survey_views, turn_views
 from cadalign.raycast.core import RenderMesh
 from cadalign.types import Camera, Rigid3
 
@@ -217,8 +218,7 @@ class StructureTracker:
 
     def _lost_hypotheses(self, gray: np.ndarray) -> list[tuple[str, Rigid3]]:
         """The tracker's own restart hypotheses while lost: the flow from the last tracked frame, the last motion
-        carried on over the frames lost, and the last pose (the turned views are :meth:`_turn_hypotheses` and
-        :meth:`_orbit_hypotheses`)."""
+        carried on over the frames lost, and the last pose (the turned views are :mod:`cadalign.infer.track.views`)."""
         assert self._last is not None
         out = [("last_pose", self._last.inverse())]
         if self._velocity is not None:
@@ -227,57 +227,6 @@ class StructureTracker:
         if flow is not None:  # the flow from the last tracked frame, however many frames back
             out.insert(0, ("flow", flow.inverse()))
         return out
-
-    def _orbit_hypotheses(self, gray: np.ndarray) -> list[tuple[str, Rigid3]]:
-        """The last view turned round the vertical through the structure's centre (a cut to another side)."""
-        if self._last is None or self.cfg.orbit_step_deg <= 0:
-            return []
-        views = [(f"orbit_{a:.0f}", self._round_structure(a, self._last))
-                 for a in np.arange(self.cfg.orbit_step_deg, 360.0 - 1e-6, self.cfg.orbit_step_deg)]
-        return self._best_views(gray, views)
-
-    def _round_structure(self, deg: float, T_world_from_cam: Rigid3) -> Rigid3:
-        """The camera carried ``deg`` degrees round the vertical (world z) through the structure's centre: the view
-        it would have if the structure were turned the other way."""
-        R = axis_angle_to_matrix(np.array([0.0, 0.0, np.radians(deg)]))
-        return Rigid3(R, self._centre - R @ self._centre) @ T_world_from_cam
-
-    def _turn_hypotheses(self, gray: np.ndarray) -> list[tuple[str, Rigid3]]:
-        """The camera carried on at its last step and orientation over the lost frames, then turned on the spot
-        about the world vertical (``turn_step_deg``): a survey's turn while the structure was out of view."""
-        if self._last is None or self._step is None or self.cfg.turn_step_deg <= 0 \
-                or self._lost_frames >= self.cfg.turn_frames:
-            return []
-        c = self._last.t + self.cfg.velocity * (self._lost_frames + 1) * (self._last.R @ self._step)
-        views = []
-        for a in np.arange(0.0, 360.0 - 1e-6, self.cfg.turn_step_deg):  # 0: straight on
-            R = axis_angle_to_matrix(np.array([0.0, 0.0, np.radians(a)]))
-            views.append((f"turn_{a:.0f}", Rigid3(R @ self._last.R, c)))
-        return self._best_views(gray, views)
-
-    def _survey_hypotheses(self, gray: np.ndarray) -> list[tuple[str, Rigid3]]:
-        """The last view's height, tilt and roll over the whole ground, any heading, best by the learned colours
-        (:mod:`cadalign.infer.track.survey`): a survey's return after turning out of view."""
-        cfg, rgb = self.cfg.survey, self.edges.colour_frame
-        usual = self._typical_region()
-        if self._last is None or rgb is None or cfg.every <= 0 or self._lost_frames % cfg.every \
-                or usual is None or usual < cfg.min_region:
-            return []
-        views = [T for T in ground_views(self._last, *self._box, cfg) if self.reachable(T)]
-        return [(f"survey_{i}", T.inverse()) for i, T in enumerate(best_by_colour(self.edges, rgb, views, cfg))]
-
-    def _best_views(self, gray: np.ndarray, views: list[tuple[str, Rigid3]]) -> list[tuple[str, Rigid3]]:
-        """Of (name, ``T_world_from_cam``) views, the best ``orbit_fits`` by the pan/tilt/roll search's score,
-        as (name, ``T_cam_from_world``); views the navigation pose rules out (:meth:`reachable`) are skipped."""
-        scored = []
-        for name, T_wc in views:
-            if not self.reachable(T_wc):
-                continue
-            cands = candidates(self.edges, gray, T_wc, self.cfg.acquire)
-            if cands:
-                scored.append((cands[0][0], name, T_wc))
-        scored.sort(key=lambda x: -x[0])
-        return [(name, T.inverse()) for _, name, T in scored[:self.cfg.orbit_fits]]
 
     def step(self, gray: np.ndarray, restarts: Sequence[tuple[str, Rigid3]] = (),
              rgb: np.ndarray | None = None, nav: Rigid3 | None = None) -> TrackStep:
@@ -336,18 +285,8 @@ class StructureTracker:
             best, tried = (climbed, best[1]), tried + n
         # the tracker's own hypotheses: when lost with nothing else to restart from, or when a navigation pose
         # bounds where they may go
-        own = self._last is not None and (not restarts or nav is not None)
-        if best is None and own:
-            best, n = self._best_of(gray, self._lost_hypotheses(gray), True)
-            tried += n
-        if best is None and own:  # turned on the spot while out of view
-            best, n = self._best_of(gray, self._turn_hypotheses(gray), True)
-            tried += n
-        if best is None and own and self._lost_frames % max(self.cfg.orbit_every, 1) == 0:  # round the structure
-            best, n = self._best_of(gray, self._orbit_hypotheses(gray), True)
-            tried += n
-        if best is None and own:  # a survey's return: anywhere over the ground at the last height
-            best, n = self._best_of(gray, self._survey_hypotheses(gray), True, unique=True)
+        if best is None and self._last is not None and (not restarts or nav is not None):
+            best, n = self._own_restart(gray)
             tried += n
         if best is not None:
             self._supports = []  # a restart has no history of support
@@ -359,6 +298,27 @@ class StructureTracker:
         self.lost = True
         return TrackStep(k, "lost", None, None, "", time.perf_counter() - t0, tried,
                          None if self._nav_refused is None else self._nav_refused[1], self._closest)
+
+    def _own_restart(self, gray: np.ndarray) -> tuple[tuple[EdgeFit, str] | None, int]:
+        """(the best passing fit of the tracker's own hypotheses, in turn until one passes, and its name; fits
+        tried): the last pose and motion, the views turned on the spot, round the structure (every ``orbit_every``
+        lost frames) and over the ground (:mod:`cadalign.infer.track.views`)."""
+        assert self._last is not None
+        best, tried = self._best_of(gray, self._lost_hypotheses(gray), True)
+        if best is None:  # turned on the spot while out of view
+            views = turn_views(self.edges, gray, self._last, self._step, self._lost_frames, self.cfg, self.reachable)
+            best, n = self._best_of(gray, views, True)
+            tried += n
+        if best is None and self._lost_frames % max(self.cfg.orbit_every, 1) == 0:  # round the structure
+            views = orbit_views(self.edges, gray, self._last, self._centre, self.cfg, self.reachable)
+            best, n = self._best_of(gray, views, True)
+            tried += n
+        if best is None:  # a survey's return: anywhere over the ground at the last height
+            views = survey_views(self.edges, self._last, self._box, self._typical_region(), self._lost_frames,
+                                 self.cfg, self.reachable)
+            best, n = self._best_of(gray, views, True, unique=True)
+            tried += n
+        return best, tried
 
     def _learn_colours(self, fit: EdgeFit) -> bool:
         """Teach the region term the parts' colours along ``fit``'s contours in the colour frame; False without."""
@@ -438,7 +398,7 @@ class StructureTracker:
             return False, 0
         tried = 0
         for a in (90, 180, 270):
-            alt = self._restart_fit(gray, self._round_structure(a, fit.T_world_from_cam))
+            alt = self._restart_fit(gray, round_structure(self._centre, a, fit.T_world_from_cam))
             tried += 1
             if self.good(alt, start=True) and self.rank(alt) > self.rank(fit) - self.cfg.unique_margin:
                 log.info("frame %d: %s refused: the structure turned %d deg round its vertical fits as well (rank "
