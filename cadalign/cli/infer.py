@@ -43,7 +43,9 @@ def command(
     oracle_gt: Path | None = typer.Option(
         None, "--oracle-gt", help="TEST/DEMO ONLY, instead of --model: ground-truth detections of this simulation "
         "with noisy poses (exercises refinement and fusion without a trained network)."),
-    gt: Path | None = typer.Option(None, "--gt", help="Simulation folder or BOP scene: evaluate against its truth."),
+    gt: Path | None = typer.Option(
+        None, "--gt", help="Simulation folder or BOP scene: evaluate against its truth (the tracker, given a "
+        "simulation, also writes per-frame errors: truth_errors.json/.png)."),
     calib: Path | None = typer.Option(
         None, "--calib", help="Camera intrinsics and lens distortion: {\"K\": [...]} JSON, COLMAP cameras.txt, OpenCV "
         "YAML/XML, ROS CameraInfo YAML, or a cameras.json (which may add metric camera poses per frame)."),
@@ -190,14 +192,23 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
                        max_frames=max_frames, overwrite=overwrite, progress=track, lens=lens, topic=topic,
                        record={"detector": info, "cad": str(cad)}, nav=navigation, stride=stride)
     console.print(f"[green]poses written to {path}[/]")
-    if gt_poses is not None:
-        from cadalign.infer.track.truth import truth_report  # lazy: pulls matplotlib; keeps `cadalign --help` light
+    sim_cameras = None if gt_scene is None else gt_scene / "cameras.json"
+    if gt_poses is not None or (sim_cameras is not None and sim_cameras.is_file()):
+        from cadalign.infer.track.truth import ACCURATE, WRONG, truth_report  # lazy: pulls matplotlib
 
-        summary = truth_report(out, structure, read_frame_poses(gt_poses))
-        for name, v in summary["parts"].items():
-            if v["median_mm"] is not None:
-                console.print(f"{name}: median {v['median_mm']:.1f} mm / {v['median_deg']:.2f} deg against "
-                              f"{gt_poses.name} ({summary['tracked']}/{summary['frames']} frames tracked)")
+        if gt_poses is not None:
+            summary = truth_report(out, structure, read_frame_poses(gt_poses))
+            for name, v in summary["parts"].items():
+                if v["median_mm"] is not None:
+                    console.print(f"{name}: median {v['median_mm']:.1f} mm / {v['median_deg']:.2f} deg against "
+                                  f"{gt_poses.name} ({summary['tracked']}/{summary['frames']} frames tracked)")
+        else:  # a simulation's true camera poses (its parts are many: the counts, not a line each)
+            from cadalign.sim.navigation import read_camera_poses  # lazy: pulls numpy; keeps `cadalign --help` light
+
+            summary = truth_report(out, structure, read_camera_poses(sim_cameras))
+        console.print(f"of {summary['tracked']} tracked frames, {summary['accurate']} have every part within "
+                      f"{ACCURATE[0]:.0f} mm / {ACCURATE[1]} deg and {summary['wrong']} one off by more than "
+                      f"{WRONG[0]:.0f} mm or {WRONG[1]:.0f} deg ({out / 'truth_errors.png'})")
     _print_track_summary(out)
 
 

@@ -749,6 +749,32 @@ def test_infer_tracks_rgb_frames_from_an_init_pose(tmp_path: Path, track_sim: Pa
     # small parts over a flat seabed is near the tracker's limits: see issue 43's note)
     assert (out / "overlay.mp4").is_file() and json.loads((out / "timings.json").read_text())["frames"] == len(names)
     assert (out / "track.png").stat().st_size > 0
+    truth = json.loads((out / "truth_errors.json").read_text())  # --gt of a simulation: per-frame errors too
+    assert [r["frame_name"] for r in truth["frames"]] == [s["frame_name"] for s in steps]
+    s = truth["summary"]
+    assert s["tracked"] == sum(st["state"] == "ok" for st in steps) and s["accurate"] + s["wrong"] <= s["tracked"]
+    assert (out / "truth_errors.png").stat().st_size > 0 and "tracked frames" in res.output
+
+
+def test_the_truth_report_counts_accurate_and_wrong_frames(tmp_path: Path, track_sim: Path) -> None:
+    """A frame at the truth is accurate, one 20 cm off is wrong, one 3 cm off is neither, a lost one has no
+    errors."""
+    from cadalign.infer.track.truth import truth_report
+    from cadalign.sim.structure import load_structure
+
+    structure = load_structure(track_sim.parent / "structure.toml")
+    _, names, cams = _frames(track_sim)
+    truth = {n: _T_cw(cams[n]) for n in names[:4]}
+    shifted = [Rigid3(np.eye(3), np.array([0.0, d, 0.0])) @ truth[n]  # every part moves d metres in the camera
+               for n, d in zip(names[:3], (0.0, 0.2, 0.03), strict=True)]
+    rows = [{"frame": i, "frame_name": n, "state": "ok", "T_cam_from_world": T.matrix().tolist()}
+            for i, (n, T) in enumerate(zip(names[:3], shifted, strict=True))]
+    rows.append({"frame": 3, "frame_name": names[3], "state": "lost", "T_cam_from_world": None})
+    (tmp_path / "track.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    summary = truth_report(tmp_path, structure, truth)
+    assert (summary["frames"], summary["tracked"], summary["accurate"], summary["wrong"]) == (4, 3, 1, 1)
+    frames = json.loads((tmp_path / "truth_errors.json").read_text())["frames"]
+    assert [round(f["worst_mm"]) for f in frames[:3]] == [0, 200, 30] and "worst_mm" not in frames[3]
 
 
 def test_the_run_picture_marks_each_part_reported_missing_or_neither() -> None:

@@ -29,10 +29,17 @@ def read_frame_poses(path: Path, what: str = "reference poses") -> dict[str, Rig
     return out
 
 
+ACCURATE = (10.0, 0.5)
+"""(mm, deg): a tracked frame whose every part is within both is counted accurate (issue 43's per-class mean)."""
+WRONG = (100.0, 5.0)
+"""(mm, deg): a tracked frame with a part off by more than either is counted wrong (a pose no user should get)."""
+
+
 def truth_report(out_dir: Path, structure: Structure, truth: dict[str, Rigid3]) -> dict:
     """Per-frame errors of each part's tracked pose against reference camera poses (``truth_errors.json``) and
-    their plot (``truth_errors.png``): the part's centre in the camera (mm) and its rotation (deg); a lost
-    frame has none."""
+    their plot (``truth_errors.png``): the part's centre in the camera (mm) and its rotation (deg), and each
+    tracked frame's worst part; a lost frame has none. The summary counts the tracked frames that are
+    :data:`ACCURATE` and :data:`WRONG`."""
 
     rows = []
     for d in read_jsonl(Path(out_dir) / "track.jsonl"):
@@ -48,8 +55,13 @@ def truth_report(out_dir: Path, structure: Structure, truth: dict[str, Rigid3]) 
                 row["parts"][o.name] = {
                     "centre_err_mm": 1e3 * float(np.linalg.norm(A.apply(c[None]) - B.apply(c[None]))),
                     "rot_err_deg": float(np.degrees(geodesic_angle(A.R, B.R)))}
+            row["worst_mm"] = max(v["centre_err_mm"] for v in row["parts"].values())
+            row["worst_deg"] = max(v["rot_err_deg"] for v in row["parts"].values())
         rows.append(row)
-    summary: dict = {"frames": len(rows), "tracked": sum(r["state"] == "ok" for r in rows), "parts": {}}
+    worst = [(r["worst_mm"], r["worst_deg"]) for r in rows if "worst_mm" in r]
+    summary: dict = {"frames": len(rows), "tracked": sum(r["state"] == "ok" for r in rows),
+                     "accurate": sum(mm <= ACCURATE[0] and deg <= ACCURATE[1] for mm, deg in worst),
+                     "wrong": sum(mm > WRONG[0] or deg > WRONG[1] for mm, deg in worst), "parts": {}}
     for o in structure.objects:
         t = [r["parts"][o.name]["centre_err_mm"] for r in rows if o.name in r["parts"]]
         a = [r["parts"][o.name]["rot_err_deg"] for r in rows if o.name in r["parts"]]
