@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -21,6 +21,7 @@ from cadalign.infer.track.acquire import candidates
 from cadalign.infer.track.config import TrackerConfig
 from cadalign.infer.track.edges import EdgeFit, EdgeTracker
 from cadalign.infer.track.flow import FlowPredictor
+from cadalign.infer.track.region import RegionModel
 from cadalign.infer.track.survey import apart
 from cadalign.infer.track.views import orbit_views, round_structure, survey_views, turn_views
 from cadalign.raycast.core import RenderMesh
@@ -280,9 +281,10 @@ class StructureTracker:
                     return self._accept(gray, k, max(fits, key=self.rank), "track", t0, tried)
         best, n = self._best_of(gray, restarts)
         tried += n
-        if best is not None and self._last is None:  # a start: searched round again while its support rises
-            climbed, n = self._climb(gray, best[0])
-            best, tried = (climbed, best[1]), tried + n
+        if best is not None and self._last is None:  # a start: searched round again while its support rises,
+            climbed, n = self._climb(gray, best[0])  # then fitted again with the colours learned there
+            polished, m = self._polish(gray, climbed)
+            best, tried = (polished, best[1]), tried + n + m
         # the tracker's own hypotheses: when lost with nothing else to restart from, or when a navigation pose
         # bounds where they may go
         if best is None and self._last is not None and (not restarts or nav is not None):
@@ -389,6 +391,25 @@ class StructureTracker:
                 break
             fit = other
         return fit, tried
+
+    def _polish(self, gray: np.ndarray, fit: EdgeFit) -> tuple[EdgeFit, int]:
+        """(a start's fit fitted again with the parts' colours learned at it, when that finds more edges; fits
+        tried): the start's search fits edges alone, and the region term widens the fit's basin
+        (``polish_start``). The colours are learned aside: the track learns them at the fit it keeps."""
+        if not self.cfg.polish_start or self.edges.region.ready:
+            return fit, 0
+        kept = self.edges.region
+        self.edges.region = RegionModel(kept.cfg)
+        try:
+            if not self._learn_colours(fit):
+                return fit, 0
+            again = self._restart_fit(gray, fit.T_world_from_cam)
+            better = self.good(again, start=True) and again.support > fit.support and not self.ran_off(
+                fit.T_world_from_cam, again, "the start's second fit", self.cfg.acquire.max_turn_deg)
+        finally:
+            self.edges.region = kept
+        # its region support rests on colours from this frame: read again on accepting, as the first frame's is
+        return (replace(again, region_support=float("nan")), 1) if better else (fit, 1)
 
     def _turned_alike(self, gray: np.ndarray, fit: EdgeFit, name: str) -> tuple[bool, int]:
         """(whether a pose the tracker found by itself, with no navigation pose to bound it, is refused: the view
