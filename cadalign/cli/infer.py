@@ -192,8 +192,11 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
                        max_frames=max_frames, overwrite=overwrite, progress=track, lens=lens, topic=topic,
                        record={"detector": info, "cad": str(cad)}, nav=navigation, stride=stride)
     console.print(f"[green]poses written to {path}[/]")
-    sim_cameras = None if gt_scene is None else gt_scene / "cameras.json"
-    if gt_poses is not None or (sim_cameras is not None and sim_cameras.is_file()):
+    sim_cameras = None if gt_scene is None else gt_scene / "cameras.json"  # a simulation's (or a built dataset's)
+    if sim_cameras is not None and not (sim_cameras.is_file()
+                                        and read_json(sim_cameras).get("units", "m") in ("m", "metres", "meters")):
+        sim_cameras = None  # none, or not metric: no per-frame errors
+    if gt_poses is not None or sim_cameras is not None:
         from cadalign.infer.track.truth import ACCURATE, WRONG, truth_report  # lazy: pulls matplotlib
 
         if gt_poses is not None:
