@@ -54,3 +54,26 @@ def test_import_geometry_is_light():
     )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_a_progress_bar_runs_no_thread_and_an_abandoned_one_closes_from_any_thread():
+    """cli.common.track redraws from the iterating thread: rich's own ``track`` starts two threads, and an abandoned
+    one closed by the garbage collector inside its refresh thread hung a test run (s60)."""
+    import threading
+
+    from cadalign.cli.common import track
+
+    before = threading.active_count()
+    seen = []
+    for i in track(range(5), "items"):
+        seen.append(i)
+        assert threading.active_count() == before
+    assert seen == [0, 1, 2, 3, 4]
+    left = track(iter(range(100)), "left early")  # no len: the bar's total stays open
+    assert next(left) == 0 and threading.active_count() == before
+    closer = threading.Thread(target=left.close)
+    closer.start()
+    closer.join(timeout=10)
+    assert not closer.is_alive()
+    with pytest.raises(StopIteration):
+        next(left)

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import logging
-from collections.abc import Iterable, Iterator
+import time
+from collections.abc import Iterable, Iterator, Sized
 from typing import TypeVar
 
 import typer
@@ -30,8 +31,17 @@ def setup_logging(level: str) -> None:
     )
 
 
+REFRESH_S = 0.1
+"""The progress bar is redrawn at most this often, seconds (and after the last item)."""
+
+
 def track(items: Iterable[T], description: str, total: int | None = None) -> Iterator[T]:
-    """Iterate with a rich progress bar on stderr."""
+    """Iterate with a rich progress bar on stderr.
+
+    The bar is redrawn by the iterating thread as items finish, with no thread of its own (rich's ``track`` starts
+    two). A loop left early (an error, Ctrl-C) leaves this generator suspended until the garbage collector closes
+    it, in whatever thread runs then: closing a threaded bar there joins its threads, which can wait on a lock that
+    thread holds (a test run hung so: a bar's refresh thread closing its own abandoned ``track``)."""
     columns = (
         TextColumn("[bold]{task.description}"),
         BarColumn(),
@@ -39,8 +49,19 @@ def track(items: Iterable[T], description: str, total: int | None = None) -> Ite
         TimeElapsedColumn(),
         TimeRemainingColumn(),
     )
-    with Progress(*columns, console=console, transient=False) as progress:
-        yield from progress.track(items, total=total, description=description)
+    if total is None and isinstance(items, Sized):
+        total = len(items)
+    with Progress(*columns, console=console, transient=False, auto_refresh=False) as progress:
+        task = progress.add_task(description, total=total)
+        progress.refresh()
+        drawn = time.monotonic()
+        for item in items:
+            yield item
+            progress.advance(task)
+            if time.monotonic() - drawn >= REFRESH_S:
+                progress.refresh()
+                drawn = time.monotonic()
+        progress.refresh()
 
 
 @contextlib.contextmanager
