@@ -81,8 +81,8 @@ class TrackerConfig:
     climb_gain: float = 0.01
     """See ``start_climbs``: a share of the contour samples."""
     polish_start: bool = True
-    """Fit a start again once the parts' colours are learned at it, and keep it when it finds more edges (a start 2
-    deg / 0.3 m off reached 0.06 deg: docs/tuning/tracker.md#starts-fitted-again-with-colours-s60)."""
+    """Fit a start again once the parts' colours are learned at it, and keep it when its support is ``start_margin``
+    higher (a start 2 deg / 0.3 m off reached 0.06 deg: docs/tuning/tracker.md#starts-fitted-again-with-colours-s60)."""
     acquire_rounds: int = 2
     """Searches per hypothesis: when none of a search's candidates passes, the next searches round the best of
     them (a rough pose whose error is partly translation needs two)."""

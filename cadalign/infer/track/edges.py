@@ -309,6 +309,15 @@ class EdgeTracker:
         seen_turn = np.degrees(np.linalg.norm(c.T_world_from_cam.t - T.t) / c.depth_m)  # as seen from the contours
         return c if turn <= self.cfg.carry_deg and seen_turn <= self.cfg.carry_deg else None
 
+    def snapshot(self) -> tuple[RegionModel, _Judged | None]:
+        """What fits leave for the next frame's: the parts' colours and the last judged render (``carry_deg``); give
+        it to :meth:`restore` to undo fits tried aside."""
+        return self.region, self._carry
+
+    def restore(self, snapshot: tuple[RegionModel, _Judged | None]) -> None:
+        """Back to a :meth:`snapshot`."""
+        self.region, self._carry = snapshot
+
     def judge(self, gray: np.ndarray, T_world_from_cam: Rigid3) -> EdgeFit:
         """Edge support of the CAD's contours at ``T_world_from_cam`` in ``gray`` (full resolution)."""
         r = self.renderer(1.0)

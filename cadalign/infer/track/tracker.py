@@ -393,21 +393,23 @@ class StructureTracker:
         return fit, tried
 
     def _polish(self, gray: np.ndarray, fit: EdgeFit) -> tuple[EdgeFit, int]:
-        """(a start's fit fitted again with the parts' colours learned at it, when that finds more edges; fits
-        tried): the start's search fits edges alone, and the region term widens the fit's basin
-        (``polish_start``). The colours are learned aside: the track learns them at the fit it keeps."""
+        """(a start's fit fitted again with the parts' colours learned at it, when that finds more edges by
+        ``start_margin``, as a search's candidate must beat its hypothesis' own fit; fits tried): the start's search
+        fits edges alone, and the region term widens the fit's basin (``polish_start``). Tried aside: the track learns
+        the colours at the fit it keeps, and a second fit not kept leaves nothing behind."""
         if not self.cfg.polish_start or self.edges.region.ready:
             return fit, 0
-        kept = self.edges.region
-        self.edges.region = RegionModel(kept.cfg)
+        before = self.edges.snapshot()
+        self.edges.region = RegionModel(before[0].cfg)
+        better = False
         try:
             if not self._learn_colours(fit):
                 return fit, 0
             again = self._restart_fit(gray, fit.T_world_from_cam)
-            better = self.good(again, start=True) and again.support > fit.support and not self.ran_off(
-                fit.T_world_from_cam, again, "the start's second fit", self.cfg.acquire.max_turn_deg)
-        finally:
-            self.edges.region = kept
+            better = self.good(again, start=True) and again.support > fit.support + self.cfg.start_margin and \
+                not self.ran_off(fit.T_world_from_cam, again, "the start's second fit", self.cfg.acquire.max_turn_deg)
+        finally:  # the colours as before; the last judged render the kept fit's (the next frame may carry it)
+            self.edges.restore((before[0], self.edges.snapshot()[1]) if better else before)
         # its region support rests on colours from this frame: read again on accepting, as the first frame's is
         return (replace(again, region_support=float("nan")), 1) if better else (fit, 1)
 
