@@ -192,27 +192,30 @@ def _track(source: Path, cad: Path, out: Path, model: Path | None, init_pose: Pa
                        max_frames=max_frames, overwrite=overwrite, progress=track, lens=lens, topic=topic,
                        record={"detector": info, "cad": str(cad)}, nav=navigation, stride=stride)
     console.print(f"[green]poses written to {path}[/]")
-    sim_cameras = None if gt_scene is None else gt_scene / "cameras.json"  # a simulation's (or a built dataset's)
-    if sim_cameras is not None and not (sim_cameras.is_file()
-                                        and read_json(sim_cameras).get("units", "m") in ("m", "metres", "meters")):
-        sim_cameras = None  # none, or not metric: no per-frame errors
-    if gt_poses is not None or sim_cameras is not None:
+    truth = read_frame_poses(gt_poses) if gt_poses is not None else _scene_camera_poses(gt_scene)
+    if truth:
         from cadalign.infer.track.truth import ACCURATE, WRONG, truth_report  # lazy: pulls matplotlib
 
-        if gt_poses is not None:
-            summary = truth_report(out, structure, read_frame_poses(gt_poses))
+        summary = truth_report(out, structure, truth)
+        if gt_poses is not None:  # (a simulation's parts are many: the counts below, not a line each)
             for name, v in summary["parts"].items():
                 if v["median_mm"] is not None:
                     console.print(f"{name}: median {v['median_mm']:.1f} mm / {v['median_deg']:.2f} deg against "
                                   f"{gt_poses.name} ({summary['tracked']}/{summary['frames']} frames tracked)")
-        else:  # a simulation's true camera poses (its parts are many: the counts, not a line each)
-            from cadalign.sim.navigation import read_camera_poses  # lazy: pulls numpy; keeps `cadalign --help` light
-
-            summary = truth_report(out, structure, read_camera_poses(sim_cameras))
         console.print(f"of {summary['tracked']} tracked frames, {summary['accurate']} have every part within "
                       f"{ACCURATE[0]:.0f} mm / {ACCURATE[1]} deg and {summary['wrong']} one off by more than "
                       f"{WRONG[0]:.0f} mm or {WRONG[1]:.0f} deg ({out / 'truth_errors.png'})")
     _print_track_summary(out)
+
+
+def _scene_camera_poses(scene: Path | None) -> dict:
+    """``T_cam_from_world`` by frame name from a ``--gt`` BOP scene's ``cameras.json`` (a simulation's truth, a built
+    dataset's poses) when it holds metric poses; else empty."""
+    from cadalign.infer.run import load_calibration  # lazy: pulls cv2; keeps `cadalign --help` light
+
+    if scene is None or not (scene / "cameras.json").is_file():
+        return {}
+    return {n: T.inverse() for n, T in load_calibration(scene / "cameras.json").T_world_from_cam_of.items()}
 
 
 def _print_track_summary(out: Path) -> None:

@@ -29,12 +29,7 @@ def rough_pose(T_cam_from_world: Rigid3, rng: np.random.Generator, turn_deg: flo
 
 def true_poses(sim_dir: Path) -> dict[str, Rigid3]:
     """The simulator's true ``T_cam_from_world`` per frame name (``gt/sim/000000/cameras.json``)."""
-    return read_camera_poses(Path(sim_dir) / CAMERAS)
-
-
-def read_camera_poses(path: Path) -> dict[str, Rigid3]:
-    """``T_cam_from_world`` per frame name from a ``cameras.json`` (``cadalign sim``'s, metres)."""
-    frames = read_json(path)["frames"]
+    frames = read_json(Path(sim_dir) / CAMERAS)["frames"]
     return {k: Rigid3(np.reshape(e["R_cam_from_world"], (3, 3)), np.asarray(e["t_cam_from_world_m"], dtype=np.float64))
             for k, e in frames.items()}
 

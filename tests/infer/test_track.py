@@ -1234,16 +1234,22 @@ class TestRegion:
         np.testing.assert_allclose(after, direct, rtol=1e-12)
         assert np.all(model.foreground(colours, np.array([9])) == 0.5)  # a part it never saw
 
+    @staticmethod
+    def _coloured_view(tr: StructureTracker, render) -> tuple[Rigid3, np.ndarray, np.ndarray]:
+        """(``T_cam_from_world``, grey, rgb) of the boxes' first view, each box painted its :data:`PALETTE` colour
+        and shaded as the grey frame."""
+        T = _view(0).inverse()
+        grey = render(T.inverse())
+        f = tr.edges.renderer().render(T.inverse(), with_full_masks=False)
+        rgb = np.clip(PALETTE[f.instance % len(PALETTE)] * (grey[..., None] / 160.0), 0, 255).astype(np.float32)
+        return T, grey, rgb
+
     def test_region_support_refuses_a_pose_the_edges_would_pass(self, boxes) -> None:
         from dataclasses import replace
 
         meshes, cam, render = boxes
         tr = StructureTracker(meshes, cam, BOXES_TRACKER)
-        T = _view(0).inverse()
-        grey = render(T.inverse())
-        f = tr.edges.renderer().render(T.inverse(), with_full_masks=False)
-        rgb = PALETTE[f.instance % len(PALETTE)] * (grey[..., None] / 160.0)
-        rgb = np.clip(rgb, 0, 255).astype(np.float32)
+        T, grey, rgb = self._coloured_view(tr, render)
         assert not tr.edges.region.ready
         first = tr.step(grey, [("init", T)], rgb)
         # the first frame teaches the colours and is read with them (for the parts' check), but a track's
@@ -1276,10 +1282,7 @@ class TestRegion:
         meshes, cam, render = boxes
         carry = replace(BOXES_TRACKER.edges, carry_deg=5.0)  # fits keep their judged render for the next frame
         tr = StructureTracker(meshes, cam, replace(BOXES_TRACKER, polish_start=polish, edges=carry))
-        T = _view(0).inverse()
-        grey = render(T.inverse())
-        f = tr.edges.renderer().render(T.inverse(), with_full_masks=False)
-        rgb = np.clip(PALETTE[f.instance % len(PALETTE)] * (grey[..., None] / 160.0), 0, 255).astype(np.float32)
+        T, grey, rgb = self._coloured_view(tr, render)
         seen = []  # the region term's state at each second fit
         real = tr._restart_fit
 

@@ -408,8 +408,10 @@ class StructureTracker:
             again = self._restart_fit(gray, fit.T_world_from_cam)
             better = self.good(again, start=True) and again.support > fit.support + self.cfg.start_margin and \
                 not self.ran_off(fit.T_world_from_cam, again, "the start's second fit", self.cfg.acquire.max_turn_deg)
-        finally:  # the colours as before; the last judged render the kept fit's (the next frame may carry it)
-            self.edges.restore((before[0], self.edges.snapshot()[1]) if better else before)
+        finally:  # the colours as before (the track learns them at the fit it keeps); the last judged render the
+            # kept fit's, which the next frame may carry
+            carried = self.edges.snapshot()[1] if better else before[1]
+            self.edges.restore((before[0], carried))
         # its region support rests on colours from this frame: read again on accepting, as the first frame's is
         return (replace(again, region_support=float("nan")), 1) if better else (fit, 1)
 
