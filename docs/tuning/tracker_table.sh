@@ -2,6 +2,8 @@
 # Issue 43's comparison table on the demo's held-out frames (val + test of its split, 33 frames), RGB frames;
 # intrinsics from calibration.json; --gt for scoring only. Networks: the recipe (training/pose_fast_zoom_{improved,
 # thesis}.toml, 7400 steps, seed 0) trained on the demo's dataset (/work/dev/s51/demo/build/dataset).
+# Session 61 ran it again with networks trained again the same way (/work/dev/s61/pose_{improved,thesis}, heldout,
+# table; docs/tuning/tracker.md#the-comparison-table-and-speed-at-the-final-code-with-the-recipe-networks-trained-again-s61).
 # Usage, from the repository root (session 52's paths in brackets):
 #   S=SIM H=HELDOUT I=IMPROVED_RUN T=THESIS_RUN INIT=INIT.json O=OUT docs/tuning/tracker_table.sh ROW...
 # SIM: `cadalign sim datasets/scenes/default.toml` [/work/dev/sim_default]; HELDOUT: a folder of that simulation's
