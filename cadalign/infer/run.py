@@ -113,8 +113,8 @@ def load_calibration(path: Path, *, use_poses: bool = True) -> Calibration:
     frames = data.get("frames") or {}
     metric = data.get("units", "m") in ("m", "metres", "meters")
     if use_poses and not metric and frames:
-        log.warning("%s is in %s units: its camera poses are not used (temporal fusion uses the filter)",
-                    path, data.get("units"))
+        log.warning("%s is in %s units, not metres: its camera poses are not used (infer tracks the structure "
+                    "itself; with --no-tracker the detections are fused by the filter)", path, data.get("units"))
     K_of = {n: np.reshape(np.asarray(f["K"], float), (3, 3)) for n, f in frames.items()}
     T_of = {}
     if use_poses and metric:

@@ -223,7 +223,7 @@ def test_a_class_threshold_keeps_that_class_below_the_score_threshold(scene: Pat
         replace(PRESETS["none"], class_score_thresh={"valve": 1.5})
 
 
-def test_calibration_uses_only_metric_poses(tmp_path: Path, tiny_sim: Path) -> None:
+def test_calibration_uses_only_metric_poses(tmp_path: Path, tiny_sim: Path, caplog) -> None:
     from cadalign.infer.run import load_calibration
     from cadalign.io import read_json, write_json
 
@@ -231,7 +231,9 @@ def test_calibration_uses_only_metric_poses(tmp_path: Path, tiny_sim: Path) -> N
     metric = load_calibration(scene_cameras)
     assert set(metric.T_world_from_cam_of) == set(cams["frames"]) and metric.K("unlisted.png").shape == (3, 3)
     write_json(sfm := tmp_path / "cameras.json", {**cams, "units": "sfm"})
-    assert load_calibration(sfm).T_world_from_cam_of == {}  # SfM units: intrinsics only
+    with caplog.at_level("WARNING"):
+        assert load_calibration(sfm).T_world_from_cam_of == {}  # SfM units: intrinsics only
+    assert f"{sfm} is in sfm units, not metres: its camera poses are not used" in caplog.text
 
 
 def test_no_predictions_score_zero(scene: Path) -> None:
