@@ -8,7 +8,8 @@
 - the detector alone (the Mask R-CNN + pose network) on the same frames: a trained run (``--model``), or a
   network of the recipe's architecture with random weights (compute does not depend on the weights; the report
   says which).
-The ratio of the two is the result; absolute times on a shared machine are noise.
+The ratio of the two is the result; absolute times on a shared machine are noise. With ``repeats`` both are timed
+several times in turn and each figure is the median over the repeats (a shared machine's other jobs slow some).
 """
 
 from __future__ import annotations
@@ -46,6 +47,8 @@ class TrackSpeed:
     """Mean wall-clock ms of a tracked frame (all the process' threads at work)."""
     detector_ms_wall: float = float("nan")
     """Mean wall-clock ms of the detector alone."""
+    repeats: tuple[dict, ...] = ()
+    """With several repeats, each one's times (the fields above are their medians); empty for one."""
 
     @property
     def ratio(self) -> float:
@@ -56,6 +59,7 @@ class TrackSpeed:
         tracked_on = bool(np.isfinite(self.track_ms) and self.track_ms > 0)
         return {"frames": self.frames, "tracked": self.tracked, "track_ms_cpu": self.track_ms if tracked_on else None,
                 "track_frames_per_s_cpu": 1e3 / self.track_ms if tracked_on else None,
+                "track_frames_per_s_wall": 1e3 / self.track_ms_wall if tracked_on else None,
                 **({} if tracked_on else {"problem": "no frame was tracked on from the one before (each was lost or "
                                                      "restarted): no tracking rate; give a video the tracker follows"}),
                 "restart_ms_cpu": self.restart_ms, "detector_ms_cpu": self.detector_ms,
@@ -64,6 +68,7 @@ class TrackSpeed:
                 "track_ms_wall": self.track_ms_wall if tracked_on else None, "detector_ms_wall": self.detector_ms_wall,
                 "tracker_over_detector_wall": self.detector_ms_wall / self.track_ms_wall if tracked_on else None,
                 "detector": self.detector,
+                **({"repeats": list(self.repeats), "median_of": len(self.repeats)} if self.repeats else {}),
                 "note": "CPU time of this process per frame (torch and Open3D use its threads) and wall time; same "
                         "frames, same run; wall time means something only on an otherwise idle machine"}
 
@@ -89,9 +94,9 @@ def time_tracker(frames: list[np.ndarray], structure: Structure, camera: Camera,
     return start, per, ok, wall
 
 
-def time_detector(frames: list[np.ndarray], camera: Camera, model: Path | None, classes: tuple[str, ...],
-                  recipe: Path | None = None) -> tuple[list[float], str, list[float]]:
-    """CPU s per frame of the detector alone, what it was, and wall s per frame."""
+def _detector(camera: Camera, model: Path | None, classes: tuple[str, ...],
+              recipe: Path | None = None) -> tuple[TorchDetector, str]:
+    """The detector the tracker is compared with, and what it is."""
     import torch  # lazy: heavy dependency (torch)
 
     if model is not None:
@@ -108,27 +113,46 @@ def time_detector(frames: list[np.ndarray], camera: Camera, model: Path | None, 
         net = MaskRCNNPose(cfg.model, list(classes)).eval()
         what = (f"the architecture of {recipe or 'the fast preset'} with random weights, no detection kept (score "
                 "threshold above 1): backbone, RPN and box head only, a lower bound of a trained network's time")
-    det = TorchDetector(net, 0.5 if model is not None else 1.01, "cpu")
+    return TorchDetector(net, 0.5 if model is not None else 1.01, "cpu"), what
+
+
+def time_detector(frames: list[np.ndarray], camera: Camera, det: TorchDetector) -> tuple[list[float], list[float]]:
+    """CPU s and wall s per frame of the detector alone."""
     per, wall = [], []
     for img in frames:
         c0, w0 = time.process_time(), time.perf_counter()
         det.detect(img, camera.K)
         per.append(time.process_time() - c0)
         wall.append(time.perf_counter() - w0)
-    return per, what, wall
+    return per, wall
 
 
 def bench_track(source: Path, structure: Structure, camera: Camera, init_pose: Rigid3, *, model: Path | None = None,
                 recipe: Path | None = None, max_frames: int = 30, cfg: TrackerConfig | None = None,
-                max_width: int = TrackRunConfig().max_width) -> TrackSpeed:
+                max_width: int = TrackRunConfig().max_width, repeats: int = 1) -> TrackSpeed:
     """The tracker and the detector alone on the first ``max_frames`` frames of ``source`` (module doc); the tracker
-    sees frames wider than ``max_width`` at that width, as ``infer`` gives them to it."""
+    sees frames wider than ``max_width`` at that width, as ``infer`` gives them to it. ``repeats``: both are timed
+    this many times, in turn (a fresh tracker each time); each time is the median over the repeats (the other jobs of
+    a shared machine slow some repeats), and :attr:`TrackSpeed.repeats` keeps every repeat's."""
     frames = [vf.image for vf in iter_frames(source, max_frames=max_frames)]
     work = working_camera(camera, max_width)
     small = frames if work.width == camera.width else [
         cv2.resize(f, (work.width, work.height), interpolation=cv2.INTER_AREA) for f in frames]
-    start, per, ok, wall = time_tracker(small, structure, work, init_pose, cfg)
-    det, what, det_wall = time_detector(frames, camera, model, structure.class_names, recipe)
-    return TrackSpeed(len(frames), ok, 1e3 * float(np.mean(per)) if per else float("nan"), 1e3 * start,
-                      1e3 * float(np.mean(det)), what, 1e3 * float(np.mean(wall)) if wall else float("nan"),
-                      1e3 * float(np.mean(det_wall)))
+    det, what = _detector(camera, model, structure.class_names, recipe)
+    runs, ok = [], 0
+    for _ in range(max(repeats, 1)):
+        start, per, ok, wall = time_tracker(small, structure, work, init_pose, cfg)
+        d_per, d_wall = time_detector(frames, camera, det)
+        runs.append({"track_ms_cpu": _ms(per), "track_ms_wall": _ms(wall), "restart_ms_cpu": 1e3 * start,
+                     "detector_ms_cpu": _ms(d_per), "detector_ms_wall": _ms(d_wall)})
+
+    def med(key: str) -> float:
+        return float(np.median([r[key] for r in runs]))
+
+    return TrackSpeed(len(frames), ok, med("track_ms_cpu"), med("restart_ms_cpu"), med("detector_ms_cpu"), what,
+                      med("track_ms_wall"), med("detector_ms_wall"), tuple(runs) if repeats > 1 else ())
+
+
+def _ms(seconds: list[float]) -> float:
+    """Mean milliseconds of per-frame times in seconds (NaN: none)."""
+    return 1e3 * float(np.mean(seconds)) if seconds else float("nan")

@@ -144,6 +144,8 @@ def track_speed(
     recipe: Path | None = typer.Option(None, "--recipe", help="Training recipe whose architecture the default "
                                        "baseline takes (e.g. training/pose_fast_zoom_improved.toml)."),
     max_frames: int = typer.Option(30, "--max-frames", min=2, help="Frames to time."),
+    repeats: int = typer.Option(1, "--repeats", min=1, help="Time the tracker and the detector this many times, in "
+                                "turn, and report the medians (each repeat is kept in bench_track.json)."),
     preset: str = typer.Option("balanced", "--preset", help="The tracker's preset: fast | balanced | accurate."),
     config: Path | None = typer.Option(None, "--config", help="TOML/YAML with overrides of the tracker preset."),
     out: Path = OUT,
@@ -163,13 +165,17 @@ def track_speed(
         lens.check_size(w, h, f"{frames}'s first frame")
         cfg = resolve(TrackRunConfig, PRESETS, preset, config)
         res = bench_track(frames, load_structure(cad), Camera(lens.K, w, h), read_init_pose(init_pose), model=model,
-                          recipe=recipe, max_frames=max_frames, cfg=cfg.tracker, max_width=cfg.max_width)
+                          recipe=recipe, max_frames=max_frames, cfg=cfg.tracker, max_width=cfg.max_width,
+                          repeats=repeats)
         write_json(out / "bench_track.json", res.record())
     rec = res.record()
     if rec["track_ms_cpu"] is None:
         console.print(f"[yellow]{rec['problem']}[/yellow]; {res.tracked}/{res.frames} tracked, restart "
                       f"{res.restart_ms:.0f} ms -> {out / 'bench_track.json'}")
         return
+    if res.repeats:
+        fps = ", ".join(f"{1e3 / r['track_ms_wall']:.1f}" for r in res.repeats)
+        console.print(f"{len(res.repeats)} repeats, tracker frames/s of wall time: {fps}; the medians:")
     console.print(f"tracker {1e3 / res.track_ms:.1f} frames/s (CPU), detector alone {1e3 / res.detector_ms:.1f} "
                   f"frames/s: {res.ratio:.2f}x (wall clock: {1e3 / res.track_ms_wall:.1f} and "
                   f"{1e3 / res.detector_ms_wall:.1f} frames/s, {rec['tracker_over_detector_wall']:.2f}x); restart "

@@ -1345,9 +1345,12 @@ def test_a_part_seen_present_needs_two_missing_checks() -> None:
     assert not m.missing[2]  # found again at once
 
 
-def test_bench_track_times_the_tracker_and_the_detector_on_the_same_frames(tmp_path: Path, track_sim: Path) -> None:
+@pytest.mark.parametrize("repeats", [1, 3])
+def test_bench_track_times_the_tracker_and_the_detector_on_the_same_frames(tmp_path: Path, track_sim: Path,
+                                                                           repeats: int) -> None:
     """``cadalign bench track``: CPU and wall times of the tracker's continued frames, of its start and of the
-    detector alone (the recipe's architecture, random weights), and their ratio, in bench_track.json."""
+    detector alone (the recipe's architecture, random weights), and their ratio, in bench_track.json; with
+    ``--repeats`` each time is the median of the repeats, which are kept."""
     from typer.testing import CliRunner
 
     from cadalign.cli.main import app
@@ -1359,9 +1362,17 @@ def test_bench_track_times_the_tracker_and_the_detector_on_the_same_frames(tmp_p
     res = CliRunner().invoke(app, ["bench", "track", "--frames", str(track_sim / "frames"),
                                    "--cad", str(track_sim.parent / "structure.toml"),
                                    "--calib", str(track_sim / "calibration.json"),
-                                   "--init-pose", str(init), "--max-frames", "3", "--out", str(out)])
+                                   "--init-pose", str(init), "--max-frames", "3", "--repeats", str(repeats),
+                                   "--out", str(out)])
     assert res.exit_code == 0, res.output
     rec = json.loads((out / "bench_track.json").read_text())
+    if repeats == 1:
+        assert "repeats" not in rec
+    else:
+        assert rec["median_of"] == repeats == len(rec["repeats"]) and f"{repeats} repeats" in res.output
+        for key in ("track_ms_cpu", "track_ms_wall", "detector_ms_cpu", "detector_ms_wall", "restart_ms_cpu"):
+            assert rec[key] == pytest.approx(float(np.median([r[key] for r in rec["repeats"]]))), key
+    assert rec["track_frames_per_s_wall"] == pytest.approx(1e3 / rec["track_ms_wall"])
     assert rec["frames"] == 3 and rec["restart_ms_cpu"] > 0 and "random weights" in rec["detector"]
     assert rec["tracked"] == 3 and "problem" not in rec  # started at the true pose: frames 1-2 are continued
     assert rec["track_ms_cpu"] > 0 and rec["track_ms_wall"] > 0 and rec["detector_ms_wall"] > 0
