@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from cadalign.errors import InputError
+from cadalign.formats.calibration import frame_pose
 from cadalign.io import read_json
 
 
@@ -76,8 +77,7 @@ def roi_mask(points_sfm: np.ndarray, roi: Roi, cameras: dict[str, dict]) -> np.n
             raise InputError(f"{roi.source}: frame {name!r} is not registered in the SfM model; click in registered "
                              f"frames (see sfm/cameras.json), e.g. {', '.join(sorted(cameras)[:3])}")
         cam = cameras[name]
-        R = np.reshape(cam["R_cam_from_world"], (3, 3))
-        x = pts @ R.T + np.asarray(cam["t_cam_from_world_m"], dtype=np.float64)
+        x = frame_pose(cam).apply(pts)
         front = x[:, 2] > 0
         uv = (x @ np.reshape(cam["K"], (3, 3)).T)[:, :2] / np.where(front, x[:, 2], 1.0)[:, None]
         contour = poly.astype(np.float32).reshape(-1, 1, 2)

@@ -52,6 +52,7 @@ from cadalign.cad.models_info import write_model_ply_mm, write_models_info
 from cadalign.config import from_dict
 from cadalign.errors import ConfigError, InputError
 from cadalign.formats.bop import BopScene
+from cadalign.formats.calibration import frame_pose
 from cadalign.formats.coco import coco_annotations, write_coco
 from cadalign.formats.splits import time_block_splits
 from cadalign.geometry import sim3_from_matrix
@@ -80,9 +81,8 @@ DEFAULT_VERIFY = VerifyConfig()
 
 def metric_pose(entry: dict, cad_from_sfm: Sim3) -> tuple[Camera, Rigid3]:
     """A cameras.json entry (SfM units) -> (camera, metric ``T_world_from_cam`` in the CAD frame)."""
-    R_cw = np.reshape(entry["R_cam_from_world"], (3, 3))
-    c_sfm = -R_cw.T @ np.asarray(entry["t_cam_from_world_m"], dtype=np.float64)
-    T = Rigid3(cad_from_sfm.R @ R_cw.T, cad_from_sfm.apply(c_sfm[None])[0])
+    T_wc = frame_pose(entry).inverse()  # SfM units
+    T = Rigid3(cad_from_sfm.R @ T_wc.R, cad_from_sfm.apply(T_wc.t[None])[0])
     return Camera(np.reshape(entry["K"], (3, 3)), int(entry["width"]), int(entry["height"])), T
 
 

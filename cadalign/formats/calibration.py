@@ -44,6 +44,7 @@ import numpy as np
 import yaml
 
 from cadalign.errors import InputError
+from cadalign.types import Rigid3
 
 DistortionModel = Literal["none", "opencv", "fisheye"]
 FORMATS = ("K-json", "cameras.json", "colmap-cameras.txt", "opencv", "ros")
@@ -230,6 +231,22 @@ def _cameras_json(path: Path, data: dict[str, Any]) -> CameraCalibration:
         raise _fail(path, "this cameras.json has no 'camera' with K or params and no frame with 'K'")
     return _calibration(path, "cameras.json", _matrix(path, rec["K"], "K"),
                         _size(path, rec.get("width"), rec.get("height")), "none", (), opencv_centres=False)
+
+
+def frame_pose(entry: dict[str, Any]) -> Rigid3:
+    """``T_cam_from_world`` of one frame of a cameras.json (``R_cam_from_world``, ``t_cam_from_world_m``; the file's
+    ``"units"``)."""
+    return Rigid3(np.reshape(entry["R_cam_from_world"], (3, 3)), np.asarray(entry["t_cam_from_world_m"], np.float64))
+
+
+def frame_poses(cameras: dict[str, Any], names: list[str] | None = None) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """The camera poses of a cameras.json dict (``{"frames": {name: {"R_cam_from_world", "t_cam_from_world_m"}}}``,
+    in the file's ``"units"``): the names of the frames with a pose (sorted; or ``names``), (N, 3, 3)
+    ``R_cam_from_world`` and (N, 3) ``t_cam_from_world``."""
+    frames = cameras.get("frames", {})
+    names = sorted(n for n, f in frames.items() if "R_cam_from_world" in f) if names is None else list(names)
+    poses = [frame_pose(frames[n]) for n in names]
+    return names, np.array([T.R for T in poses]).reshape(-1, 3, 3), np.array([T.t for T in poses]).reshape(-1, 3)
 
 
 # --- COLMAP cameras.txt -----------------------------------------------------------------------------------------

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from cadalign.errors import InputError
+from cadalign.formats.calibration import frame_poses
 from cadalign.geometry.rotations import matrix_to_quaternion
 from cadalign.io import write_text
 
@@ -51,11 +52,8 @@ def tum_text(names: list[str], R_world_from_cam: np.ndarray, t_world_from_cam: n
 def write_cameras_tum(cameras: Mapping[str, Any], path: Path) -> Path:
     """Write the poses of a cameras.json dict (``{"frames": {name: {"R_cam_from_world", "t_cam_from_world_m"}}}``,
     optional ``"units"``) as a TUM trajectory (atomically); frames without a pose are left out."""
-    frames = {n: f for n, f in cameras.get("frames", {}).items() if "R_cam_from_world" in f}
-    names = sorted(frames)
-    R_cw = np.array([np.reshape(frames[n]["R_cam_from_world"], (3, 3)) for n in names], dtype=np.float64)
-    t_cw = np.array([frames[n]["t_cam_from_world_m"] for n in names], dtype=np.float64).reshape(-1, 3)
-    R_wc = np.swapaxes(R_cw.reshape(-1, 3, 3), 1, 2)
+    names, R_cw, t_cw = frame_poses(dict(cameras))
+    R_wc = np.swapaxes(R_cw, 1, 2)
     C = -np.einsum("nij,nj->ni", R_wc, t_cw)
     units = {"sfm": "SfM units (arbitrary scale)"}.get(str(cameras.get("units", "m")), "metres")
     return write_text(Path(path), tum_text(names, R_wc, C, units))

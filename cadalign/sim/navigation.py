@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cadalign.formats.calibration import frame_poses
 from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.io import read_json, write_json
 from cadalign.types import Rigid3
@@ -29,9 +30,8 @@ def rough_pose(T_cam_from_world: Rigid3, rng: np.random.Generator, turn_deg: flo
 
 def true_poses(sim_dir: Path) -> dict[str, Rigid3]:
     """The simulator's true ``T_cam_from_world`` per frame name (``gt/sim/000000/cameras.json``)."""
-    frames = read_json(Path(sim_dir) / CAMERAS)["frames"]
-    return {k: Rigid3(np.reshape(e["R_cam_from_world"], (3, 3)), np.asarray(e["t_cam_from_world_m"], dtype=np.float64))
-            for k, e in frames.items()}
+    names, R, t = frame_poses(read_json(Path(sim_dir) / CAMERAS))
+    return {n: Rigid3(R[i], t[i]) for i, n in enumerate(names)}
 
 
 def navigation_poses(sim_dir: Path, seed: int = 0, turn_deg: float = 10.0, shift_m: float = 0.5) -> dict[str, Rigid3]:
