@@ -155,6 +155,11 @@ class RaycastRenderer:
         if self._dirs_cam.shape != (camera.height, camera.width, 3):
             raise InputError(f"rays_cam has shape {self._dirs_cam.shape}; expected ({camera.height}, "
                              f"{camera.width}, 3) for this camera")
+        # how far (pixels) the lens moves a point from where a pinhole of K puts it: each part's full mask is cast in
+        # the pinhole box of its corners widened by this (a pincushion lens puts a part further out)
+        lens = self._dirs_cam[..., :2] / self._dirs_cam[..., 2:] - pixel_rays_cam(camera)[..., :2]
+        self._lens_px = 0 if rays_cam is None else int(np.ceil(max(camera.fx * np.abs(lens[..., 0]).max(),
+                                                                   camera.fy * np.abs(lens[..., 1]).max())))
         self._ray_len = np.linalg.norm(self._dirs_cam, axis=-1).astype(np.float32)
         self._rays_unit = (self._dirs_cam / self._ray_len[..., None]).astype(np.float32)
         self._dirs_cam32 = self._dirs_cam.astype(np.float32)
@@ -234,7 +239,7 @@ class RaycastRenderer:
         T_cam_from_world = T_world_from_cam.inverse() @ Rigid3(np.eye(3), self._origin)  # cam from local
         masks = {}
         for k, alone in self._single.items():
-            box = _bbox_in_image(self._world_bounds[k], T_cam_from_world, self.camera)
+            box = _bbox_in_image(self._world_bounds[k], T_cam_from_world, self.camera, self._lens_px)
             if box is None:
                 continue
             r0, r1, c0, c1 = box
@@ -248,9 +253,10 @@ class RaycastRenderer:
 
 
 def _bbox_in_image(
-    bounds: np.ndarray, T_cam_from_world: Rigid3, camera: Camera
+    bounds: np.ndarray, T_cam_from_world: Rigid3, camera: Camera, margin_px: int = 0
 ) -> tuple[int, int, int, int] | None:
-    """Pixel box (r0, r1, c0, c1) covering a world AABB; the whole image if it straddles the camera plane."""
+    """Pixel box (r0, r1, c0, c1) covering a world AABB, widened by ``margin_px`` on each side; the whole image if it
+    straddles the camera plane."""
     corners = np.array(
         [[bounds[i, 0], bounds[j, 1], bounds[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
     )
@@ -260,8 +266,8 @@ def _bbox_in_image(
     if np.any(pc[:, 2] <= 1e-3):
         return 0, camera.height, 0, camera.width
     uv = pc[:, :2] / pc[:, 2:] * [camera.fx, camera.fy] + [camera.cx, camera.cy]
-    c0, r0 = np.floor(uv.min(0)).astype(int) - 1
-    c1, r1 = np.ceil(uv.max(0)).astype(int) + 1
+    c0, r0 = np.floor(uv.min(0)).astype(int) - 1 - margin_px
+    c1, r1 = np.ceil(uv.max(0)).astype(int) + 1 + margin_px
     c0, c1 = max(c0, 0), min(c1, camera.width)
     r0, r1 = max(r0, 0), min(r1, camera.height)
     if c0 >= c1 or r0 >= r1:

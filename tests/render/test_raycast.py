@@ -119,3 +119,24 @@ def test_bad_mesh_lists_raise_input_error() -> None:
     cube = _cube(1.0, (0, 0, 0))
     with pytest.raises(InputError, match="instance id 1"):
         RaycastRenderer([_mesh(cube, 1, 1), _mesh(cube, 1, 2)], CAM)
+
+
+@pytest.mark.parametrize("k1", [0.0, -0.3, 0.3])
+def test_full_masks_of_a_distorted_lens_are_not_cropped(k1: float) -> None:
+    """With per-pixel rays of a radially distorted lens (an SfM camera), a part near the image's corner has the same
+    full mask as when it alone is cast over the whole frame: the box each mask is cast in covers where the lens puts
+    the part, not where a pinhole would (a pincushion lens puts it further out)."""
+    from cadalign.raycast.core import pixel_rays_cam
+
+    rays = pixel_rays_cam(CAM)
+    r2 = rays[..., 0] ** 2 + rays[..., 1] ** 2
+    rays = rays.copy()
+    rays[..., :2] /= (1 + k1 * r2)[..., None]  # pixel radius r_d sees the ray of pinhole radius ~ r_d / (1 + k1 r_d^2)
+    T = _look_at(np.array([0.0, -5.0, 0.0]), np.zeros(3))
+    corner = _cube(0.5, (1.9, 0.0, 1.3))  # near the top-right corner of the view
+    centre = _cube(0.6, (0.0, 0.0, 0.0))
+    r = RaycastRenderer([_mesh(corner, 1, 1), _mesh(centre, 2, 1)], CAM, rays_cam=rays)
+    f = r.render(T)
+    alone = RaycastRenderer([_mesh(corner, 1, 1)], CAM, rays_cam=rays).render(T, with_full_masks=False)
+    assert (alone.instance == 1).sum() > 20
+    np.testing.assert_array_equal(f.full_masks[1], alone.instance == 1)
