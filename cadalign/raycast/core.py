@@ -159,7 +159,7 @@ class RaycastRenderer:
         # the pinhole box of its corners widened by this (a pincushion lens puts a part further out)
         lens = self._dirs_cam[..., :2] / self._dirs_cam[..., 2:] - pixel_rays_cam(camera)[..., :2]
         self._lens_px = 0 if rays_cam is None else int(np.ceil(max(camera.fx * np.abs(lens[..., 0]).max(),
-                                                                   camera.fy * np.abs(lens[..., 1]).max())))
+                                                                   camera.fy * np.abs(lens[..., 1]).max()) - 1e-3))
         self._ray_len = np.linalg.norm(self._dirs_cam, axis=-1).astype(np.float32)
         self._rays_unit = (self._dirs_cam / self._ray_len[..., None]).astype(np.float32)
         self._dirs_cam32 = self._dirs_cam.astype(np.float32)
