@@ -157,9 +157,7 @@ class RaycastRenderer:
                              f"{camera.width}, 3) for this camera")
         # how far (pixels) the lens moves a point from where a pinhole of K puts it: each part's full mask is cast in
         # the pinhole box of its corners widened by this (a pincushion lens puts a part further out)
-        lens = self._dirs_cam[..., :2] / self._dirs_cam[..., 2:] - pixel_rays_cam(camera)[..., :2]
-        self._lens_px = 0 if rays_cam is None else int(np.ceil(max(camera.fx * np.abs(lens[..., 0]).max(),
-                                                                   camera.fy * np.abs(lens[..., 1]).max()) - 1e-3))
+        self._lens_px = 0 if rays_cam is None else _lens_px(self._dirs_cam, camera)
         self._ray_len = np.linalg.norm(self._dirs_cam, axis=-1).astype(np.float32)
         self._rays_unit = (self._dirs_cam / self._ray_len[..., None]).astype(np.float32)
         self._dirs_cam32 = self._dirs_cam.astype(np.float32)
@@ -250,6 +248,13 @@ class RaycastRenderer:
             if mask.any():
                 masks[k] = mask
         return masks
+
+
+def _lens_px(rays_cam: np.ndarray, camera: Camera) -> int:
+    """The most, in whole pixels, that the lens of per-pixel ``rays_cam`` moves a point from where a pinhole of
+    ``camera.K`` puts it (0 below a thousandth of a pixel: a pinhole camera's own rays)."""
+    lens = rays_cam[..., :2] / rays_cam[..., 2:] - pixel_rays_cam(camera)[..., :2]
+    return int(np.ceil(max(camera.fx * np.abs(lens[..., 0]).max(), camera.fy * np.abs(lens[..., 1]).max()) - 1e-3))
 
 
 def _bbox_in_image(
