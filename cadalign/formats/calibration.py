@@ -240,7 +240,8 @@ def frame_pose(entry: dict[str, Any]) -> Rigid3:
     return Rigid3(np.reshape(entry["R_cam_from_world"], (3, 3)), np.asarray(entry["t_cam_from_world_m"], np.float64))
 
 
-def frame_poses(cameras: Mapping[str, Any], names: list[str] | None = None) -> tuple[list[str], np.ndarray, np.ndarray]:
+def camera_pose_arrays(cameras: Mapping[str, Any], names: list[str] | None = None,
+                       ) -> tuple[list[str], np.ndarray, np.ndarray]:
     """The camera poses of a cameras.json dict (``{"frames": {name: {"R_cam_from_world", "t_cam_from_world_m"}}}``,
     in the file's ``"units"``): the names of the frames with a pose (sorted; or ``names``), (N, 3, 3)
     ``R_cam_from_world`` and (N, 3) ``t_cam_from_world``."""

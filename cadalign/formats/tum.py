@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from cadalign.errors import InputError
-from cadalign.formats.calibration import frame_poses
+from cadalign.formats.calibration import camera_pose_arrays
 from cadalign.geometry.rotations import matrix_to_quaternion
 from cadalign.io import write_text
 
@@ -52,7 +52,7 @@ def tum_text(names: list[str], R_world_from_cam: np.ndarray, t_world_from_cam: n
 def write_cameras_tum(cameras: Mapping[str, Any], path: Path) -> Path:
     """Write the poses of a cameras.json dict (``{"frames": {name: {"R_cam_from_world", "t_cam_from_world_m"}}}``,
     optional ``"units"``) as a TUM trajectory (atomically); frames without a pose are left out."""
-    names, R_cw, t_cw = frame_poses(cameras)
+    names, R_cw, t_cw = camera_pose_arrays(cameras)
     R_wc = np.swapaxes(R_cw, 1, 2)
     C = -np.einsum("nij,nj->ni", R_wc, t_cw)
     units = {"sfm": "SfM units (arbitrary scale)"}.get(str(cameras.get("units", "m")), "metres")

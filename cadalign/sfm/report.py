@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from cadalign.formats.calibration import frame_poses, read_calibration
+from cadalign.formats.calibration import camera_pose_arrays, read_calibration
 from cadalign.io import atomic_path
 
 SFM_UNITS = "sfm"
@@ -89,7 +89,7 @@ def intrinsics_from_cameras_json(path: Path) -> tuple[float, float, float, float
 
 def camera_centres(cameras: dict[str, Any]) -> tuple[list[str], np.ndarray, np.ndarray]:
     """Names, (N, 3) centres ``-R^T t`` and (N, 3, 3) ``R_cam_from_world`` of a cameras.json dict."""
-    names, R, t = frame_poses(cameras, sorted(cameras["frames"]))
+    names, R, t = camera_pose_arrays(cameras, sorted(cameras["frames"]))
     C = -np.einsum("nji,nj->ni", R, t)
     return names, C, R
 

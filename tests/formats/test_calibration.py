@@ -195,9 +195,9 @@ def test_size_check_names_the_file_both_sizes_and_the_fix(tmp_path: Path) -> Non
 
 
 def test_a_cameras_json_gives_each_posed_frame_s_camera_pose() -> None:
-    """``frame_poses``: the frames with a pose, sorted (or as named), their ``R_cam_from_world`` and translations; a
-    frame with intrinsics only is left out. ``frame_pose`` gives one frame's ``T_cam_from_world``."""
-    from cadalign.formats.calibration import frame_pose, frame_poses
+    """``camera_pose_arrays``: the frames with a pose, sorted (or as named), their ``R_cam_from_world`` and
+    translations; a frame with intrinsics only is left out. ``frame_pose`` gives one frame's ``T_cam_from_world``."""
+    from cadalign.formats.calibration import camera_pose_arrays, frame_pose
     from cadalign.geometry.rotations import axis_angle_to_matrix
 
     R = axis_angle_to_matrix(np.array([0.1, -0.2, 0.3]))
@@ -206,11 +206,11 @@ def test_a_cameras_json_gives_each_posed_frame_s_camera_pose() -> None:
         "a.png": {"K": np.eye(3).tolist(), "R_cam_from_world": np.eye(3).ravel().tolist(),
                   "t_cam_from_world_m": [0, 0, 1]},
         "c.png": {"K": np.eye(3).tolist()}}}
-    names, Rs, ts = frame_poses(cams)
+    names, Rs, ts = camera_pose_arrays(cams)
     assert names == ["a.png", "b.png"] and Rs.shape == (2, 3, 3) and ts.shape == (2, 3)
     assert np.allclose(Rs[1], R) and np.allclose(ts, [[0, 0, 1], [1, 2, 3]])
-    names, Rs, ts = frame_poses(cams, ["b.png"])
+    names, Rs, ts = camera_pose_arrays(cams, ["b.png"])
     assert names == ["b.png"] and np.allclose(ts, [[1, 2, 3]])
     T = frame_pose(cams["frames"]["b.png"])
     assert np.allclose(T.apply(-R.T @ [1.0, 2.0, 3.0]), 0.0)  # the camera centre maps to the origin
-    assert frame_poses({"frames": {}})[1].shape == (0, 3, 3)
+    assert camera_pose_arrays({"frames": {}})[1].shape == (0, 3, 3)
