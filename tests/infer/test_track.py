@@ -1234,6 +1234,26 @@ class TestRegion:
         np.testing.assert_allclose(after, direct, rtol=1e-12)
         assert np.all(model.foreground(colours, np.array([9])) == 0.5)  # a part it never saw
 
+    def test_pooled_colours_weigh_each_part_by_the_pixels_it_taught(self) -> None:
+        """The survey's pooled log odds: a big red part (30 samples) and a small blue one on red (3 samples) pool to
+        red = structure in the ratio of their pixels, not half and half (which would make both colours even)."""
+        from cadalign.infer.track.region import RegionConfig, RegionModel
+
+        rgb, instance = self._two_colours(noise=0.0)
+        n_big, n_small = 30, 3
+        model = RegionModel(RegionConfig())
+        assert model.pooled_log_odds(rgb.astype(np.uint8)) is None
+        for n_s, image, part in ((n_big, rgb, 1), (n_small, rgb[:, ::-1].copy(), 2)):
+            ys = np.linspace(5.0, 34.0, n_s)
+            on = np.stack([np.full_like(ys, 39.5), ys], axis=1)
+            model.learn(image, on, np.tile([1.0, 0.0], (n_s, 1)), np.full(n_s, part), instance * part)
+        line = model.cfg.line_px
+        assert model.fg_pixels == {1: n_big * line, 2: n_small * line} == model.bg_pixels
+        odds = model.pooled_log_odds(rgb.astype(np.uint8))
+        expected = np.log(n_big / n_small)  # red: taught inside 30 lines and beyond 3
+        np.testing.assert_allclose(odds[:, :40], expected, rtol=1e-9)
+        np.testing.assert_allclose(odds[:, 40:], -expected, rtol=1e-9)
+
     @staticmethod
     def _coloured_view(tr: StructureTracker, render) -> tuple[Rigid3, np.ndarray, np.ndarray]:
         """(``T_cam_from_world``, grey, rgb) of the boxes' first view, each box painted its :data:`PALETTE` colour

@@ -47,6 +47,9 @@ class RegionModel:
         self.cfg = cfg
         self.fg: dict[int, np.ndarray] = {}
         self.bg: dict[int, np.ndarray] = {}
+        # pixels each part's histograms were taught per lesson (blended as they are): weighs the parts in the pool
+        self.fg_pixels: dict[int, float] = {}
+        self.bg_pixels: dict[int, float] = {}
         self._luts: tuple[np.ndarray, np.ndarray] | None = None  # log pf, log (1 - pf) per (part, bin)
         self._byte_bins = np.arange(256, dtype=np.int32) * cfg.bins // 256  # each channel byte's bin
 
@@ -76,7 +79,7 @@ class RegionModel:
         t = np.arange(self.cfg.line_px) + 0.5
         nb, k_of = self.cfg.bins**3, sample_instance.astype(np.int64)  # parts: small non-negative ids
         parts = np.flatnonzero(np.bincount(k_of))
-        for store, sign in ((self.fg, -1.0), (self.bg, 1.0)):  # inside the contour, then beyond it
+        for store, pixels, sign in ((self.fg, self.fg_pixels, -1.0), (self.bg, self.bg_pixels, 1.0)):  # inside, beyond
             st = sign * t
             x = np.floor(uv[:, 0, None] + st[None, :] * normal[:, 0, None] + 0.5).astype(int)
             y = np.floor(uv[:, 1, None] + st[None, :] * normal[:, 1, None] + 0.5).astype(int)
@@ -96,15 +99,21 @@ class RegionModel:
                 k = int(k)
                 a = self.cfg.learn_rate if k in store else 1.0
                 store[k] = (1 - a) * store.get(k, h) + a * h
+                pixels[k] = (1 - a) * pixels.get(k, 0.0) + a * float(c.sum())
         self._luts = None
 
     def pooled_log_odds(self, rgb: np.ndarray) -> np.ndarray | None:
-        """(H, W) each pixel's log odds ``log pf / (1 - pf)`` of showing any learned part, from the parts' histograms
-        pooled (each part's weighing alike), ``pf`` clipped as the lines' are; None before any part is learned."""
+        """(H, W) each pixel's log odds ``log pf / (1 - pf)`` of showing the structure, ``pf`` clipped as the lines'
+        are, from the parts' histograms pooled by the pixels each taught: the colours of every pixel learned inside
+        a part against every pixel learned beyond one, so a part weighs as much as it shows (a whole structure's
+        silhouette is mostly its frame; docs/tuning/tracker.md#colours-pooled-by-pixels-s63). None before any part
+        is learned."""
         known = [k for k in self.fg if k in self.bg]
         if not known:
             return None
-        pf = self._share(np.mean([self.fg[k] for k in known], axis=0), np.mean([self.bg[k] for k in known], axis=0))
+        f = sum(self.fg_pixels[k] * self.fg[k] for k in known) / sum(self.fg_pixels[k] for k in known)
+        b = sum(self.bg_pixels[k] * self.bg[k] for k in known) / sum(self.bg_pixels[k] for k in known)
+        pf = self._share(f, b)
         return (np.log(pf) - np.log1p(-pf))[self._bin(rgb)]
 
     def foreground(self, colours: np.ndarray, sample_instance: np.ndarray) -> np.ndarray:
