@@ -158,6 +158,11 @@ class Sim3:
         with np.errstate(over="ignore", invalid="ignore"):
             return _checked_apply(self.s * (x @ self.R.T) + self.t, x, "Sim3")
 
+    def carry_pose(self, T_world_from_cam: Rigid3) -> Rigid3:
+        """A camera pose ``T_world_from_cam`` of frame b as a pose of frame a: its centre moved by the similarity and
+        its axes turned by ``R`` (the scale changes no direction), e.g. an SfM camera in the CAD frame."""
+        return Rigid3(self.R @ T_world_from_cam.R, self.apply(T_world_from_cam.t[None])[0])
+
     def rigid(self) -> Rigid3:
         """The rotation and translation, dropping the scale."""
         return Rigid3(self.R, self.t)

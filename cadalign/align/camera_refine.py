@@ -85,7 +85,7 @@ class CameraRefineResult:
 
 def _world_pose(T_cam_from_world_sfm: Any, cad_from_sfm: Sim3) -> Rigid3:
     R_cw, t_cw = T_cam_from_world_sfm.rotation.matrix(), np.asarray(T_cam_from_world_sfm.translation)
-    return Rigid3(cad_from_sfm.R @ R_cw.T, cad_from_sfm.apply((-R_cw.T @ t_cw)[None])[0])
+    return cad_from_sfm.carry_pose(Rigid3(R_cw, t_cw).inverse())
 
 
 def refine_cameras(rec: Any, cad_from_sfm: Sim3, vertices_m: np.ndarray, faces: np.ndarray,

@@ -81,8 +81,7 @@ DEFAULT_VERIFY = VerifyConfig()
 
 def metric_pose(entry: dict, cad_from_sfm: Sim3) -> tuple[Camera, Rigid3]:
     """A cameras.json entry (SfM units) -> (camera, metric ``T_world_from_cam`` in the CAD frame)."""
-    T_wc = frame_pose(entry).inverse()  # SfM units
-    T = Rigid3(cad_from_sfm.R @ T_wc.R, cad_from_sfm.apply(T_wc.t[None])[0])
+    T = cad_from_sfm.carry_pose(frame_pose(entry).inverse())
     return Camera(np.reshape(entry["K"], (3, 3)), int(entry["width"]), int(entry["height"])), T
 
 

@@ -144,3 +144,17 @@ def test_sim3_from_matrix_extreme_scales_without_overflow(scale: float) -> None:
     M = np.eye(4)
     M[:3, :3] *= scale
     assert sim3_from_matrix(M).s == pytest.approx(scale, rel=1e-12)
+
+
+def test_a_camera_pose_carried_by_a_similarity_keeps_what_the_camera_sees() -> None:
+    """``Sim3.carry_pose``: the camera's centre moves with the similarity and its axes turn with it, so a point
+    carried alongside keeps its direction in the camera (its depth scales by ``s``)."""
+    rng = np.random.default_rng(3)
+    S = _sim(rng)
+    T_wc = _rigid(rng)
+    carried = S.carry_pose(T_wc)
+    np.testing.assert_allclose(carried.t, S.apply(T_wc.t[None])[0], atol=1e-12)
+    X = rng.normal(size=(5, 3))
+    before = T_wc.inverse().apply(X)
+    after = carried.inverse().apply(S.apply(X))
+    np.testing.assert_allclose(after, S.s * before, atol=1e-9)

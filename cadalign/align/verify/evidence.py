@@ -35,7 +35,7 @@ class View:
 
     def pose(self, cad_from_sfm: Sim3) -> Rigid3:
         """``T_world_from_cam`` in the CAD frame under ``cad_from_sfm``."""
-        return Rigid3(cad_from_sfm.R @ self.R_cw.T, cad_from_sfm.apply(self.c_sfm[None])[0])
+        return cad_from_sfm.carry_pose(Rigid3(self.R_cw.T, self.c_sfm))
 
 
 def edge_evidence(renderer: RaycastRenderer, gray: np.ndarray, T_world_from_cam: Rigid3, cfg: VerifyConfig,

@@ -92,14 +92,14 @@ class RegionModel:
             counts = np.bincount(flat, minlength=(k_of.max() + 1) * nb).reshape(-1, nb)
             for k in parts:
                 c = counts[k]
-                if c.sum() < 20:
+                n = float(c.sum())
+                if n < 20:
                     continue
-                h = c.astype(np.float64)
-                h /= h.sum()
+                h = c / n
                 k = int(k)
                 a = self.cfg.learn_rate if k in store else 1.0
                 store[k] = (1 - a) * store.get(k, h) + a * h
-                pixels[k] = (1 - a) * pixels.get(k, 0.0) + a * float(c.sum())
+                pixels[k] = (1 - a) * pixels.get(k, 0.0) + a * n
         self._luts = None
 
     def pooled_log_odds(self, rgb: np.ndarray) -> np.ndarray | None:
