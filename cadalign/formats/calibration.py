@@ -240,14 +240,24 @@ def frame_pose(entry: dict[str, Any]) -> Rigid3:
     return Rigid3(np.reshape(entry["R_cam_from_world"], (3, 3)), np.asarray(entry["t_cam_from_world_m"], np.float64))
 
 
+def posed_frames(cameras: Mapping[str, Any]) -> dict[str, Rigid3]:
+    """``T_cam_from_world`` of each frame of a cameras.json dict that has a pose (in the file's ``"units"``); frames
+    with intrinsics only are left out."""
+    return {n: frame_pose(f) for n, f in (cameras.get("frames") or {}).items() if "R_cam_from_world" in f}
+
+
 def camera_pose_arrays(cameras: Mapping[str, Any], names: list[str] | None = None,
                        ) -> tuple[list[str], np.ndarray, np.ndarray]:
     """The camera poses of a cameras.json dict (``{"frames": {name: {"R_cam_from_world", "t_cam_from_world_m"}}}``,
     in the file's ``"units"``): the names of the frames with a pose (sorted; or ``names``), (N, 3, 3)
     ``R_cam_from_world`` and (N, 3) ``t_cam_from_world``."""
-    frames = cameras.get("frames", {})
-    names = sorted(n for n, f in frames.items() if "R_cam_from_world" in f) if names is None else list(names)
-    poses = [frame_pose(frames[n]) for n in names]
+    if names is None:
+        posed = posed_frames(cameras)
+        names = sorted(posed)
+        poses = [posed[n] for n in names]
+    else:
+        names = list(names)
+        poses = [frame_pose(cameras["frames"][n]) for n in names]
     return names, np.array([T.R for T in poses]).reshape(-1, 3, 3), np.array([T.t for T in poses]).reshape(-1, 3)
 
 

@@ -38,7 +38,7 @@ import numpy as np
 from cadalign.cad.model import CadModel
 from cadalign.errors import InputError
 from cadalign.formats.bop import BopScene
-from cadalign.formats.calibration import CameraCalibration, Undistorter, frame_pose, read_calibration
+from cadalign.formats.calibration import CameraCalibration, Undistorter, posed_frames, read_calibration
 from cadalign.formats.class_map import load_class_map
 from cadalign.formats.coco import rle_to_mask
 from cadalign.fuse.predictors import depth_predictor
@@ -118,7 +118,7 @@ def load_calibration(path: Path, *, use_poses: bool = True) -> Calibration:
     K_of = {n: np.reshape(np.asarray(f["K"], float), (3, 3)) for n, f in frames.items()}
     T_of = {}
     if use_poses and metric:
-        T_of = {n: frame_pose(f).inverse() for n, f in frames.items() if "R_cam_from_world" in f}
+        T_of = {n: T.inverse() for n, T in posed_frames(data).items()}
     return Calibration(lens.K, K_of, T_of, lens)
 
 

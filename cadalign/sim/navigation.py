@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cadalign.formats.calibration import frame_pose
+from cadalign.formats.calibration import posed_frames
 from cadalign.geometry.rotations import axis_angle_to_matrix
 from cadalign.io import read_json, write_json
 from cadalign.types import Rigid3
@@ -30,7 +30,7 @@ def rough_pose(T_cam_from_world: Rigid3, rng: np.random.Generator, turn_deg: flo
 
 def true_poses(sim_dir: Path) -> dict[str, Rigid3]:
     """The simulator's true ``T_cam_from_world`` per frame name (``gt/sim/000000/cameras.json``)."""
-    return {n: frame_pose(e) for n, e in read_json(Path(sim_dir) / CAMERAS)["frames"].items()}
+    return posed_frames(read_json(Path(sim_dir) / CAMERAS))
 
 
 def navigation_poses(sim_dir: Path, seed: int = 0, turn_deg: float = 10.0, shift_m: float = 0.5) -> dict[str, Rigid3]:

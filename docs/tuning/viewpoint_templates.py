@@ -23,6 +23,7 @@ import numpy as np
 from cadalign.align.edge_refine import contour_samples
 from cadalign.config import resolve
 from cadalign.formats.calibration import read_calibration
+from cadalign.geometry.camera import backproject
 from cadalign.geometry.rotations import geodesic_angle
 from cadalign.infer.track import edges as E
 from cadalign.infer.track import tracker as TR
@@ -32,6 +33,7 @@ from cadalign.infer.video import iter_frames
 from cadalign.raycast.core import RaycastRenderer
 from cadalign.sim.navigation import true_poses
 from cadalign.sim.structure import load_structure
+from cadalign.sim.trajectory import look_at
 from cadalign.types import Camera, Rigid3
 
 preset, mode, n_sphere = sys.argv[1], sys.argv[2], int(sys.argv[3])
@@ -49,15 +51,6 @@ init = read_init_pose(INIT)
 eye0 = init.inverse().t - centre
 radius = float(np.linalg.norm(eye0))
 el0 = float(np.degrees(np.arcsin(eye0[2] / radius)))
-
-
-def look_at(eye: np.ndarray, target: np.ndarray) -> Rigid3:
-    """T_world_from_cam of a camera at ``eye`` looking at ``target``, x level."""
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0, 0, 1.0])
-    x /= np.linalg.norm(x)
-    return Rigid3(np.stack([x, np.cross(z, x), z], 1), eye)
 
 
 class Inst:
@@ -83,12 +76,7 @@ def build_templates() -> tuple[np.ndarray, list]:
         T = look_at(centre + radius * d, centre)
         f = rt.render(T, with_full_masks=False, with_normals=False)
         Xc, uv, n = contour_samples(f.depth_m, f.rays_cam, f.range_m, lcfg, f.instance)
-
-        def lift(px: np.ndarray, Xc: np.ndarray = Xc) -> np.ndarray:
-            return np.stack([(px[:, 0] - Kt[0, 2]) / Kt[0, 0] * Xc[:, 2],
-                             (px[:, 1] - Kt[1, 2]) / Kt[1, 1] * Xc[:, 2], Xc[:, 2]], 1)
-
-        tip = T.apply(lift(uv + n)) - T.apply(lift(uv))
+        tip = T.apply(backproject(Kt, uv + n, Xc[:, 2])[0]) - T.apply(backproject(Kt, uv, Xc[:, 2])[0])
         out.append((T.apply(Xc).astype(np.float32), tip.astype(np.float32), E.sample_instances(uv, n, f.instance)))
     mem = sum(a.nbytes + b.nbytes + c.nbytes for a, b, c in out)
     print(f"{len(dirs)} templates of {n_sphere} on the sphere, built in {time.perf_counter() - t0:.0f} s, "
